@@ -1,0 +1,1 @@
+"""Instrument drivers: one module per instrument. Never imports sim_backend."""

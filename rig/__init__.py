@@ -1,0 +1,1 @@
+"""The acquisition controller: protocol, runner, safety supervision, recording."""

@@ -1,0 +1,54 @@
+"""The ``shakerlab`` command line.
+
+Each package contributes its own sub-commands through a ``commands`` module
+with a ``register(subparsers)`` function; this module only assembles them.
+Command modules must stay light at import time (heavy imports go inside the
+handlers) so that ``shakerlab --help`` is instant.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from shakerlab import __version__
+from shakerlab.errors import UserFacingError
+
+COMMAND_MODULES = (
+    "recon.commands",
+    "sim_backend.commands",
+    "rig.commands",
+    "shakerlab.import_command",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="shakerlab",
+        description="Shaker-rig experiments on hysteretic structures.",
+    )
+    parser.add_argument("--version", action="version", version=f"shakerlab {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "handler", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.handler(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except UserFacingError as exc:
+        print(f"shakerlab {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
