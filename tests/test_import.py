@@ -1,0 +1,64 @@
+"""`shakerlab import`: CSV stage files -> run file; bad files name line and column."""
+import numpy as np
+import pytest
+
+from shakerlab.cli import main
+from shakerlab.errors import UserFacingError
+from shakerlab.import_command import import_csv
+from shakerlab.run_data import load_run
+
+
+def _csv(path, header, cols):
+    lines = [header] + [",".join(repr(float(v)) for v in row) for row in np.column_stack(cols)]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_import_base_excitation_cli(tmp_path, capsys):
+    t = np.arange(200) / 500.0
+    lin = _csv(tmp_path / "lin.csv", "t,x_base,x_tip", [t + 3.0, np.sin(t), 2 * np.sin(t)])
+    non = _csv(tmp_path / "non.csv", "# exported by foo\nt, x_base, x_tip", [t, np.cos(t), 3 * np.cos(t)])
+    out = tmp_path / "run.h5"
+    assert main(["import", "-o", str(out), "--linear", str(lin), "--nonlinear", str(non)]) == 0
+    assert "linear: 200 samples at 500 Hz" in capsys.readouterr().out
+    run = load_run(out)
+    assert run.excitation == "base"
+    np.testing.assert_allclose(run.stage("linear").t, t, atol=1e-12)
+    np.testing.assert_allclose(run.stage("nonlinear").y, 2 * np.cos(t))
+    assert run.stage("linear").settings["source_t0"] == 3.0
+
+
+def test_import_force_excitation(tmp_path):
+    t = np.arange(50) / 100.0
+    f = _csv(tmp_path / "f.csv", "t,force,x", [t, np.sin(t), np.cos(t)])
+    run = load_run(import_csv(tmp_path / "r.h5", {"linear": f}))
+    assert run.excitation == "force"
+    np.testing.assert_allclose(run.stage("linear").y, np.cos(t))
+
+
+@pytest.mark.parametrize("text, match", [
+    ("t,x_base,x_tip\n0,1,2\n0.1,abc,2\n", r"line 3, column 2 \(x_base\): 'abc' is not a number"),
+    ("t,x_base,x_tip\n0,1,2\n0.1,1\n", r"line 3: 2 column\(s\), the header has 3"),
+    ("t,x_base,x_tip\n0,1,2\n0,1,2\n", r"line 3, column 1 \(t\): time 0 does not increase"),
+    ("t,x_base,x_tip\n0,1,2\n1,1,nan\n", r"line 3, column 3 \(x_tip\): value 'nan' is not finite"),
+    ("time,a,b\n0,1,2\n", r"line 1: header is 'time,a,b'"),
+    ("", r"empty file"),
+])
+def test_bad_files_name_line_and_column(tmp_path, text, match):
+    bad = tmp_path / "bad.csv"
+    bad.write_text(text)
+    with pytest.raises(UserFacingError, match=match):
+        import_csv(tmp_path / "r.h5", {"linear": bad})
+    assert not (tmp_path / "r.h5").exists()
+
+
+def test_cli_errors(tmp_path, capsys):
+    t = np.arange(10.0)
+    a = _csv(tmp_path / "a.csv", "t,x_base,x_tip", [t, t, t])
+    b = _csv(tmp_path / "b.csv", "t,force,x", [t, t, t])
+    assert main(["import", "-o", str(tmp_path / "r.h5"), "--linear", str(a), "--nonlinear", str(b)]) == 2
+    assert "mix excitation kinds" in capsys.readouterr().err
+    assert main(["import", "-o", str(tmp_path / "r.h5")]) == 2
+    assert "nothing to import" in capsys.readouterr().err
+    assert main(["import", "-o", str(tmp_path / "r.h5"), "--linear", str(tmp_path / "nope.csv")]) == 2
+    assert "nope.csv: no such file" in capsys.readouterr().err
