@@ -1,0 +1,293 @@
+"""The rig's instruments behind one object: connect, prepare, acquire aligned blocks, make safe.
+
+:class:`RigInstruments` owns the four drivers (generator, amplifier, base and
+tip sensors) at the addresses of a :class:`~rig.config.RigConfig`, the
+amplifier heartbeat thread, and the alignment of the two sensor streams on
+their shared sample index (both are armed before one common trigger).
+
+The heartbeat feeds the amplifier's comms watchdog from a background thread
+only while the runner keeps making progress (:meth:`mark_alive`): if the
+controller process dies or its loop stalls for ``stall_timeout_s``, the
+heartbeat stops and the amplifier mutes itself within its watchdog timeout.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+MIN_VPP = 0.001  # the generator's lowest amplitude; "zero" = this, then output off
+
+
+@dataclass
+class Block:
+    """Samples ``index0 .. index0+n-1`` of both sensors, aligned, plus the drive state."""
+
+    index0: int
+    fs: float
+    x_base: np.ndarray
+    x_tip: np.ndarray
+    flags_base: np.ndarray
+    flags_tip: np.ndarray
+    amplitude_vpp: float = 0.0
+    frequency_hz: float = 0.0
+    output: bool = False
+    current_a: float | None = None
+    amplifier_faults: list = field(default_factory=list)
+    stage: str | None = None
+
+    @property
+    def n(self) -> int:
+        return int(self.x_base.size)
+
+    @property
+    def end_index(self) -> int:
+        return self.index0 + self.n
+
+    @property
+    def run_time(self) -> float:
+        """Time of the block's end since the common trigger [s]."""
+        return self.end_index / self.fs
+
+
+class _Aligner:
+    """Joins two sensor streams on their sample index; counts lost samples."""
+
+    def __init__(self):
+        self.pending = {0: [], 1: []}  # per channel: list of (index0, values, flags)
+        self.next_expected = {0: 0, 1: 0}
+        self.emitted = 0
+        self.lost = 0
+
+    def add(self, ch: int, block) -> None:
+        n = len(block.values)
+        if n == 0:
+            return
+        if block.index0 != self.next_expected[ch]:
+            gap = block.index0 - self.next_expected[ch]
+            raise SamplesLost(f"sensor {'tip' if ch else 'base'}: {gap} sample(s) lost before index {block.index0} "
+                              f"(expected {self.next_expected[ch]})", gap)
+        self.next_expected[ch] = block.index0 + n
+        self.pending[ch].append((block.index0, np.asarray(block.values, float), np.asarray(block.flags, np.uint8)))
+
+    def take(self):
+        """The aligned samples available on both channels: (index0, [values, flags] x 2)."""
+        end = min(self.next_expected[0], self.next_expected[1])
+        if end <= self.emitted:
+            return None
+        out = []
+        for ch in (0, 1):
+            vals = np.concatenate([p[1] for p in self.pending[ch]])
+            flags = np.concatenate([p[2] for p in self.pending[ch]])
+            first = self.pending[ch][0][0]
+            cut = end - first
+            out.append((vals[:cut], flags[:cut]))
+            self.pending[ch] = [(end, vals[cut:], flags[cut:])] if cut < vals.size else []
+        index0 = self.emitted
+        self.emitted = end
+        return index0, out
+
+
+class SamplesLost(Exception):
+    def __init__(self, message: str, n: int):
+        super().__init__(message)
+        self.n = n
+
+
+class RigInstruments:
+    """Drivers for one rig configuration. ``lockstep=True`` for a simulated rig run as fast as possible."""
+
+    def __init__(self, config, lockstep: bool = False):
+        self.config = config
+        self.lockstep = lockstep
+        self.fs = float(config.acquisition["sample_rate_hz"])
+        self.block_n = max(1, int(round(config.acquisition["block_s"] * self.fs)))
+        self.gen = self.amp = self.base = self.tip = None
+        self.amp_lock = threading.RLock()
+        self._aligner = _Aligner()
+        self._last_fetch = 0.0
+        self._alive = time.monotonic()
+        self._hb_thread: threading.Thread | None = None
+        self._hb_stop = threading.Event()
+        self.heartbeat_error: Exception | None = None
+        self.heartbeat_stalled = False
+        self.identities: dict[str, str] = {}
+        self.vpp = 0.0
+        self.frequency = 0.0
+        self.output = False
+
+    # -- connection -------------------------------------------------------------------------
+    def connect(self) -> dict:
+        """Open every driver and identify it; return {name: identity}."""
+        from drivers.laser_sensor import LaserSensor
+        from drivers.power_amplifier import PowerAmplifier
+        from drivers.signal_generator import SignalGenerator
+
+        d = self.config.data
+        self.gen = SignalGenerator(d["generator"]["url"], timeout=d["generator"]["timeout_s"])
+        self.amp = PowerAmplifier(d["amplifier"]["address"], device_id=d["amplifier"]["device_id"],
+                                  timeout=d["amplifier"]["timeout_s"])
+        self.base = LaserSensor(d["sensors"]["base"]["url"], timeout=d["sensors"]["base"]["timeout_s"])
+        self.tip = LaserSensor(d["sensors"]["tip"]["url"], timeout=d["sensors"]["tip"]["timeout_s"])
+        self.identities = {"generator": self.gen.identify(), "amplifier": self.amp.identify(),
+                           "sensor_base": self.base.identify(), "sensor_tip": self.tip.identify()}
+        return self.identities
+
+    def prepare(self, supervisor) -> None:
+        """Put every instrument in a known, silent state and set the hardware limits."""
+        d = self.config.data
+        lim = self.config.limits
+        gen = self.gen
+        gen.reset()
+        gen.output = False
+        gen.offset = 0.0
+        gen.amplitude = MIN_VPP
+        half = lim["max_generator_vpp"] / 2
+        gen.set_voltage_limits(-half, half)
+        gen.check_errors()
+        for s in (self.base, self.tip):
+            s.sampling_rate = self.fs
+        supervisor.check_gain(d["amplifier"]["gain"])
+        with self.amp_lock:
+            amp = self.amp
+            amp.enabled = False
+            amp.reset_faults()
+            amp.gain = d["amplifier"]["gain"]
+            amp.current_limit = d["amplifier"]["current_limit_a"]
+            amp.watchdog_timeout = d["amplifier"]["watchdog_timeout_s"]
+            amp.enabled = True  # the generator output is off: nothing flows yet
+        self.vpp, self.output = MIN_VPP, False
+
+    def settings(self) -> dict:
+        """Every setting read back from the instruments (for the run file)."""
+        out = {}
+        g = self.gen
+        out["generator"] = {"address": self.config.data["generator"]["url"], "frequency_hz": g.frequency,
+                            "amplitude_vpp": g.amplitude, "offset_v": g.offset, "output": g.output,
+                            "voltage_limit_vpp": self.config.limits["max_generator_vpp"]}
+        with self.amp_lock:
+            a = self.amp
+            out["amplifier"] = {"address": self.config.data["amplifier"]["address"],
+                                "device_id": self.config.data["amplifier"]["device_id"],
+                                "enabled": a.enabled, "gain": a.gain, "current_limit_a": a.current_limit,
+                                "watchdog_timeout_s": a.watchdog_timeout}
+        for name, s in (("sensor_base", self.base), ("sensor_tip", self.tip)):
+            out[name] = {"address": self.config.data["sensors"][name.split("_")[1]]["url"],
+                         "sampling_rate_hz": s.sampling_rate, "measuring_range_m": s.measuring_range}
+        return out
+
+    # -- heartbeat --------------------------------------------------------------------------
+    def mark_alive(self) -> None:
+        self._alive = time.monotonic()
+
+    def start_heartbeat(self) -> None:
+        period = self.config.data["amplifier"]["watchdog_timeout_s"] / 4
+        stall = self.config.acquisition["stall_timeout_s"]
+        self._hb_stop.clear()
+        self.mark_alive()
+
+        def loop():
+            while not self._hb_stop.wait(period):
+                if time.monotonic() - self._alive > stall:
+                    self.heartbeat_stalled = True  # let the watchdog mute the amplifier
+                    continue
+                try:
+                    with self.amp_lock:
+                        self.amp.heartbeat()
+                except Exception as exc:  # noqa: BLE001 - reported to the runner
+                    self.heartbeat_error = exc
+                    return
+
+        self._hb_thread = threading.Thread(target=loop, name="amplifier-heartbeat", daemon=True)
+        self._hb_thread.start()
+
+    def stop_heartbeat(self) -> None:
+        self._hb_stop.set()
+        if self._hb_thread is not None:
+            self._hb_thread.join(timeout=2.0)
+            self._hb_thread = None
+
+    # -- acquisition --------------------------------------------------------------------------
+    def start_acquisition(self) -> None:
+        """Arm both sensors (continuous) and fire the common trigger: sample 0 of both."""
+        self.base.arm(None)
+        self.tip.arm(None)
+        self.gen.trigger()
+        self._aligner = _Aligner()
+        self._last_fetch = time.monotonic()
+
+    def fetch(self) -> Block:
+        """The next aligned block of both sensors (waits for it in real time)."""
+        while True:
+            if self.lockstep:
+                self._aligner.add(0, self.base.fetch(self.block_n))
+                self._aligner.add(1, self.tip.fetch(self.block_n))
+            else:
+                wait = self._last_fetch + self.block_n / self.fs - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+                self._last_fetch = time.monotonic()
+                self._aligner.add(0, self.base.fetch())
+                self._aligner.add(1, self.tip.fetch())
+            got = self._aligner.take()
+            if got is not None:
+                break
+        index0, ((xb, fb), (xt, ft)) = got
+        with self.amp_lock:
+            current = self.amp.output_current
+            faults = self.amp.check_errors()
+        self.mark_alive()
+        return Block(index0=index0, fs=self.fs, x_base=xb, x_tip=xt, flags_base=fb, flags_tip=ft,
+                     amplitude_vpp=self.vpp if self.output else 0.0, frequency_hz=self.frequency,
+                     output=self.output, current_a=current, amplifier_faults=list(faults))
+
+    # -- drive ----------------------------------------------------------------------------------
+    def set_frequency(self, hz: float) -> None:
+        self.gen.frequency = hz
+        self.frequency = hz
+
+    def set_amplitude(self, vpp: float) -> None:
+        """Set the generator amplitude; at or below MIN_VPP the output is switched off."""
+        if vpp <= MIN_VPP:
+            if self.output:
+                self.gen.amplitude = MIN_VPP
+                self.gen.output = False
+            self.vpp, self.output = MIN_VPP, False
+            return
+        self.gen.amplitude = vpp
+        self.vpp = vpp
+        if not self.output:
+            self.gen.output = True
+            self.output = True
+
+    def mute(self) -> list[str]:
+        """Generator output off and amplifier safe (each tried even if the other fails); return problems."""
+        problems = []
+        try:
+            self.gen.output = False
+            self.output = False
+        except Exception as exc:  # noqa: BLE001
+            problems.append(f"generator: {exc}")
+        try:
+            with self.amp_lock:
+                self.amp.safe_state()
+        except Exception as exc:  # noqa: BLE001
+            problems.append(f"amplifier: {exc}")
+        return problems
+
+    def close(self) -> None:
+        self.stop_heartbeat()
+        for drv in (self.base, self.tip):
+            if drv is not None:
+                try:
+                    drv.stop()
+                except Exception:  # noqa: BLE001 - closing anyway
+                    pass
+        for drv in (self.gen, self.amp, self.base, self.tip):
+            if drv is not None:
+                try:
+                    drv.close()
+                except Exception:  # noqa: BLE001
+                    pass

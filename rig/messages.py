@@ -1,0 +1,87 @@
+"""The messages a plan yields and the runner executes (the bluesky idea, kept small).
+
+A plan is a generator: ``result = yield Message(...)``. The runner executes
+each message against the instruments and sends back its result (only
+:class:`Acquire` returns something: the samples of its window). A plan never
+touches an instrument itself, so the same plan runs headless, in the GUI and
+in tests, and the runner can pause, abort and supervise it anywhere.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class BeginStage:
+    """Start recording a stage; ``settings`` go into the run file with it."""
+
+    name: str
+    settings: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class EndStage:
+    """Ramp the output to zero, switch it off, and close the stage with a summary."""
+
+    summary: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SetFrequency:
+    """Change the drive frequency (the amplitude is unchanged)."""
+
+    hz: float
+
+
+@dataclass(frozen=True)
+class Ramp:
+    """Ramp the generator amplitude to ``vpp`` at the configured rate, acquiring meanwhile.
+
+    Switches the output on first (at the lowest amplitude) when it is off.
+    """
+
+    vpp: float
+    label: str = ""
+
+
+@dataclass(frozen=True)
+class Acquire:
+    """Hold the current setpoint for ``duration_s`` and return the window's samples (:class:`Window`).
+
+    A pause inside the window restarts it after resuming, so the window is
+    always uninterrupted steady excitation.
+    """
+
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class Rest:
+    """Output off (ramped down first) for ``duration_s``; samples are not recorded outside a stage."""
+
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class Log:
+    level: str
+    message: str
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A safe place to pause between steps."""
+
+
+@dataclass
+class Window:
+    """The samples an :class:`Acquire` returns."""
+
+    index0: int
+    fs: float
+    x_base: np.ndarray
+    x_tip: np.ndarray
+    amplitude_vpp: float
+    frequency_hz: float

@@ -1,0 +1,192 @@
+"""The protocol as a plan: a generator of messages (see :mod:`rig.messages`).
+
+:func:`protocol_plan` turns a validated :class:`~rig.protocol.Protocol` into
+the stage sequence; each stage is its own small plan so tests can run one
+stage alone. The plans decide from measured data (the resonance search finds
+the frequency the nonlinear stage uses; the nonlinear stage raises the
+amplitude until the response is clearly nonlinear), but they never talk to
+an instrument: the runner does, and supervises every block.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from rig import analysis
+from rig.messages import Acquire, BeginStage, Checkpoint, EndStage, Log, Ramp, Rest, SetFrequency
+
+
+class PlanContext:
+    """What the stages learn and pass on (resonance, final amplitude), plus the limits."""
+
+    def __init__(self, limits: dict):
+        self.limits = limits
+        self.resonance_hz: float | None = None
+        self.nonlinear_vpp: float | None = None
+        self.results: dict = {}
+
+
+def linear_stage(p: dict, settle_s: float):
+    yield Rest(settle_s)
+    yield BeginStage("linear", {"kind": "harmonic", **p})
+    yield SetFrequency(p["frequency_hz"])
+    yield Ramp(p["amplitude_vpp"], "linear")
+    window = yield Acquire(p["duration_s"])
+    r = analysis.response(window.x_base, window.x_tip, window.fs, p["frequency_hz"])
+    yield Log("info", f"linear stage: relative amplitude {r.relative_amplitude * 1e3:.3f} mm, "
+                      f"THD {r.thd * 100:.2f} % at {p['frequency_hz']:g} Hz")
+    yield EndStage({"response": r.to_dict()})
+    return r
+
+
+def resonance_search(p: dict, settle_s: float, ctx: PlanContext):
+    """Stepped sine over a geometric grid, then a fine grid between the peak's neighbours."""
+    yield Rest(settle_s)
+    yield BeginStage("resonance_search", {"kind": "stepped_sine", **p})
+    table = []
+
+    def measure(freqs):
+        for f in freqs:
+            yield Checkpoint()
+            yield SetFrequency(float(f))
+            if not table:
+                yield Ramp(p["amplitude_vpp"], "search")
+            if p["settle_s"] > 0:
+                yield Acquire(p["settle_s"])
+            w = yield Acquire(p["measure_s"])
+            r = analysis.response(w.x_base, w.x_tip, w.fs, float(f))
+            table.append(r)
+
+    coarse = np.geomspace(p["start_hz"], p["stop_hz"], p["steps"])
+    yield from measure(coarse)
+    i = int(np.argmax([r.transmissibility for r in table]))
+    if p["refine_steps"] > 0:
+        lo = coarse[max(i - 1, 0)]
+        hi = coarse[min(i + 1, coarse.size - 1)]
+        fine = np.geomspace(lo, hi, p["refine_steps"] + 2)[1:-1]
+        yield from measure(fine)
+    freqs = [r.frequency_hz for r in table]
+    trans = [r.transmissibility for r in table]
+    f_res = analysis.peak_frequency(freqs, trans)
+    at_edge = f_res <= min(freqs) * 1.0001 or f_res >= max(freqs) * 0.9999
+    ctx.resonance_hz = f_res
+    peak = max(table, key=lambda r: r.transmissibility)
+    msg = (f"resonance search: first resonance at {f_res:.3f} Hz (tip/base amplitude ratio "
+           f"{peak.transmissibility:.2f}, phase {peak.phase_deg:.0f} deg)")
+    yield Log("warning" if at_edge else "info",
+              msg + (" AT THE EDGE OF THE SEARCHED RANGE: widen start_hz/stop_hz" if at_edge else ""))
+    summary = {
+        "resonance_hz": f_res, "at_edge": at_edge,
+        "frequencies_hz": freqs, "transmissibility": trans,
+        "phase_deg": [r.phase_deg for r in table],
+        "base_amplitude_m": [r.base_amplitude for r in table],
+    }
+    yield EndStage(summary)
+    return f_res
+
+
+def nonlinearity_reached(p: dict, first: analysis.Response, r: analysis.Response) -> list[str]:
+    """Which stop criteria this response meets (empty list: keep raising)."""
+    reasons = []
+    if r.thd > p["thd_threshold"]:
+        reasons.append(f"THD {r.thd * 100:.1f} % > {p['thd_threshold'] * 100:g} %")
+    gain_change = r.gain / first.gain - 1.0
+    if abs(gain_change) > p["gain_change_threshold"]:
+        reasons.append(f"gain changed by {gain_change * 100:+.1f} % (threshold {p['gain_change_threshold'] * 100:g} %)")
+    if first.loss_factor > 0:
+        loss_change = r.loss_factor / first.loss_factor - 1.0
+        if abs(loss_change) > p["loss_change_threshold"]:
+            reasons.append(f"loop loss factor changed by {loss_change * 100:+.1f} % "
+                           f"(threshold {p['loss_change_threshold'] * 100:g} %)")
+    return reasons
+
+
+def predicted_limit(limits: dict, r: analysis.Response, scale: float) -> str | None:
+    """The limit the next level would approach (linear extrapolation of the response), or None."""
+    frac = limits["soft_limit_fraction"]
+    checks = (("max_base_displacement_m", r.peak_base), ("max_tip_displacement_m", r.peak_tip))
+    for key, peak in checks:
+        if peak * scale > frac * limits[key]:
+            return f"next level would reach {peak * scale * 1e3:.2f} mm > {frac:g} x {key} ({limits[key] * 1e3:g} mm)"
+    return None
+
+
+def nonlinear_stage(p: dict, settle_s: float, ctx: PlanContext):
+    """Raise the amplitude step by step near the resonance until clear nonlinearity or a limit."""
+    f = p["frequency_hz"] if p["frequency_hz"] is not None else p["frequency_factor"] * ctx.resonance_hz
+    vmax = min(p["max_vpp"], ctx.limits["max_generator_vpp"])
+    yield Rest(settle_s)
+    yield BeginStage("nonlinear", {"kind": "stepped_amplitude", **p, "drive_frequency_hz": f,
+                                   "resonance_hz": ctx.resonance_hz})
+    yield SetFrequency(f)
+    levels, stop_reason, first = [], None, None
+    vpp = p["start_vpp"]
+    while True:
+        yield Checkpoint()
+        yield Ramp(vpp, f"level {len(levels) + 1}")
+        if p["dwell_s"] > p["analysis_s"]:
+            yield Acquire(p["dwell_s"] - p["analysis_s"])
+        w = yield Acquire(p["analysis_s"])
+        r = analysis.response(w.x_base, w.x_tip, w.fs, f)
+        first = first or r
+        reasons = nonlinearity_reached(p, first, r) if len(levels) else []
+        levels.append({"amplitude_vpp": vpp, **r.to_dict(), "criteria": reasons})
+        yield Log("info", f"nonlinear level {len(levels)}: {vpp:.3f} Vpp, relative amplitude "
+                          f"{r.relative_amplitude * 1e3:.3f} mm, THD {r.thd * 100:.2f} %, gain {r.gain:.3f}, "
+                          f"loss factor {r.loss_factor:.4f}")
+        if reasons:
+            stop_reason = "nonlinearity: " + "; ".join(reasons)
+            break
+        nxt = vpp * p["step_factor"]
+        if vpp >= vmax * (1 - 1e-9):
+            stop_reason = f"amplitude limit {vmax:g} Vpp reached without clear nonlinearity"
+            break
+        nxt = min(nxt, vmax)
+        lim = predicted_limit(ctx.limits, r, nxt / vpp)
+        if lim:
+            stop_reason = "limit: " + lim
+            break
+        vpp = nxt
+    yield Log("info" if stop_reason.startswith("nonlinearity") else "warning",
+              f"nonlinear stage stops raising at {vpp:.3f} Vpp: {stop_reason}")
+    if p["hold_s"] > 0:
+        yield Acquire(p["hold_s"])
+    ctx.nonlinear_vpp = vpp
+    yield EndStage({"drive_frequency_hz": f, "final_vpp": vpp, "stop_reason": stop_reason,
+                    "nonlinear": stop_reason.startswith("nonlinearity"), "levels": levels})
+    return vpp
+
+
+def validation_stage(v: dict, settle_s: float, ctx: PlanContext):
+    f = v["frequency_hz"] if v["frequency_hz"] is not None else v["frequency_factor"] * ctx.resonance_hz
+    if v["amplitude_vpp"] is not None:
+        vpp = v["amplitude_vpp"]
+    else:
+        vpp = v["amplitude_fraction"] * ctx.nonlinear_vpp
+    vpp = min(vpp, ctx.limits["max_generator_vpp"])
+    yield Rest(settle_s)
+    yield BeginStage(v["name"], {"kind": "harmonic", **v, "drive_frequency_hz": f, "drive_vpp": vpp})
+    yield SetFrequency(f)
+    yield Ramp(vpp, v["name"])
+    w = yield Acquire(v["duration_s"])
+    r = analysis.response(w.x_base, w.x_tip, w.fs, f)
+    yield EndStage({"response": r.to_dict()})
+    return r
+
+
+def protocol_plan(protocol, limits: dict, ctx: PlanContext | None = None):
+    """The whole protocol: linear, resonance search, nonlinear, validation stages."""
+    ctx = ctx or PlanContext(limits)
+    settle = protocol["run"]["settle_s"]
+    yield Log("info", f"protocol {protocol.source}")
+    ctx.results["linear"] = yield from linear_stage(protocol["linear"], settle)
+    yield Checkpoint()
+    if protocol["resonance_search"]["enabled"]:
+        ctx.results["resonance_hz"] = yield from resonance_search(protocol["resonance_search"], settle, ctx)
+        yield Checkpoint()
+    ctx.results["nonlinear_vpp"] = yield from nonlinear_stage(protocol["nonlinear"], settle, ctx)
+    for v in protocol.validation:
+        yield Checkpoint()
+        yield from validation_stage(v, settle, ctx)
+    yield Rest(0.0)
+    return ctx
+
