@@ -1,5 +1,68 @@
 """Sub-commands contributed by ``sim_backend`` (see shakerlab.cli)."""
+from __future__ import annotations
 
 
 def register(subparsers) -> None:
     """Add this package's sub-commands to the ``shakerlab`` parser."""
+    sim = subparsers.add_parser("sim", help="the simulated rig (instrument servers on loopback)")
+    sim_sub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND")
+    serve = sim_sub.add_parser("serve", help="serve all simulated instruments until interrupted")
+    serve.add_argument("--config", help="simulator config TOML (overrides sim_backend/default_sim.toml)")
+    serve.add_argument("--speed", default="1.0",
+                       help="simulated seconds per wall-clock second (default 1.0 = real time); "
+                            "'max' = lockstep, advanced by sensor fetches")
+    serve.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    serve.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1)")
+    serve.add_argument("--pty", action="store_true", help="also serve the line instruments on ptys")
+    serve.add_argument("--duration", type=float, default=None,
+                       help="stop after this many wall-clock seconds (default: until Ctrl-C)")
+    for name in ("generator", "amplifier", "sensor-base", "sensor-tip"):
+        serve.add_argument(f"--{name}-port", type=int, default=0,
+                           help=f"TCP port of the {name.replace('-', ' ')} (default: any free port)")
+    serve.set_defaults(handler=_serve)
+    sim.set_defaults(handler=lambda args: sim.print_help() or 2)
+
+
+def _serve(args) -> int:
+    import sys
+    import time
+
+    from shakerlab.errors import UserFacingError
+    from sim_backend.rig import SimulatedRig
+
+    if args.speed == "max":
+        speed = None
+    else:
+        try:
+            speed = float(args.speed)
+        except ValueError:
+            raise UserFacingError(f"--speed must be a positive number or 'max', got {args.speed!r}") from None
+        if not speed > 0:
+            raise UserFacingError(f"--speed must be a positive number or 'max', got {args.speed!r}")
+    ports = {"generator": args.generator_port, "amplifier": args.amplifier_port,
+             "sensor_base": args.sensor_base_port, "sensor_tip": args.sensor_tip_port}
+    for name, port in ports.items():
+        if not 0 <= port <= 65535:
+            raise UserFacingError(f"--{name.replace('_', '-')}-port must be 0..65535, got {port}")
+    try:
+        rig = SimulatedRig(args.config, speed=speed, seed=args.seed, pty=args.pty, host=args.host,
+                           ports=ports)
+        rig.start()
+    except OSError as exc:
+        raise UserFacingError(f"cannot start the simulated instruments: {exc}") from None
+    try:
+        ptys = rig.pty_paths
+        for name, url in rig.addresses.items():
+            hostport = url.removeprefix("socket://")
+            line = f"{name:12s} {hostport}"
+            if name in ptys:
+                line += f"  pty {ptys[name]}"
+            print(line, flush=True)
+        mode = "lockstep (advanced by sensor fetches)" if speed is None else f"speed {speed:g}x real time"
+        print(f"simulated rig running, {mode}; Ctrl-C to stop", file=sys.stderr, flush=True)
+        t_end = None if args.duration is None else time.monotonic() + args.duration
+        while t_end is None or time.monotonic() < t_end:
+            time.sleep(0.1)
+    finally:
+        rig.stop()
+    return 0

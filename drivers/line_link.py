@@ -1,0 +1,133 @@
+"""A line-based request/reply link over pyserial (``socket://``, real serial ports, ptys).
+
+Every call has a deadline; a missing, partial or undecodable reply raises an
+:class:`~drivers.base.InstrumentError` subclass naming the instrument and the
+command, never hangs.  Reconnect policy: after any transport error or timeout
+the link is closed (so a late reply cannot be mistaken for the next one) and
+the next call reopens it, trying ``reconnect_attempts`` times with
+``reconnect_delay`` between tries.  A failed command is never re-sent
+automatically (a trigger or a buffer fetch must not happen twice).
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import serial
+
+from drivers.base import InstrumentConnectionError, InstrumentTimeout, MalformedReply
+
+MAX_REPLY = 16 * 1024 * 1024
+
+
+class LineLink:
+    def __init__(self, instrument: str, url: str, timeout: float = 1.0, write_term: str = "\n",
+                 read_term: str = "\n", baudrate: int = 115200, reconnect_attempts: int = 3,
+                 reconnect_delay: float = 0.1):
+        if not isinstance(timeout, (int, float)) or not timeout > 0:
+            raise ValueError(f"{instrument}: timeout must be > 0 s, got {timeout!r}")
+        self.instrument = instrument
+        self.url = url
+        self.timeout = float(timeout)
+        self.write_term = write_term.encode()
+        self.read_term = read_term.encode()
+        self.baudrate = baudrate
+        self.reconnect_attempts = reconnect_attempts
+        self.reconnect_delay = reconnect_delay
+        self._port: serial.SerialBase | None = None
+        self._buf = bytearray()
+        self._lock = threading.Lock()
+        self.open()
+
+    # ---- connection -----------------------------------------------------------------------
+    def open(self) -> None:
+        last = None
+        for attempt in range(max(1, self.reconnect_attempts)):
+            try:
+                self._port = serial.serial_for_url(self.url, baudrate=self.baudrate,
+                                                   timeout=self.timeout, write_timeout=self.timeout)
+                self._buf.clear()
+                return
+            except (serial.SerialException, OSError, ValueError) as exc:
+                last = exc
+                if attempt + 1 < self.reconnect_attempts:
+                    time.sleep(self.reconnect_delay)
+        raise InstrumentConnectionError(self.instrument, f"connect {self.url}",
+                                        f"cannot open: {last}")
+
+    def close(self) -> None:
+        port, self._port = self._port, None
+        if port is not None:
+            try:
+                port.close()
+            except (serial.SerialException, OSError):
+                pass
+
+    @property
+    def is_open(self) -> bool:
+        return self._port is not None
+
+    # ---- I/O ----------------------------------------------------------------------------------
+    def write(self, command: str) -> None:
+        with self._lock:
+            self._send(command)
+
+    def query(self, command: str, timeout: float | None = None) -> str:
+        with self._lock:
+            self._send(command)
+            return self._read_line(command, self.timeout if timeout is None else timeout)
+
+    def _send(self, command: str) -> None:
+        if self._port is None:
+            self.open()
+        try:
+            self._port.write(command.encode("ascii") + self.write_term)
+            self._port.flush()
+        except (serial.SerialException, OSError) as exc:
+            self.close()
+            raise InstrumentConnectionError(self.instrument, command, f"connection lost while sending: {exc}") from None
+        except serial.SerialTimeoutException:
+            self.close()
+            raise InstrumentTimeout(self.instrument, command, "write timed out") from None
+
+    def _read_line(self, command: str, timeout: float) -> str:
+        port = self._port
+        deadline = time.monotonic() + timeout
+        try:
+            while True:
+                i = self._buf.find(self.read_term)
+                if i >= 0:
+                    raw = bytes(self._buf[:i])
+                    del self._buf[: i + len(self.read_term)]
+                    break
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    partial = f" (partial reply {bytes(self._buf[:60])!r})" if self._buf else ""
+                    self.close()
+                    raise InstrumentTimeout(self.instrument, command,
+                                            f"no complete reply within {timeout:g} s{partial}")
+                port.timeout = left
+                chunk = port.read(1)
+                if chunk:
+                    port.timeout = 0
+                    chunk += port.read(1 << 20)
+                    self._buf += chunk
+                    if len(self._buf) > MAX_REPLY:
+                        self.close()
+                        raise MalformedReply(self.instrument, command, "reply exceeds 16 MiB without a terminator")
+        except (serial.SerialException, OSError) as exc:
+            self.close()
+            raise InstrumentConnectionError(self.instrument, command,
+                                            f"connection lost while waiting for the reply: {exc}") from None
+        finally:
+            if self._port is not None:
+                self._port.timeout = self.timeout
+        try:
+            text = raw.decode("ascii")
+        except UnicodeDecodeError:
+            self.close()
+            raise MalformedReply(self.instrument, command, f"non-ASCII reply {raw[:60]!r}") from None
+        if any(ord(c) < 32 and c not in "\t" for c in text):
+            self.close()
+            raise MalformedReply(self.instrument, command, f"control characters in reply {raw[:60]!r}")
+        return text.strip("\r\n")

@@ -1,0 +1,158 @@
+"""Driver for a Keysight 33500B-style function generator over SCPI (pyserial transport).
+
+Works with any pyserial URL: ``socket://host:port`` (LAN socket port 5025 on a
+real 33500B), a serial device or a pty.  Every setting is validated before it
+is sent; every write is followed (in the same line) by ``SYST:ERR?`` so an
+instrument-side rejection (e.g. a settings conflict with the voltage limits)
+raises :class:`InstrumentFault` at once, naming the command.
+"""
+from __future__ import annotations
+
+import re
+
+from drivers.base import (InstrumentError, InstrumentFault, MalformedReply, Setting,
+                          SettingRangeError, boolean, in_range, int_range, parse_bool)
+from drivers.line_link import LineLink
+
+FREQ_RANGE = (1e-6, 30e6)      # Hz (sine)
+VPP_RANGE = (1e-3, 10.0)       # Vpp into 50 ohm
+OFFSET_RANGE = (-5.0, 5.0)     # V
+LIMIT_RANGE = (-5.0, 5.0)      # V
+SWEEP_TIME_RANGE = (1e-3, 3600.0)  # s
+MAX_CYCLES = 100_000_000
+_ERR = re.compile(r'^([+-]?\d+),"(.*)"$')
+
+
+def _num(v: float) -> str:
+    return f"{v:.12g}"
+
+
+class SignalGenerator:
+    """One channel of a Keysight 33500B-style generator (sine only)."""
+
+    name = "signal generator"
+
+    def __init__(self, url: str, timeout: float = 1.0, **link_options):
+        self.url = url
+        self.link = LineLink(self.name, url, timeout=timeout, write_term="\n", read_term="\n",
+                             **link_options)
+
+    # ---- transport primitives used by Setting ------------------------------------------------
+    def _query(self, command: str) -> str:
+        return self.link.query(command)
+
+    def _write(self, command: str) -> None:
+        """Send a command and check the error queue in the same round trip."""
+        reply = self.link.query(f"{command};:SYST:ERR?")
+        code, text = self._parse_error(command, reply)
+        if code != 0:
+            more = self.check_errors()
+            detail = f"{code:+d},\"{text}\"" + (f" (and {'; '.join(more)})" if more else "")
+            raise InstrumentFault(self.name, command, f"rejected by the instrument: {detail}")
+
+    def _parse_error(self, command: str, reply: str) -> tuple[int, str]:
+        m = _ERR.match(reply.strip())
+        if not m:
+            raise MalformedReply(self.name, command, f"expected an error-queue entry, got {reply!r}")
+        return int(m.group(1)), m.group(2)
+
+    # ---- settings ------------------------------------------------------------------------------
+    frequency = Setting("FREQ?", "FREQ {}", in_range(*FREQ_RANGE, " Hz"), fmt=_num,
+                        doc="Output frequency [Hz].")
+    amplitude = Setting("VOLT?", "VOLT {}", in_range(*VPP_RANGE, " Vpp"), fmt=_num,
+                        doc="Output amplitude [Vpp] (into the configured load).")
+    offset = Setting("VOLT:OFFS?", "VOLT:OFFS {}", in_range(*OFFSET_RANGE, " V"), fmt=_num,
+                     doc="DC offset [V].")
+    output = Setting("OUTP?", "OUTP {}", boolean, parse=parse_bool,
+                     fmt=lambda b: "ON" if b else "OFF", doc="Output relay on/off.")
+    sweep_enabled = Setting("SWE:STAT?", "SWE:STAT {}", boolean, parse=parse_bool,
+                            fmt=lambda b: "ON" if b else "OFF", doc="Linear frequency sweep on/off.")
+    burst_enabled = Setting("BURS:STAT?", "BURS:STAT {}", boolean, parse=parse_bool,
+                            fmt=lambda b: "ON" if b else "OFF", doc="Triggered burst mode on/off.")
+    voltage_limits_enabled = Setting("VOLT:LIM:STAT?", "VOLT:LIM:STAT {}", boolean, parse=parse_bool,
+                                     fmt=lambda b: "ON" if b else "OFF",
+                                     doc="Output voltage limits active.")
+
+    @property
+    def voltage_limits(self) -> tuple[float, float]:
+        """(low, high) output voltage limits [V]."""
+        low = self._float("VOLT:LIM:LOW?")
+        high = self._float("VOLT:LIM:HIGH?")
+        return low, high
+
+    def _float(self, command: str) -> float:
+        reply = self._query(command)
+        try:
+            return float(reply)
+        except ValueError:
+            raise MalformedReply(self.name, command, f"expected a number, got {reply!r}") from None
+
+    # ---- methods -----------------------------------------------------------------------------------
+    def identify(self) -> str:
+        reply = self._query("*IDN?")
+        if reply.count(",") != 3:
+            raise MalformedReply(self.name, "*IDN?", f"expected 'maker,model,serial,firmware', got {reply!r}")
+        return reply
+
+    def reset(self) -> None:
+        """*RST and *CLS: factory settings, output off, empty error queue."""
+        reply = self._query("*RST;*CLS;*OPC?")
+        if reply.strip() != "1":
+            raise MalformedReply(self.name, "*RST;*CLS;*OPC?", f"expected '1', got {reply!r}")
+
+    def check_errors(self) -> list[str]:
+        """Drain the instrument's error queue; [] when there is no error."""
+        errors = []
+        for _ in range(64):
+            code, text = self._parse_error("SYST:ERR?", self._query("SYST:ERR?"))
+            if code == 0:
+                return errors
+            errors.append(f"{code:+d},\"{text}\"")
+        raise InstrumentFault(self.name, "SYST:ERR?", f"error queue does not empty: {errors[:3]}...")
+
+    def set_voltage_limits(self, low: float, high: float) -> None:
+        """Set and enable the output voltage limits; the current settings must fit inside."""
+        low = in_range(*LIMIT_RANGE, " V")(self.name, "VOLT:LIM:LOW", low)
+        high = in_range(*LIMIT_RANGE, " V")(self.name, "VOLT:LIM:HIGH", high)
+        if not low < high:
+            raise SettingRangeError(self.name, "set_voltage_limits", f"low {low:g} V must be below high {high:g} V")
+        self._write(f"VOLT:LIM:STAT OFF;:VOLT:LIM:HIGH {_num(LIMIT_RANGE[1])};:VOLT:LIM:LOW {_num(low)};"
+                    f":VOLT:LIM:HIGH {_num(high)};:VOLT:LIM:STAT ON")
+
+    def configure_sweep(self, start_hz: float, stop_hz: float, duration_s: float) -> None:
+        """Linear sweep from start_hz to stop_hz in duration_s (enable with sweep_enabled)."""
+        start = in_range(*FREQ_RANGE, " Hz")(self.name, "FREQ:STAR", start_hz)
+        stop = in_range(*FREQ_RANGE, " Hz")(self.name, "FREQ:STOP", stop_hz)
+        duration = in_range(*SWEEP_TIME_RANGE, " s")(self.name, "SWE:TIME", duration_s)
+        self._write(f"SWE:SPAC LIN;:FREQ:STAR {_num(start)};:FREQ:STOP {_num(stop)};:SWE:TIME {_num(duration)}")
+
+    def configure_burst(self, n_cycles: int, enable: bool = True) -> None:
+        """Triggered burst of n_cycles sine cycles per trigger()."""
+        n = int_range(1, MAX_CYCLES)(self.name, "BURS:NCYC", n_cycles)
+        boolean(self.name, "BURS:STAT", enable)
+        self._write(f"BURS:MODE TRIG;:TRIG:SOUR BUS;:BURS:NCYC {n};:BURS:STAT {'ON' if enable else 'OFF'}")
+
+    def trigger(self) -> None:
+        """*TRG: fires a burst / restarts a sweep and pulses the trigger output (the common
+        trigger line of the displacement sensors).  Returns once the instrument has done it."""
+        reply = self._query("*TRG;*OPC?")
+        if reply.strip() != "1":
+            raise MalformedReply(self.name, "*TRG;*OPC?", f"expected '1', got {reply!r}")
+
+    def safe_state(self) -> None:
+        """Output off (raises InstrumentError if the instrument cannot confirm it)."""
+        self._write("OUTP OFF")
+        if self.output:
+            raise InstrumentFault(self.name, "OUTP OFF", "output still reports ON")
+
+    def close(self) -> None:
+        self.link.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+__all__ = ["SignalGenerator", "InstrumentError"]

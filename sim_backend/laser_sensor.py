@@ -1,0 +1,205 @@
+"""Simulated laser displacement sensor controller (ASCII protocol in the style of Keyence LK-G).
+
+Requests and replies end with CR.  Readings are in millimetres with five
+decimals (10 nm).  See docs/protocols.md for the command set.  Both simulated
+sensors read the same world, so buffered acquisitions armed before a common
+trigger (the generator's ``*TRG``) share one time base: sample ``n`` of either
+sensor is world step ``trigger_step + n * decimation``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+MODEL = "shakerlab SIM-LKG5001"
+RATES = (1000, 2000, 5000, 10000, 20000, 50000)  # the controller's selectable sampling rates [Hz]
+MAX_PER_REPLY = 100_000
+MAX_ARM = 1_000_000_000
+OVER_POS, OVER_NEG, LOSS = "+FFFFFFF", "-FFFFFFF", "XXXXXXXX"
+
+E_COMMAND, E_PARAM, E_RANGE, E_STATE = "00", "20", "22", "30"
+
+
+class _Err(Exception):
+    def __init__(self, cmd: str, code: str):
+        self.cmd = cmd
+        self.code = code
+
+
+class SimLaserSensor:
+    def __init__(self, world, channel: int, name: str):
+        self.world = world
+        self.channel = channel  # 0 base, 1 tip
+        self.name = name
+        cfg = world.config["sensors"]
+        self.range_m = float(cfg["range"])
+        self.resolution = float(cfg["resolution"])
+        self.signal_loss = False  # test hook: the laser spot is lost (e.g. dust, specimen edge)
+        self.rate = int(world.sample_rate) if int(world.sample_rate) in RATES else RATES[0]
+        self.state = "IDLE"
+        self.n_target: int | None = None
+        self.armed_at_trigger = 0
+        self.start_step = 0
+        self.next_index = 0
+        self.overflow = False
+        self.loss_seen = False
+
+    @property
+    def decimation(self) -> int:
+        return int(round(self.world.sample_rate / self.rate))
+
+    # ---- protocol ---------------------------------------------------------------------------
+    def handle(self, line: str) -> str:
+        cmd, *args = [p.strip() for p in line.split(",")]
+        cmd = cmd.upper()
+        try:
+            handler = getattr(self, f"_cmd_{cmd}", None)
+            if handler is None:
+                raise _Err(cmd, E_COMMAND)
+            return handler(args)
+        except _Err as exc:
+            return f"ER,{exc.cmd},{exc.code}"
+
+    def _cmd_ID(self, args):
+        self._no_args("ID", args)
+        return f"ID,{MODEL},{self.name}"
+
+    def _cmd_RG(self, args):
+        self._no_args("RG", args)
+        return f"RG,{self.range_m * 1e3:.3f}"
+
+    def _cmd_SS(self, args):
+        if not args:
+            return f"SS,{self.rate}"
+        if len(args) != 1 or not args[0].isdigit():
+            raise _Err("SS", E_PARAM)
+        rate = int(args[0])
+        if rate not in RATES or self.world.sample_rate % rate:
+            raise _Err("SS", E_RANGE)
+        if self.state in ("ARMED", "RUNNING"):
+            raise _Err("SS", E_STATE)
+        self.rate = rate
+        return "SS"
+
+    def _cmd_M0(self, args):
+        self._no_args("M0", args)
+        w = self.world
+        with w.lock:
+            w.catch_up()
+            if w.step == 0:
+                w.advance(1)
+            value = w.readings(self.channel, np.array([w.step - 1]))[0]
+        return "M0," + self._format(np.array([value]))[0]
+
+    def _cmd_AS(self, args):
+        if len(args) != 1 or not args[0].isdigit():
+            raise _Err("AS", E_PARAM)
+        n = int(args[0])
+        if n > MAX_ARM:
+            raise _Err("AS", E_RANGE)
+        with self.world.lock:
+            self.n_target = n or None
+            self.armed_at_trigger = self.world.trigger_count
+            self.state = "ARMED"
+            self.next_index = 0
+            self.overflow = False
+        return "AS"
+
+    def _cmd_AQ(self, args):
+        self._no_args("AQ", args)
+        self.state = "IDLE"
+        return "AQ"
+
+    def _cmd_ST(self, args):
+        self._no_args("ST", args)
+        with self.world.lock:
+            self._update_state()
+            acquired = self._available() if self.state in ("RUNNING", "DONE") else 0
+        return f"ST,{self.state},{acquired},{self.next_index}"
+
+    def _cmd_EQ(self, args):
+        """Alarm bits since the last EQ: bit0 buffer overflow, bit1 signal loss."""
+        self._no_args("EQ", args)
+        bits = (1 if self.overflow else 0) | (2 if (self.loss_seen or self.signal_loss) else 0)
+        self.overflow = False
+        self.loss_seen = False
+        return f"EQ,{bits}"
+
+    def _cmd_AO(self, args):
+        if len(args) > 1 or (args and not args[0].isdigit()):
+            raise _Err("AO", E_PARAM)
+        max_n = int(args[0]) if args else None
+        if max_n is not None and not 1 <= max_n <= MAX_PER_REPLY:
+            raise _Err("AO", E_RANGE)
+        w = self.world
+        with w.lock:
+            self._update_state()
+            if self.state == "IDLE":
+                raise _Err("AO", E_STATE)
+            if self.state == "ARMED":
+                return "AO,0,0"
+            k = self.decimation
+            want = max_n if max_n is not None else MAX_PER_REPLY
+            if w.lockstep:
+                goal = self.next_index + (max_n if max_n is not None else max(1, w.lockstep_block // k))
+                if max_n is None and self._available() > self.next_index:
+                    goal = self.next_index  # something new already: return it without advancing
+                if self.n_target is not None:
+                    goal = min(goal, self.n_target)
+                if goal > 0:
+                    w.ensure_step(self.start_step + (goal - 1) * k + 1)
+            else:
+                w.catch_up()
+            avail = self._available()
+            # samples that fell out of the ring are lost: flag the overflow and skip ahead
+            oldest = w.oldest_step() + w.delay_steps
+            first_ok = max(0, math.ceil((oldest - self.start_step) / k))
+            if self.next_index < first_ok:
+                self.overflow = True
+                self.next_index = min(first_ok, avail)
+            n = max(0, min(want, avail - self.next_index))
+            index0 = self.next_index
+            steps = self.start_step + (index0 + np.arange(n, dtype=np.int64)) * k
+            values = w.readings(self.channel, steps)
+            self.next_index += n
+            self._update_state()
+        parts = self._format(values)
+        return f"AO,{index0},{n}" + ("," + ",".join(parts) if n else "")
+
+    # ---- helpers --------------------------------------------------------------------------------
+    @staticmethod
+    def _no_args(cmd, args):
+        if args:
+            raise _Err(cmd, E_PARAM)
+
+    def _update_state(self) -> None:
+        w = self.world
+        if self.state == "ARMED" and w.trigger_count > self.armed_at_trigger:
+            self.start_step = w.trigger_steps[self.armed_at_trigger]
+            self.state = "RUNNING"
+        if self.state == "RUNNING" and self.n_target is not None and self.next_index >= self.n_target:
+            self.state = "DONE"
+
+    def _available(self) -> int:
+        """Samples acquired so far (index < world.step)."""
+        k = self.decimation
+        n = max(0, math.ceil((self.world.step - self.start_step) / k))
+        if self.n_target is not None:
+            n = min(n, self.n_target)
+        return n
+
+    def _format(self, values: np.ndarray) -> list[str]:
+        if self.signal_loss:
+            self.loss_seen = True
+            return [LOSS] * len(values)
+        q = np.round(values / self.resolution) * self.resolution
+        out = []
+        for v in q:
+            if v > self.range_m:
+                out.append(OVER_POS)
+            elif v < -self.range_m:
+                out.append(OVER_NEG)
+            else:
+                out.append(f"{v * 1e3:+.5f}")
+        return out
