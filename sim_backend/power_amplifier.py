@@ -218,6 +218,9 @@ class SimPowerAmplifier:
         A[ph.A_OC] = 0.0
         A[ph.A_CLIP] = 0.0
         A[ph.A_WD] = 0.0
-        # over-temperature only clears once the stage has cooled 5 K below the trip level
-        if X[ph.X_T] < self.world.P[ph.P_TMAX] - 5.0:
+        # over-temperature only clears once the stage has cooled below the trip level by
+        # 5 K (or half the way to ambient when that is less)
+        P = self.world.P
+        hysteresis = min(5.0, 0.5 * (P[ph.P_TMAX] - P[ph.P_TAMB]))
+        if X[ph.X_T] < P[ph.P_TMAX] - hysteresis:
             A[ph.A_OT] = 0.0
