@@ -165,6 +165,18 @@ class LineServer:
             else:
                 send(out)
 
+    def drop_connections(self) -> None:
+        """Close every open connection but keep listening (a network glitch)."""
+        with self._lock:
+            clients = list(self._clients)
+            self._clients.clear()
+        for s in clients:
+            try:
+                s.shutdown(socket.SHUT_RDWR)
+                s.close()
+            except OSError:
+                pass
+
     def kill(self) -> None:
         """Abruptly close everything (listening socket, connections, pty)."""
         with self._lock:

@@ -65,6 +65,7 @@ class SimPowerAmplifier:
         self.last_activity = time.monotonic()
         self.alive = False
         self.requests = 0
+        self.response_delay = 0.0  # test hook: seconds each request takes (timeouts, kill mid-request)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._server: ModbusTcpServer | None = None
         self._thread: threading.Thread | None = None
@@ -159,6 +160,8 @@ class SimPowerAmplifier:
     async def _action(self, function_code, start_address, address, count, registers, set_values):
         self.last_activity = time.monotonic()
         self.requests += 1
+        if self.response_delay > 0:
+            await asyncio.sleep(self.response_delay)
         if set_values is not None:
             return self._write(address, set_values, registers, start_address)
         if address + count > REG_STATUS and address < REG_IDENT:
