@@ -1,0 +1,324 @@
+"""Identification from ONE excitation level under force excitation (periodic records).
+
+The project's main pipeline (recon.pipeline) separates a small-amplitude
+*linear* stage from a large-amplitude *nonlinear* stage: the linear step sees
+almost no hysteresis, so its (c, K, 1/m) are unbiased, and the agent-model
+step then works on the nonlinear restoring force ``Fn``.  Data sets such as
+the Bouc-Wen benchmark have a single level: the hysteresis is fully active in
+the only record, so a linear least-squares fit absorbs the hysteretic force
+into "equivalent" damping and stiffness (on the benchmark: c/m +740 %,
+K/m +20 %), and ``Fn`` computed from those is not the hysteretic force.
+
+What this module does instead (all on the same record):
+
+1. **Periodic preprocessing** (:func:`periodic_record`).  A multisine record of
+   P whole periods is averaged over periods 2..P (period 1 holds the start-up
+   transient), the noise variance of every DFT bin is estimated from the
+   period-to-period scatter, and only bins whose signal-to-noise ratio exceeds
+   10 dB are kept.  Derivatives are taken exactly in the frequency domain on
+   those bins and the signals are interpolated to ``upsample`` times the
+   recording rate, so that products such as ``|y'| z`` (whose spectra reach far
+   past the recording's Nyquist frequency) are formed without aliasing.
+2. **Linear step** (:func:`linear_step`): least squares of
+   ``y'' = b u - c y' - K y`` (b = 1/m), band-limited to the kept bins.  Its
+   result is biased by the hysteresis; it is reported and used only to seed
+   step 3.
+3. **Hysteresis-aware linear re-estimation** (:func:`hysteresis_step`).  The
+   hysteretic force is not measurable, but its ODE
+   ``z' = alpha y' - gamma |y'| z - delta y' |z|`` is driven by the velocity
+   alone.  For a trial (alpha, gamma, delta), ``z(t)`` is integrated from the
+   measured velocity (periodic steady state); then the linear part is
+   re-estimated with the hysteresis force accounted for, by least squares on
+   the once-integrated momentum equation
+   ``y' = b I[u] - c y - k I[y] - I[z]`` (``I`` the zero-mean periodic
+   integral; only the first derivative of the noisy displacement is needed).
+   The three nonlinear parameters are then adjusted by
+   :func:`scipy.optimize.least_squares` on the remaining equation error
+   (variable projection: "linear estimate -> nonlinear step -> re-estimate the
+   linear part" iterated to convergence by the optimiser).  Optional static
+   nonlinear terms ``fn`` (monomials ``y^p y'^r``) enter the inner linear
+   least squares as extra columns ``I[y^p y'^r]``.
+4. **Output-error refinement** (:mod:`recon.output_error`): the benchmark's
+   own simulation chain, fitted to the full record from zero initial state.
+
+The result of every step is kept so that their accuracy can be compared
+(bench/boucwen.py, docs/boucwen-benchmark.md).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+from scipy.optimize import least_squares
+
+from shakerlab.errors import UserFacingError
+
+from recon import resampling
+from recon.newmark import NewmarkParameters, monomial_exponents
+
+__all__ = ["PeriodicRecord", "detect_period", "periodic_record", "linear_step", "hysteresis_step",
+           "SingleLevelResult", "identify", "LinearStep", "HysteresisStep"]
+
+SNR_DB_DEFAULT = 10.0
+
+
+def detect_period(u, min_periods: int = 2, rtol: float = 1e-9) -> int:
+    """Smallest period (in samples) such that ``u`` holds >= ``min_periods`` exact repeats."""
+    u = np.asarray(u, dtype=float)
+    n = u.size
+    scale = np.max(np.abs(u)) or 1.0
+    for p in range(1, n // min_periods + 1):
+        if n % p:
+            continue
+        if np.max(np.abs(u.reshape(-1, p) - u[:p])) <= rtol * scale:
+            return p
+    raise UserFacingError(
+        f"single-level identification: the input record ({n} samples) is not made of {min_periods} or more "
+        "identical periods; record whole periods of a periodic excitation (e.g. a multisine) or give period="
+    )
+
+
+@dataclass
+class PeriodicRecord:
+    """One averaged period with its noise figures and band-limited derivatives."""
+
+    fs: float                 # recording rate [Hz]
+    period: int               # samples per period at fs
+    n_periods_used: int       # periods averaged (the first one is skipped)
+    upsample: int             # interpolation factor for the derivative signals
+    u: np.ndarray             # one period of the input at fs
+    y: np.ndarray             # averaged output period at fs
+    snr_db: float             # threshold used to keep DFT bins
+    kept: np.ndarray          # bool per rfft bin of one period: bins that carry signal
+    noise_rms: float          # estimated rms noise of one raw sample [m]
+    # band-limited signals at fs * upsample (one period)
+    u_up: np.ndarray = field(repr=False, default=None)
+    y0: np.ndarray = field(repr=False, default=None)
+    y1: np.ndarray = field(repr=False, default=None)
+    y2: np.ndarray = field(repr=False, default=None)
+
+    @property
+    def h(self) -> float:
+        return 1.0 / (self.fs * self.upsample)
+
+    def band_project(self, x: np.ndarray) -> np.ndarray:
+        """Keep only the DFT bins that carry signal (columns of a 2-D array projected alike)."""
+        n = self.period * self.upsample
+        spec = np.fft.rfft(x, axis=0)
+        mask = np.zeros(spec.shape[0], dtype=bool)
+        mask[: self.kept.size] = self.kept
+        spec[~mask] = 0
+        return np.fft.irfft(spec, n=n, axis=0)
+
+    def integral(self, x: np.ndarray) -> np.ndarray:
+        """Zero-mean periodic antiderivative (spectral), of the signals at fs * upsample."""
+        n = self.period * self.upsample
+        spec = np.fft.rfft(x, axis=0)
+        w = 2 * np.pi * np.fft.rfftfreq(n, self.h)
+        spec[0] = 0
+        spec[1:] = spec[1:] / (1j * w[1:]).reshape((-1,) + (1,) * (spec.ndim - 1))
+        return np.fft.irfft(spec, n=n, axis=0)
+
+    def summary(self) -> dict:
+        return {"period": self.period, "periods_averaged": self.n_periods_used, "snr_db": self.snr_db,
+                "bins_kept": int(self.kept.sum()), "noise_rms": self.noise_rms, "upsample": self.upsample,
+                "highest_kept_hz": float(np.flatnonzero(self.kept).max() * self.fs / self.period)
+                if self.kept.any() else 0.0}
+
+
+def periodic_record(u, y, fs: float, period: int | None = None, skip_periods: int = 1,
+                    upsample: int = 8, snr_db: float = SNR_DB_DEFAULT) -> PeriodicRecord:
+    """Average the periods of a periodic record and build band-limited derivatives.
+
+    ``skip_periods`` leading periods are dropped (start-up transient); at least
+    two periods must remain so that the noise can be estimated.
+    """
+    u = np.asarray(u, dtype=float)
+    y = np.asarray(y, dtype=float)
+    if u.shape != y.shape or u.ndim != 1:
+        raise UserFacingError(f"single-level identification: input and output must be 1-D records of equal "
+                              f"length, got {u.shape} and {y.shape}")
+    if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
+        raise UserFacingError("single-level identification: the record has non-finite samples")
+    period = detect_period(u) if period is None else int(period)
+    if period < 16 or u.size % period:
+        raise UserFacingError(f"single-level identification: record of {u.size} samples is not a whole number "
+                              f"of periods of {period} samples")
+    total = u.size // period
+    used = total - skip_periods
+    if used < 2:
+        raise UserFacingError(f"single-level identification: {total} period(s) recorded, {skip_periods} skipped "
+                              "as transient; need at least 2 more to estimate the noise")
+    yp = y.reshape(total, period)[skip_periods:]
+    spec = np.fft.rfft(yp, axis=1)
+    mean = spec.mean(axis=0)
+    var_mean = spec.var(axis=0, ddof=1) / used
+    tiny = np.finfo(float).tiny
+    snr = np.abs(mean) ** 2 / np.maximum(var_mean, tiny)
+    kept = snr > 10 ** (snr_db / 10)
+    kept[0] = False  # the mean displacement carries no dynamics (and is not identifiable with k)
+    # per-sample noise of one raw period: sum of bin variances (Parseval, one-sided spectrum)
+    var_raw = spec.var(axis=0, ddof=1)
+    weights = np.full(var_raw.size, 2.0)
+    weights[0] = 1.0
+    if period % 2 == 0:
+        weights[-1] = 1.0
+    noise_rms = float(np.sqrt(np.sum(weights * var_raw)) / period)
+    n = period * upsample
+    w = 2 * np.pi * np.fft.rfftfreq(n, 1.0 / (fs * upsample))
+    up = np.zeros(n // 2 + 1, dtype=complex)
+    up[: mean.size] = mean * kept * upsample
+    y0, y1, y2 = (np.fft.irfft(up * (1j * w) ** q, n=n) for q in range(3))
+    u_up = resampling.upsample_periodic(u[:period], upsample)
+    return PeriodicRecord(fs=float(fs), period=period, n_periods_used=used, upsample=upsample, u=u[:period].copy(),
+                          y=np.fft.irfft(mean, n=period), snr_db=snr_db, kept=kept, noise_rms=noise_rms,
+                          u_up=u_up, y0=y0, y1=y1, y2=y2)
+
+
+@dataclass
+class LinearStep:
+    """Least squares ``y'' = b u - c y' - K y`` on the single level (biased by the hysteresis)."""
+
+    b: float
+    c: float
+    K: float
+    condition: float
+
+    def to_dict(self) -> dict:
+        return {"inv_m": self.b, "c_m": self.c, "K_m": self.K, "condition": self.condition}
+
+
+def linear_step(rec: PeriodicRecord) -> LinearStep:
+    cols = rec.band_project(np.column_stack([rec.u_up, -rec.y1, -rec.y0]))
+    target = rec.band_project(rec.y2)
+    scale = np.linalg.norm(cols, axis=0)
+    sv = np.linalg.svd(cols / scale, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    if not np.isfinite(cond) or cond > 1e8:
+        raise UserFacingError(f"single-level identification: linear regression is rank-deficient (condition "
+                              f"{cond:.3g}); the excitation must contain several frequencies (multisine)")
+    coef, *_ = np.linalg.lstsq(cols / scale, target, rcond=None)
+    b, c, K = coef / scale
+    return LinearStep(b=float(b), c=float(c), K=float(K), condition=cond)
+
+
+@njit(cache=True)
+def _z_periodic(v, alpha, gamma, delta, h, passes):
+    """Integrate z' = alpha v - gamma |v| z - delta v |z| over ``passes`` periods of v; return the last."""
+    n = v.size
+    z = 0.0
+    out = np.empty(n)
+    for _ in range(passes):
+        for i in range(n):
+            out[i] = z
+            v0 = v[i]
+            v1 = v[(i + 1) % n]
+            f0 = alpha * v0 - gamma * abs(v0) * z - delta * v0 * abs(z)
+            zp = z + h * f0
+            f1 = alpha * v1 - gamma * abs(v1) * zp - delta * v1 * abs(zp)
+            z = z + 0.5 * h * (f0 + f1)
+    return out
+
+
+@dataclass
+class HysteresisStep:
+    """Parameters from the hysteresis-aware re-estimation (per unit mass)."""
+
+    params: NewmarkParameters
+    equation_rms: float       # rms residual of the integrated momentum equation [m/s]
+    nfev: int
+    starts: int
+
+    def to_dict(self) -> dict:
+        d = self.params.to_benchmark()
+        d.update(equation_rms=self.equation_rms, nfev=self.nfev, starts=self.starts)
+        return d
+
+
+def hysteresis_step(rec: PeriodicRecord, lin: LinearStep, fn_terms=(), passes: int = 3) -> HysteresisStep:
+    """Variable projection: (alpha, gamma, delta) outer, (b, c, k, fn) inner least squares."""
+    names = list(fn_terms)
+    pe, re = monomial_exponents(names) if names else (np.zeros(0, int), np.zeros(0, int))
+    target = rec.band_project(rec.y1)
+    cols = [rec.integral(rec.u_up), -rec.y0, -rec.integral(rec.y0)]
+    cols += [-rec.integral(rec.y0 ** p * rec.y1 ** r) for p, r in zip(pe, re)]
+    A = rec.band_project(np.column_stack(cols))
+    scale = np.linalg.norm(A, axis=0)
+    An = A / scale
+    v = np.ascontiguousarray(rec.y1)
+
+    def inner(nl):
+        z = _z_periodic(v, nl[0], nl[1], nl[2], rec.h, passes)
+        rhs = target + rec.band_project(rec.integral(z))
+        coef, *_ = np.linalg.lstsq(An, rhs, rcond=None)
+        return coef / scale, rhs - An @ (coef)
+
+    y_rms = float(np.sqrt(np.mean(rec.y0 ** 2))) or 1.0
+    # Starting points: alpha a share of the (biased) linear stiffness; gamma, delta of the size that makes
+    # the hysteresis saturate within the response amplitude (|gamma z| ~ alpha).  Both sign patterns of
+    # delta are tried; the smallest equation error wins (the step is cheap: ~1 s per start).
+    g0 = 0.5 / y_rms
+    starts = [np.array([0.5 * lin.K, g0, -g0]), np.array([0.5 * lin.K, g0, 0.5 * g0]),
+              np.array([0.8 * lin.K, 2 * g0, -2 * g0])]
+    best = None
+    nfev = 0
+    for x0 in starts:
+        def resid(x, x0=x0):
+            return inner(x0 * (1.0 + x))[1]
+        sol = least_squares(resid, np.zeros(3), diff_step=1e-6, xtol=1e-12, ftol=1e-12, max_nfev=200)
+        nfev += sol.nfev
+        if np.all(np.isfinite(sol.fun)) and (best is None or sol.cost < best[0]):
+            best = (sol.cost, x0 * (1.0 + sol.x), sol.fun)
+    if best is None:
+        raise UserFacingError("single-level identification: the hysteresis step failed from every start")
+    _, nl, fun = best
+    coef, _ = inner(nl)
+    b, c, k = coef[:3]
+    fn = tuple((name, float(a)) for name, a in zip(names, coef[3:]))
+    params = NewmarkParameters(c=float(c), k=float(k), alpha=float(nl[0]), gamma=float(nl[1]),
+                               delta=float(nl[2]), b=float(b), fn=fn)
+    return HysteresisStep(params=params, equation_rms=float(np.sqrt(np.mean(fun ** 2))), nfev=nfev,
+                          starts=len(starts))
+
+
+@dataclass
+class SingleLevelResult:
+    record: PeriodicRecord
+    linear: LinearStep
+    hysteresis: HysteresisStep
+    refined: object | None = None   # recon.output_error.OutputErrorResult
+
+    @property
+    def params(self) -> NewmarkParameters:
+        return self.refined.params if self.refined is not None else self.hysteresis.params
+
+    def to_dict(self) -> dict:
+        out = {"record": self.record.summary(), "linear_step": self.linear.to_dict(),
+               "hysteresis_step": self.hysteresis.to_dict()}
+        if self.refined is not None:
+            d = self.refined.params.to_benchmark()
+            d.update(rms_initial=self.refined.rms_initial, rms_final=self.refined.rms_final,
+                     nfev=self.refined.nfev, relative_std=self.refined.relative_std)
+            out["output_error"] = d
+        return out
+
+
+def identify(u, y, fs: float, period: int | None = None, refine: bool = True, upsample_sim: int = 20,
+             fn_terms=(), snr_db: float = SNR_DB_DEFAULT) -> SingleLevelResult:
+    """Identify the force-excited SDOF Bouc-Wen model from one periodic record.
+
+    The record must start from rest (zero state) if ``refine`` is on: the
+    output-error step simulates all of it from zero initial conditions with
+    the input upsampled ``upsample_sim`` times (the benchmark's chain).
+    """
+    rec = periodic_record(u, y, fs, period=period, snr_db=snr_db)
+    lin = linear_step(rec)
+    hyst = hysteresis_step(rec, lin, fn_terms=fn_terms)
+    refined = None
+    if refine:
+        from recon.output_error import refine as oe_refine
+
+        refined = oe_refine(hyst.params, u, y, fs, periodic=True, upsample=upsample_sim, n_warmup_periods=0,
+                            scales={f"fn:{n}": 1.0 for n in fn_terms})
+    return SingleLevelResult(record=rec, linear=lin, hysteresis=hyst, refined=refined)
