@@ -98,20 +98,23 @@ def response(x_base: np.ndarray, x_tip: np.ndarray, fs: float, f: float, n_harmo
 
 
 def peak_frequency(freqs, values) -> float:
-    """Frequency of the maximum of ``values``, refined by a parabola through the top three points.
+    """Frequency of the maximum of ``values`` (a resonance curve), refined between grid points.
 
-    The parabola is fitted in log-frequency (the grids are geometric); at an
-    end of the grid the end point itself is returned.
+    Near a resonance 1/|H|^2 is close to a quadratic in f^2 (exactly so for
+    a single-degree-of-freedom system), so a parabola through the top three
+    points in those coordinates places the peak between grid points. At an end
+    of the grid the end point itself is returned.
     """
     f = np.asarray(freqs, dtype=float)
     v = np.asarray(values, dtype=float)
-    order = np.argsort(f)
-    f, v = f[order], v[order]
+    f, inverse = np.unique(f, return_inverse=True)     # repeated frequencies: mean value
+    v = np.bincount(inverse, weights=v) / np.bincount(inverse)
     i = int(np.argmax(v))
     if i == 0 or i == f.size - 1:
         return float(f[i])
-    x = np.log(f[i - 1:i + 2])
-    a, b, _ = np.polyfit(x, v[i - 1:i + 2], 2)
-    if a >= 0:
+    u = (f[i - 1:i + 2] / f[i]) ** 2 - 1.0        # scaled for a well-conditioned fit
+    q = (v[i] / v[i - 1:i + 2]) ** 2
+    a, b, _ = np.linalg.solve(np.vander(u, 3), q)  # the parabola through the three points
+    if a <= 0:
         return float(f[i])
-    return float(np.exp(np.clip(-b / (2 * a), x[0], x[2])))
+    return float(f[i] * np.sqrt(1.0 + np.clip(-b / (2 * a), u[0], u[2])))

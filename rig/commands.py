@@ -1,5 +1,86 @@
-"""Sub-commands contributed by ``rig`` (see shakerlab.cli)."""
+"""Sub-commands contributed by ``rig``: ``acquire`` and ``demo`` (see shakerlab.cli).
+
+Kept import-light: the handlers import the heavy modules.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+EXIT_CODES = {"complete": 0, "error": 1, "tripped": 3, "aborted": 130}
 
 
 def register(subparsers) -> None:
     """Add this package's sub-commands to the ``shakerlab`` parser."""
+    p = subparsers.add_parser(
+        "acquire",
+        help="run the protocol on the rig and record the run file",
+        description="Run the experiment protocol against the instruments at the configured addresses "
+        "(without --config: on a simulated rig started here, in real time) and record every sample "
+        "to an HDF5 run file. Ctrl-C ramps the output down and stops; a second Ctrl-C cuts at once. "
+        "Exit status: 0 complete, 1 error, 3 a limit tripped, 130 aborted.",
+    )
+    p.add_argument("--config", type=Path, metavar="RIG.toml", help="rig config (addresses, limits); "
+                   "default: the simulated rig with rig/default_rig.toml's limits")
+    p.add_argument("--protocol", type=Path, metavar="PROTOCOL.toml",
+                   help="protocol (default: rig/default_protocol.toml)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="run file to write (.h5)")
+    p.add_argument("--force", action="store_true", help="overwrite the output file")
+    p.add_argument("--sim-speed", type=float, default=1.0, metavar="X",
+                   help="without --config: simulated time per wall time (1 = real time, 0 = as fast as possible)")
+    p.add_argument("--seed", type=int, default=0, help="without --config: the simulated rig's noise seed")
+    p.add_argument("--quiet", action="store_true", help="print only warnings, errors and the summary")
+    p.set_defaults(handler=_acquire)
+
+    d = subparsers.add_parser(
+        "demo",
+        help="the whole experiment on an embedded simulated rig: record, reconstruct, report",
+        description="Start a simulated TMP-origami shaker rig, run the protocol on it (as fast as possible), "
+        "record the run file, reconstruct the governing equation, print it with the validation error "
+        "and the simulator's true parameters, and write a report with plots.",
+    )
+    d.add_argument("-o", "--output", type=Path, default=Path("shakerlab-demo"), metavar="DIR",
+                   help="report directory (default ./shakerlab-demo/)")
+    d.add_argument("--realtime", action="store_true", help="run the simulated rig in real time")
+    d.add_argument("--protocol", type=Path, metavar="PROTOCOL.toml", help="protocol (default: the shipped one)")
+    d.add_argument("--seed", type=int, default=0, help="noise seed of the simulated rig")
+    d.add_argument("--quiet", action="store_true", help="print only warnings, errors and the results")
+    d.set_defaults(handler=_demo)
+
+
+def _acquire(args) -> int:
+    from rig.config import load_config
+    from rig.console import ConsoleProgress, print_summary, sigint_aborts
+    from rig.protocol import load_protocol
+    from rig.session import acquire, simulated_rig
+    from shakerlab.errors import UserFacingError
+
+    protocol = load_protocol(args.protocol)
+    if args.output.exists() and not args.force:
+        raise UserFacingError(f"{args.output}: file exists (choose another -o name, or --force)")
+    progress = ConsoleProgress(quiet=args.quiet)
+    if args.config is not None:
+        config = load_config(args.config)
+        protocol.check_against_limits(config.limits, config.source)
+        with sigint_aborts() as hook:
+            outcome = acquire(config, protocol, args.output, overwrite=args.force, observers=[progress],
+                              on_runner=hook)
+    else:
+        if args.sim_speed < 0:
+            raise UserFacingError(f"--sim-speed must be >= 0, got {args.sim_speed:g}")
+        speed = None if args.sim_speed == 0 else args.sim_speed
+        config = load_config(None)
+        protocol.check_against_limits(config.limits, config.source)
+        print(f"no --config: starting the simulated rig ({'as fast as possible' if speed is None else f'speed {speed:g}'})")
+        with simulated_rig(speed=speed, seed=args.seed) as (sim, config), sigint_aborts() as hook:
+            outcome = acquire(config, protocol, args.output, lockstep=speed is None, overwrite=args.force,
+                              observers=[progress], on_runner=hook,
+                              attrs={"simulated": True, "seed": args.seed})
+    print_summary(outcome)
+    return EXIT_CODES.get(outcome.status, 1)
+
+
+def _demo(args) -> int:
+    from rig.demo import run_demo
+
+    return run_demo(args.output, realtime=args.realtime, protocol_path=args.protocol, seed=args.seed,
+                    quiet=args.quiet)

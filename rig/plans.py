@@ -63,6 +63,8 @@ def resonance_search(p: dict, settle_s: float, ctx: PlanContext):
         lo = coarse[max(i - 1, 0)]
         hi = coarse[min(i + 1, coarse.size - 1)]
         fine = np.geomspace(lo, hi, p["refine_steps"] + 2)[1:-1]
+        done = np.array([r.frequency_hz for r in table])
+        fine = [f for f in fine if np.min(np.abs(done / f - 1)) > 1e-6]  # skip frequencies already measured
         yield from measure(fine)
     freqs = [r.frequency_hz for r in table]
     trans = [r.transmissibility for r in table]
