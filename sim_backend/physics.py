@@ -59,13 +59,15 @@ def _splitmix(x):
 
 
 @njit(cache=True)
-def _gauss(seed, step, channel):
-    """Counter-based N(0,1): the same (seed, step, channel) always gives the same value."""
-    h1 = _splitmix(np.uint64(seed) * np.uint64(0x100000001B3) + np.uint64(step) * np.uint64(4) + np.uint64(channel))
-    h2 = _splitmix(h1)
-    u1 = (float(h1 >> np.uint64(11)) + 0.5) / 9007199254740992.0
-    u2 = float(h2 >> np.uint64(11)) / 9007199254740992.0
-    return math.sqrt(-2.0 * math.log(u1)) * math.cos(TWO_PI * u2)
+def _gauss_pair(seed, step):
+    """Counter-based pair of independent N(0,1) values for one step (Box-Muller on the two
+    32-bit halves of one hash): the same (seed, step) always gives the same pair, whatever
+    the chunking of the integration."""
+    h = _splitmix(np.uint64(seed) * np.uint64(0x100000001B3) + np.uint64(step))
+    u1 = (float(h >> np.uint64(32)) + 0.5) / 4294967296.0
+    u2 = float(h & np.uint64(0xFFFFFFFF)) / 4294967296.0
+    r = math.sqrt(-2.0 * math.log(u1))
+    return r * math.cos(TWO_PI * u2), r * math.sin(TWO_PI * u2)
 
 
 @njit(cache=True)
@@ -154,8 +156,9 @@ def advance(P, X, G, A, step0, n, xb_out, xt_out):
         nb = 0.0
         nt = 0.0
         if P[P_NOISE] > 0.0:
-            nb = P[P_NOISE] * _gauss(seed, step, 0)
-            nt = P[P_NOISE] * _gauss(seed, step, 1)
+            g0, g1 = _gauss_pair(seed, step)
+            nb = P[P_NOISE] * g0
+            nt = P[P_NOISE] * g1
         xb_out[j] = (1.0 + P[P_SCALE_B]) * xb + nb
         xt_out[j] = (1.0 + P[P_SCALE_T]) * xt + nt
         # generator -> amplifier
