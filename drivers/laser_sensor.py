@@ -57,6 +57,7 @@ class LaserSensor:
         self.link = LineLink(self.name, url, timeout=timeout, write_term="\r", read_term="\r",
                              **link_options)
         self._pending: list[SensorBlock] = []
+        self._last_end = 0
 
     # ---- protocol primitives ------------------------------------------------------------------
     def _query(self, command: str) -> str:
@@ -123,6 +124,7 @@ class LaserSensor:
         (ring buffer, read with fetch) when None."""
         n = 0 if n_samples is None else int_range(1, MAX_ARM)(self.name, "arm", n_samples)
         self._pending.clear()
+        self._last_end = 0
         self._write(f"AS,{n}")
 
     def stop(self) -> None:
@@ -160,13 +162,13 @@ class LaserSensor:
             if len(block):
                 blocks.append(block)
                 got += len(block)
-            if len(block) < ask if max_samples is not None else len(block) < MAX_PER_REPLY:
+            if len(block) < ask:  # the controller has no more right now
                 break
         return self._join(blocks)
 
     def _join(self, blocks: list[SensorBlock]) -> SensorBlock:
         if not blocks:
-            return SensorBlock(self._next_index_hint(), np.empty(0), np.empty(0, dtype=np.uint8))
+            return SensorBlock(self._last_end, np.empty(0), np.empty(0, dtype=np.uint8))
         out = [blocks[0]]
         for b in blocks[1:]:
             if b.index0 != out[-1].index0 + len(out[-1]) or self._pending:
@@ -177,9 +179,6 @@ class LaserSensor:
         flags = np.concatenate([b.flags for b in out])
         self._last_end = out[0].index0 + values.size
         return SensorBlock(out[0].index0, values, flags)
-
-    def _next_index_hint(self) -> int:
-        return getattr(self, "_last_end", 0)
 
     def _parse_block(self, command: str, reply: str) -> SensorBlock:
         parts = reply.split(",")
