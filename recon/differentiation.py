@@ -1,0 +1,144 @@
+"""Savitzky-Golay derivatives with the window and order chosen from the data.
+
+The choice minimises the predicted mean-square error of the highest derivative
+that is needed (the third one for the nonlinear step):
+
+- noise: the white-noise floor of the channel's spectrum (median of the upper
+  half of a Hann-windowed periodogram) gives the noise variance sigma^2; the
+  filter passes ``sigma^2 * sum(c^2)`` of it into the derivative (``c`` are the
+  Savitzky-Golay coefficients, already scaled by the sampling step);
+- bias: every spectral bin that stands out of the floor (above the expected
+  maximum of the noise bins, ``floor * ln(n_bins)``) is treated as signal, and
+  the filter's frequency-response error ``|H(w) - (i w)^d|^2`` at that bin,
+  weighted by the bin's power, gives the bias.
+
+Both are exact for the given coefficients, so the trade-off is computed, not
+tuned. The same (window, order) is then used for every derivative of every
+channel of the stage, so that y, y', y'', y''' come from one local polynomial.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, asdict
+
+import numpy as np
+from scipy.signal import savgol_coeffs, savgol_filter
+
+from shakerlab.errors import UserFacingError
+
+ORDERS = (3, 4, 5, 6, 7)
+
+
+@dataclass
+class SpectrumEstimate:
+    """What the differentiation assumed about one channel."""
+
+    noise_std: float          # white-noise standard deviation [channel units]
+    bandwidth_hz: float       # highest frequency that stands out of the noise floor
+    freqs: np.ndarray         # significant bins [Hz]
+    power: np.ndarray         # their mean-square contribution, floor removed
+
+
+@dataclass
+class DiffChoice:
+    window: int
+    order: int
+    deriv: int
+    noise_level: dict          # channel -> noise std
+    bandwidth_hz: float
+    predicted_rmse: float      # predicted rms error of the chosen derivative
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def estimate_spectrum(x: np.ndarray, dt: float) -> SpectrumEstimate:
+    """Noise floor and significant signal bins of a sampled channel."""
+    x = np.asarray(x, float)
+    n = x.size
+    if n < 64:
+        raise UserFacingError(f"differentiation needs at least 64 samples, got {n}")
+    # remove a linear trend so that the end mismatch does not leak
+    tt = np.arange(n)
+    x = x - np.polyval(np.polyfit(tt, x, 1), tt)
+    w = np.hanning(n)
+    sw2 = float(np.sum(w * w))
+    spec = np.abs(np.fft.rfft(w * x)) ** 2
+    f = np.fft.rfftfreq(n, dt)
+    upper = spec[spec.size // 2:]
+    # median of exponential(chi2_2) bins = ln2 * mean
+    floor = float(np.median(upper) / np.log(2.0))
+    noise_var = floor / sw2
+    thresh = floor * np.log(spec.size)
+    sig = spec > thresh
+    sig[0] = False
+    power = np.where(sig, 2.0 * (spec - floor) / (n * sw2), 0.0)
+    idx = np.flatnonzero(sig)
+    bw = float(f[idx[-1]]) if idx.size else 0.0
+    return SpectrumEstimate(float(np.sqrt(max(noise_var, 0.0))), bw, f[idx], power[idx])
+
+
+def _response_error(coeffs: np.ndarray, dt: float, deriv: int, omega: np.ndarray) -> np.ndarray:
+    half = (coeffs.size - 1) // 2
+    k = np.arange(coeffs.size) - half
+    # savgol_coeffs(use='dot'): estimate_i = sum_j c_j x_{i+j-half}
+    h = np.exp(1j * np.outer(omega, k * dt)) @ coeffs
+    return np.abs(h - (1j * omega) ** deriv) ** 2
+
+
+def predicted_mse(window: int, order: int, deriv: int, dt: float, spectra: list[SpectrumEstimate]) -> float:
+    c = savgol_coeffs(window, order, deriv=deriv, delta=dt, use="dot")
+    total = 0.0
+    g = float(np.sum(c * c))
+    for s in spectra:
+        total += s.noise_std ** 2 * g
+        if s.freqs.size:
+            total += float(np.sum(s.power * _response_error(c, dt, deriv, 2 * np.pi * s.freqs)))
+    return total
+
+
+def choose_window(channels: dict[str, np.ndarray], dt: float, deriv: int = 3, window: int | None = None,
+                  order: int | None = None) -> DiffChoice:
+    """Pick the Savitzky-Golay (window, order) minimising the predicted error of ``deriv``."""
+    spectra = {name: estimate_spectrum(x, dt) for name, x in channels.items()}
+    if window is not None:
+        order = order or 5
+        if window % 2 == 0 or window <= order:
+            raise UserFacingError(f"Savitzky-Golay window must be odd and larger than the order {order}, got {window}")
+        mse = predicted_mse(window, order, deriv, dt, list(spectra.values()))
+        return DiffChoice(window=window, order=order, deriv=deriv,
+                          noise_level={k: s.noise_std for k, s in spectra.items()},
+                          bandwidth_hz=max(s.bandwidth_hz for s in spectra.values()),
+                          predicted_rmse=float(np.sqrt(mse)))
+    n = min(x.size for x in channels.values())
+    bw = max(s.bandwidth_hz for s in spectra.values())
+    # longest window considered: one period of the lowest significant line, capped
+    max_win = min(n // 4, 2001)
+    lows = [s.freqs[0] for s in spectra.values() if s.freqs.size]
+    if lows and min(lows) > 0:
+        max_win = min(max_win, int(1.5 / (min(lows) * dt)))
+    best = None
+    for order in ORDERS:
+        if order < deriv:
+            continue
+        w0 = order + 2 + (order % 2 == 0)
+        if w0 > max_win:
+            continue
+        wins = np.unique(np.round(np.geomspace(w0, max(w0, max_win), 60)).astype(int) | 1)
+        for win in wins:
+            if win <= order or win > max_win:
+                continue
+            mse = predicted_mse(int(win), order, deriv, dt, list(spectra.values()))
+            if best is None or mse < best[0]:
+                best = (mse, int(win), order)
+    if best is None:
+        raise UserFacingError(f"too few samples ({n}) to differentiate {deriv} times")
+    return DiffChoice(
+        window=best[1], order=best[2], deriv=deriv,
+        noise_level={k: s.noise_std for k, s in spectra.items()},
+        bandwidth_hz=bw, predicted_rmse=float(np.sqrt(best[0])),
+    )
+
+
+def derivatives(x: np.ndarray, dt: float, window: int, order: int, max_deriv: int = 3) -> list[np.ndarray]:
+    """[x_smooth, x', ..., x^(max_deriv)] with one Savitzky-Golay filter."""
+    return [savgol_filter(x, window, order, deriv=d, delta=dt, mode="interp") for d in range(max_deriv + 1)]

@@ -1,0 +1,176 @@
+"""The identified SDOF hysteretic model (per unit mass).
+
+    y'' + c_m y' + k_m y + sum_j a_j y^p_j y'^r_j + z = g u
+    z'  = alpha_m y' - gamma |y'| z - delta y' |z|
+
+with ``g = 1`` and ``u = -x_base''`` under base excitation (``y = x_tip - x_base``)
+and ``g = inv_m = 1/m`` and ``u = force`` under force excitation (``y = x``).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from shakerlab.errors import UserFacingError
+from shakerlab.run_data import BASE, FORCE, Stage
+from recon import monomials
+
+UNITS = {
+    "c_m": "1/s", "k_m": "1/s^2", "alpha_m": "1/s^2", "gamma": "1/m", "delta": "1/m",
+    "inv_m": "1/kg", "fn_m": "term y^p*dy^r has coefficient units m^(1-p-r) s^(r-2)",
+    "y": "m", "dy": "m/s", "z": "m/s^2 (restoring force per unit mass)",
+}
+CONVENTION = ("per unit mass: every force term is divided by the mass m; base excitation "
+              "y = x_tip - x_base, u = -x_base''; force excitation y = x, u = force [N] with "
+              "coefficient inv_m = 1/m")
+
+
+@dataclass
+class HystereticModel:
+    excitation: str
+    c_m: float
+    k_m: float
+    alpha_m: float
+    gamma: float
+    delta: float
+    fn_m: dict = field(default_factory=dict)
+    inv_m: float | None = None
+    provenance: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.excitation not in (BASE, FORCE):
+            raise UserFacingError(f"model excitation must be 'base' or 'force', got {self.excitation!r}")
+        if self.excitation == FORCE and self.inv_m is None:
+            raise UserFacingError("force-excitation model needs inv_m (1/m)")
+        self.fn_m = {k: float(v) for k, v in self.fn_m.items()}
+        for k in self.fn_m:
+            monomials.parse(k)
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def K_m(self) -> float:
+        return self.k_m + self.alpha_m
+
+    @property
+    def lam(self) -> float:
+        return self.gamma + self.delta
+
+    @property
+    def input_gain(self) -> float:
+        return 1.0 if self.excitation == BASE else float(self.inv_m)
+
+    def fn_arrays(self):
+        keys = list(self.fn_m)
+        pr = np.array([monomials.parse(k) for k in keys], dtype=np.int64).reshape(-1, 2)
+        return np.array([self.fn_m[k] for k in keys], float), pr[:, 0].copy(), pr[:, 1].copy()
+
+    def fn(self, y, dy):
+        out = np.zeros_like(np.asarray(y, float))
+        for k, a in self.fn_m.items():
+            p, r = monomials.parse(k)
+            out = out + a * y ** p * dy ** r
+        return out
+
+    # ---------------------------------------------------------------- printing
+    def equation(self) -> str:
+        lhs = "y'' + {:.6g} y' + {:.6g} y".format(self.c_m, self.k_m)
+        for k, a in self.fn_m.items():
+            lhs += f" {'+' if a >= 0 else '-'} {abs(a):.6g} {k.replace('dy', 'y`').replace('`', chr(39))}"
+        rhs = "-x_base''" if self.excitation == BASE else f"{self.inv_m:.6g} F"
+        zeq = (f"z' = {self.alpha_m:.6g} y' - {self.gamma:.6g} |y'| z "
+               f"{'-' if self.delta >= 0 else '+'} {abs(self.delta):.6g} y' |z|")
+        return f"{lhs} + z = {rhs}\n{zeq}"
+
+    def __str__(self) -> str:
+        return self.equation()
+
+    def print(self) -> None:  # noqa: A003 - like PySINDy
+        print(self.equation())
+
+    # ----------------------------------------------------------- serialisation
+    def to_dict(self) -> dict:
+        params = {"c_m": self.c_m, "k_m": self.k_m, "alpha_m": self.alpha_m,
+                  "gamma": self.gamma, "delta": self.delta, "fn_m": dict(self.fn_m)}
+        if self.excitation == FORCE:
+            params["inv_m"] = self.inv_m
+        return {"kind": "shakerlab.recon.HystereticModel", "excitation": self.excitation,
+                "parameters": params, "units": UNITS, "convention": CONVENTION,
+                "equation": self.equation(), "provenance": self.provenance}
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "HystereticModel":
+        try:
+            p = d["parameters"]
+            return cls(excitation=d["excitation"], c_m=float(p["c_m"]), k_m=float(p["k_m"]),
+                       alpha_m=float(p["alpha_m"]), gamma=float(p["gamma"]), delta=float(p["delta"]),
+                       fn_m=dict(p.get("fn_m", {})), inv_m=p.get("inv_m"),
+                       provenance=d.get("provenance", {}))
+        except KeyError as exc:
+            raise UserFacingError(f"model JSON lacks field {exc}") from None
+
+    @classmethod
+    def from_json(cls, text: str) -> "HystereticModel":
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise UserFacingError(f"model JSON is not valid JSON ({exc})") from None
+        return cls.from_dict(d)
+
+    def save(self, path) -> None:
+        Path(path).write_text(self.to_json())
+
+    @classmethod
+    def load(cls, path) -> "HystereticModel":
+        path = Path(path)
+        if not path.exists():
+            raise UserFacingError(f"{path}: no such model file")
+        try:
+            return cls.from_json(path.read_text())
+        except UserFacingError as exc:
+            raise UserFacingError(f"{path}: {exc}") from None
+
+    # -------------------------------------------------------------- simulation
+    def simulate(self, t, u, n_sub: int | None = None):
+        """Response to the per-unit-mass input (base) or force (force), from rest.
+
+        Returns (y, dy, z) sampled at ``t`` (uniform sampling required).
+        """
+        from recon.simulate import simulate_sdof, substeps
+
+        t = np.asarray(t, float)
+        u = np.asarray(u, float)
+        if t.shape != u.shape or t.size < 2:
+            raise UserFacingError(f"simulate: t and u must be 1-D arrays of equal length (got {t.shape}, {u.shape})")
+        dts = np.diff(t)
+        dt = float(np.median(dts))
+        if np.any(np.abs(dts - dt) > 1e-6 * dt + 1e-12):
+            raise UserFacingError("simulate: t must be uniformly sampled")
+        coef, p, r = self.fn_arrays()
+        if n_sub is None:
+            n_sub = substeps(dt, max(abs(self.K_m), abs(self.k_m), 1.0))
+        return simulate_sdof(u, dt, int(n_sub), self.input_gain, self.c_m, self.k_m, self.alpha_m,
+                             self.gamma, self.delta, coef, p, r)
+
+    def stage_input(self, stage: Stage) -> np.ndarray:
+        """The input u the model is driven by, built from the stage's channels."""
+        if stage.excitation != self.excitation:
+            raise UserFacingError(f"stage {stage.name!r} is {stage.excitation} excitation, model is {self.excitation}")
+        if self.excitation == FORCE:
+            return stage.channels["force"]
+        from recon.differentiation import choose_window, derivatives
+
+        xb = stage.channels["x_base"]
+        ch = choose_window({"x_base": xb}, stage.dt, deriv=2)
+        return -derivatives(xb, stage.dt, ch.window, ch.order, 2)[2]
+
+    def simulate_stage(self, stage: Stage):
+        """(t, y_sim) for the stage's recorded input."""
+        u = self.stage_input(stage)
+        y, _, _ = self.simulate(stage.t - stage.t[0], u)
+        return stage.t, y

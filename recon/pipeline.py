@@ -1,0 +1,190 @@
+"""The estimator: linear step, nonlinear step, Bouc-Wen parameters, validation.
+
+    from recon.pipeline import reconstruct, ReconSettings
+    result = reconstruct(run)            # run: shakerlab.run_data.Run
+    result.model.print(); result.to_dict()
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, asdict, field
+
+import numpy as np
+
+from shakerlab import __version__
+from shakerlab.errors import UserFacingError
+from shakerlab.run_data import BASE, Run, Stage
+from recon.differentiation import choose_window, derivatives
+from recon.hysteresis import estimate_delta, extract, fn_values, refit
+from recon.kernel import cluster
+from recon.library import AgentLibrary
+from recon.linear import LinearFit, fit_linear
+from recon.model import HystereticModel
+from recon.optimizers import GroupedSparseSelector
+from recon.validation import nrmse
+
+
+@dataclass
+class ReconSettings:
+    library_order: int = 5
+    form: str = "joint"            # "joint" (AB and CD together) or "ab" (the paper's AB-only form)
+    refit: bool = True              # structured refit of (a_j, lambda, alpha) on the fixed pattern
+    refit_linear: bool = True       # ... and of (c_m, K_m[, inv_m]) on the nonlinear stage too
+    linear_stage: str = "linear"
+    nonlinear_stage: str = "nonlinear"
+    n_folds: int = 5
+    window: int | None = None       # Savitzky-Golay window for the nonlinear stage (None: chosen from the data)
+    sg_order: int | None = None
+
+    def to_dict(self):
+        return asdict(self)
+
+
+@dataclass
+class StageSignals:
+    """Smoothed signals and derivatives of one stage (edges trimmed)."""
+
+    t: np.ndarray
+    y: list          # y, y', y'', y'''
+    u: list          # u, u' (per-unit-mass input for base, force for force excitation)
+    choice: dict
+    column_noise: dict
+
+
+def stage_signals(stage: Stage, deriv: int, window: int | None = None, order: int | None = None) -> StageSignals:
+    dt = stage.dt
+    if stage.excitation == BASE:
+        xb, xt = stage.channels["x_base"], stage.channels["x_tip"]
+        ch = choose_window({"x_tip": xt, "x_base": xb}, dt, deriv=deriv, window=window, order=order)
+        yd = derivatives(xt - xb, dt, ch.window, ch.order, deriv)
+        bd = derivatives(xb, dt, ch.window, ch.order, deriv)
+        u = [-bd[2]] + ([-bd[3]] if deriv >= 3 else [])
+        noise_u = ch.noise_level["x_base"]
+    else:
+        x, f = stage.channels["x"], stage.channels["force"]
+        ch = choose_window({"x": x, "force": f}, dt, deriv=deriv, window=window, order=order)
+        yd = derivatives(x, dt, ch.window, ch.order, deriv)
+        fd = derivatives(f, dt, ch.window, ch.order, 1)
+        u = [fd[0], fd[1]]
+        noise_u = ch.noise_level["force"]
+    # expected rms error of the filtered columns, used for the rank decision
+    from scipy.signal import savgol_coeffs
+
+    noise_y = float(np.sqrt(sum(v ** 2 for k, v in ch.noise_level.items() if k != "force")))
+    cn = {}
+    for d, name in ((0, "y"), (1, "dy"), (2, "ddy")):
+        c = savgol_coeffs(ch.window, ch.order, deriv=d, delta=dt, use="dot")
+        cn[name] = noise_y * float(np.sqrt(c @ c))
+    c0 = savgol_coeffs(ch.window, ch.order, deriv=2 if stage.excitation == BASE else 0, delta=dt, use="dot")
+    cn["u"] = noise_u * float(np.sqrt(c0 @ c0))
+    half = ch.window // 2
+    sl = slice(half, stage.t.size - half)
+    return StageSignals(t=stage.t[sl], y=[a[sl] for a in yd], u=[a[sl] for a in u],
+                        choice=ch.to_dict(), column_noise=cn)
+
+
+@dataclass
+class ReconResult:
+    model: HystereticModel
+    linear: LinearFit
+    sparse: dict
+    library_names: list
+    library_coef: list
+    hysteresis_info: dict
+    differentiation: dict
+    validation: dict
+    settings: ReconSettings
+    timings: dict = field(default_factory=dict)
+    signals: dict = field(default_factory=dict, repr=False)
+
+    def to_dict(self) -> dict:
+        params = self.model.to_dict()["parameters"]
+        return {
+            "excitation": self.model.excitation,
+            "parameters": params,
+            "units": self.model.to_dict()["units"],
+            "convention": self.model.to_dict()["convention"],
+            "equation": self.model.equation(),
+            "validation": self.validation,
+            "linear_step": self.linear.to_dict(),
+            "nonlinear_step": {"library": dict(zip(self.library_names, self.library_coef)),
+                               "hysteresis": self.hysteresis_info, "sparse_regression": self.sparse},
+            "settings": {"differentiation": self.differentiation, "threshold": self.sparse["threshold"],
+                         "library_order": self.settings.library_order, "form": self.settings.form,
+                         "refit": self.settings.refit},
+            "timings_s": self.timings,
+            "software": {"shakerlab": __version__},
+        }
+
+
+def validate(model: HystereticModel, run: Run, skip: tuple = ()) -> dict:
+    names = [n for n in run.stages if n.startswith("validation")]
+    if not names:
+        names = [n for n in ("nonlinear",) if n in run.stages]
+    out = {}
+    for n in names:
+        st = run.stage(n)
+        _, ysim = model.simulate_stage(st)
+        out[n] = nrmse(ysim, st.y)
+    main = names[0] if names else None
+    return {"nrmse": out.get(main, float("nan")), "stage": main, "per_stage": out,
+            "fitted_on_validation_stage": main == "nonlinear"}
+
+
+def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model: bool = True) -> ReconResult:
+    s = settings or ReconSettings()
+    exc = run.excitation
+    timings = {}
+    t0 = time.perf_counter()
+    lin = stage_signals(run.stage(s.linear_stage), deriv=2)
+    lf = fit_linear(lin.y[0], lin.y[1], lin.y[2], lin.u[0], exc, lin.column_noise, s.linear_stage)
+    timings["linear"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    nl = stage_signals(run.stage(s.nonlinear_stage), deriv=3, window=s.window, order=s.sg_order)
+    y, dy, ddy, dddy = nl.y
+    g = 1.0 if exc == BASE else lf.inv_m
+    Fn = g * nl.u[0] - ddy - lf.c_m * dy - lf.K_m * y
+    dFn = g * nl.u[1] - dddy - lf.c_m * ddy - lf.K_m * dy
+    h = cluster(y, dy)
+    lib = AgentLibrary(s.library_order, s.form)
+    theta, target = lib.build(y, dy, ddy, Fn, dFn, h)
+    if theta.shape[0] < 4 * theta.shape[1]:
+        raise UserFacingError(f"stage {s.nonlinear_stage!r}: only {theta.shape[0]} samples in the AB/CD clusters for "
+                              f"{theta.shape[1]} library columns; record longer or lower --library-order")
+    groups, core = lib.groups()
+    sp = GroupedSparseSelector(groups, core, n_folds=s.n_folds).fit(theta, target)
+    hp = extract(lib, sp.coef, sp.stderr, sp.support)
+    c_m, K_m = lf.c_m, lf.K_m
+    if s.refit:
+        mask = lib.rows(h)
+        sig = h[mask].astype(float)
+        if lib.form == "ab":
+            sig = np.ones_like(sig)
+        hp, c_m, K_m, g = refit(hp, y[mask], dy[mask], ddy[mask], dddy[mask], nl.u[0][mask], nl.u[1][mask], sig,
+                                lf.c_m, lf.K_m, g, fit_g=exc != BASE, fit_linear=s.refit_linear)
+        Fn = g * nl.u[0] - ddy - c_m * dy - K_m * y
+        dFn = g * nl.u[1] - dddy - c_m * ddy - K_m * dy
+    hp = estimate_delta(hp, y, dy, ddy, Fn, dFn, h)
+    timings["nonlinear"] = time.perf_counter() - t1
+
+    model = HystereticModel(
+        excitation=exc, c_m=c_m, k_m=K_m - hp.alpha, alpha_m=hp.alpha, gamma=hp.gamma, delta=hp.delta,
+        fn_m=hp.fn, inv_m=None if exc == BASE else g,
+        provenance={"method": "agent-model sparse regression (shakerlab recon)", "software": f"shakerlab {__version__}",
+                    "settings": s.to_dict(), "threshold": sp.threshold, "source": run.source,
+                    "differentiation": {"linear": lin.choice, "nonlinear": nl.choice}},
+    )
+    t2 = time.perf_counter()
+    val = validate(model, run) if validate_model else {"nrmse": float("nan"), "stage": None}
+    timings["validation"] = time.perf_counter() - t2
+    z_meas = hp.alpha * y + Fn - fn_values(hp.fn, y, dy)
+    return ReconResult(
+        model=model, linear=lf, sparse=sp.summary(), library_names=lib.names,
+        library_coef=[float(c) for c in sp.coef], hysteresis_info=hp.info,
+        differentiation={"linear": lin.choice, "nonlinear": nl.choice,
+                         "window": nl.choice["window"], "order": nl.choice["order"],
+                         "noise_level": nl.choice["noise_level"]},
+        validation=val, settings=s, timings=timings,
+        signals={"t": nl.t, "y": y, "z": z_meas},
+    )
