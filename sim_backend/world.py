@@ -162,10 +162,13 @@ class World:
     # ---- for tests and the rig's supervision -------------------------------------------
     def is_driven(self) -> bool:
         """True when the armature can receive current: generator output on with a nonzero
-        signal AND amplifier enabled, gain > 0 and not muted by a fault."""
+        signal (a burst waiting for its trigger outputs only its offset) AND amplifier
+        enabled, gain > 0 and not muted by a fault."""
         with self.lock:
             G, A = self.G, self.A
-            gen = G[ph.G_OUT] != 0.0 and (G[ph.G_VPP] > 0.0 or G[ph.G_OFFS] != 0.0)
+            waiting_burst = G[ph.G_BURST] != 0.0 and G[ph.G_BURST_ACTIVE] == 0.0
+            signal = G[ph.G_OFFS] != 0.0 or (G[ph.G_VPP] > 0.0 and not waiting_burst)
+            gen = G[ph.G_OUT] != 0.0 and signal
             amp = (A[ph.A_ENABLE] != 0.0 and A[ph.A_GAIN] > 0.0
                    and A[ph.A_OC] == 0.0 and A[ph.A_OT] == 0.0 and A[ph.A_WD] == 0.0)
             return bool(gen and amp)

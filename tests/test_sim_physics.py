@@ -213,3 +213,25 @@ def test_real_time_clock_follows_the_wall_clock():
         assert (w.time - s0) == pytest.approx(2.0 * elapsed, abs=0.05)
     finally:
         w.stop_clock()
+
+
+def test_is_driven_follows_generator_amplifier_and_burst_state():
+    w = World(QUIET, speed=None)
+    G, A = w.G, w.A
+    G[ph.G_VPP], G[ph.G_FREQ] = 0.5, 100.0
+    A[ph.A_GAIN] = 1.0
+    assert not w.is_driven()
+    G[ph.G_OUT] = 1.0
+    assert not w.is_driven(), "amplifier disabled"
+    A[ph.A_ENABLE] = 1.0
+    assert w.is_driven()
+    G[ph.G_BURST] = 1.0
+    assert not w.is_driven(), "a burst waiting for its trigger outputs nothing"
+    G[ph.G_BURST_ACTIVE], G[ph.G_BURST_LEFT] = 1.0, 2 * np.pi * 2  # two cycles
+    assert w.is_driven()
+    w.advance(150)  # 15 ms > two cycles of 100 Hz
+    assert not w.is_driven()
+    assert w.state()["current"] == 0.0
+    A[ph.A_WD] = 1.0
+    G[ph.G_BURST] = 0.0
+    assert not w.is_driven(), "muted by the watchdog"
