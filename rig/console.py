@@ -73,7 +73,7 @@ def print_summary(outcome, stream=None) -> None:
 
 @contextlib.contextmanager
 def sigint_aborts():
-    """While active, Ctrl-C calls runner.abort() (a second Ctrl-C cuts) instead of raising.
+    """While active, Ctrl-C (and SIGTERM) call runner.abort() (a second one cuts) instead of raising.
 
     Yields the hook to pass as ``acquire(on_runner=...)``.
     """
@@ -86,16 +86,18 @@ def sigint_aborts():
         runner = holder.get("runner")
         if runner is None:
             raise KeyboardInterrupt
+        name = "Ctrl-C" if signum == signal.SIGINT else "SIGTERM"
         first = runner._abort_count == 0
-        runner.abort("Ctrl-C")
-        print("\nCtrl-C: ramping the output down (Ctrl-C again cuts at once)" if first
-              else "\nCtrl-C again: cutting the output", file=sys.stderr, flush=True)
+        runner.abort(name)
+        print(f"\n{name}: ramping the output down ({name} again cuts at once)" if first
+              else f"\n{name} again: cutting the output", file=sys.stderr, flush=True)
 
     if threading.current_thread() is not threading.main_thread():
         yield hook
         return
-    previous = signal.signal(signal.SIGINT, handler)
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield hook
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for sig, old in previous.items():
+            signal.signal(sig, old)
