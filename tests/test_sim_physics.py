@@ -229,7 +229,7 @@ def test_is_driven_follows_generator_amplifier_and_burst_state():
     assert not w.is_driven(), "a burst waiting for its trigger outputs nothing"
     G[ph.G_BURST_ACTIVE], G[ph.G_BURST_LEFT] = 1.0, 2 * np.pi * 2  # two cycles
     assert w.is_driven()
-    w.advance(150)  # 15 ms > two cycles of 100 Hz
+    w.advance(250)  # 25 ms > two cycles of 100 Hz
     assert not w.is_driven()
     assert w.state()["current"] == 0.0
     A[ph.A_WD] = 1.0
