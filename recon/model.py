@@ -166,7 +166,7 @@ class HystereticModel:
         from recon.differentiation import choose_window, derivatives
 
         xb = stage.channels["x_base"]
-        ch = choose_window({"x_base": xb}, stage.dt, deriv=2)
+        ch = choose_window({"x_base": xb}, stage.dt, deriv=2, for_regression=False)
         return -derivatives(xb, stage.dt, ch.window, ch.order, 2)[2]
 
     def simulate_stage(self, stage: Stage):

@@ -64,7 +64,7 @@ def simulate_sdof(u, dt, n_sub, g, c, k, alpha, gamma, delta, coef, p, r):
     return ys, vs, zs
 
 
-def substeps(dt: float, k_total: float, steps_per_period: int = 200) -> int:
+def substeps(dt: float, k_total: float, steps_per_period: int = 64) -> int:
     """RK4 sub-steps per sample so that a natural period gets ``steps_per_period`` steps."""
     if k_total <= 0:
         return 1
