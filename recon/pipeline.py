@@ -188,7 +188,7 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
     equation_error_model = model
     polish_info = {"applied": False}
     if s.polish:
-        from recon.output_error import polish
+        from recon.polish import polish
 
         tp = time.perf_counter()
         data = []
