@@ -66,7 +66,7 @@ SCHEMA = {
         "thd_threshold": Field("number", 0.05, **_POS,
                                help="stop raising when the relative displacement's harmonic distortion exceeds this"),
         "gain_change_threshold": Field("number", 0.45, **_POS,
-                                       help="stop raising when |gain/first gain - 1| exceeds this "
+                                       help="stop raising when abs(gain / first gain - 1) exceeds this "
                                             "(gain = relative displacement over base displacement)"),
         "loss_change_threshold": Field("number", 1.0, **_POS,
                                        help="stop raising when the hysteresis loop's loss factor changed by "

@@ -55,7 +55,7 @@ PROTOCOL_CASES = [
     ("steps = 14", "steps = 2", r"\[resonance_search\] steps: expected an integer >= 3"),
     ("stop_hz = 30.0", "stop_hz = 3.0", r"\[resonance_search\] stop_hz \(3\) must exceed start_hz"),
     ("max_vpp = 2.0", "max_vpp = 0.05", r"\[nonlinear\] max_vpp \(0.05\) is below start_vpp"),
-    ("step_factor = 1.4", "step_factr = 1.4", r"\[nonlinear\] unknown field 'step_factr'"),
+    ("step_factor = 1.5", "step_factr = 1.5", r"\[nonlinear\] unknown field 'step_factr'"),
     ("enabled = true", "enabled = false", r"\[nonlinear\] frequency_hz: needed when"),
     ("amplitude_fraction = 0.8", "amplitude_fraction = 0.8\namplitude_vpp = 1.0",
      r"\[validation #1\] give exactly one of amplitude_vpp and amplitude_fraction"),
@@ -129,3 +129,42 @@ def test_peak_frequency_refines_between_grid_points():
     v = 1 / np.abs(1 - (f / fn) ** 2 + 0.1j * f / fn)
     assert abs(analysis.peak_frequency(f, v) - fn) < abs(f[np.argmax(v)] - fn)
     assert analysis.peak_frequency([1, 2, 3], [3, 2, 1]) == 1
+
+
+# ---- docs stay true ----------------------------------------------------------------------------
+
+def test_every_field_is_documented():
+    from pathlib import Path
+
+    from rig import config, protocol
+    from rig.toml_fields import schema_doc
+
+    root = Path(__file__).resolve().parents[1]
+    proto_doc = (root / "docs" / "protocol.md").read_text()
+    acq_doc = (root / "docs" / "acquisition.md").read_text()
+    for name, _, _ in schema_doc(protocol.SCHEMA):
+        assert f"`{name}`" in proto_doc, name
+    for name, _, _ in schema_doc(protocol.VALIDATION_SCHEMA):
+        assert f"`validation.{name}`" in proto_doc, name
+    for name, _, _ in schema_doc(config.SCHEMA):
+        assert f"`{name}`" in acq_doc, name
+
+
+# ---- live ring buffer ----------------------------------------------------------------------------
+
+def test_live_buffer_keeps_the_latest_samples():
+    from rig.instruments import Block
+    from rig.live import LiveBuffer
+
+    live = LiveBuffer(seconds=0.01, fs=1000.0)  # 10 samples
+    for i0 in range(0, 37, 4):
+        x = np.arange(i0, i0 + 4, dtype=float)
+        live.on_block(Block(index0=i0, fs=1000.0, x_base=x, x_tip=-x, flags_base=np.zeros(4, np.uint8),
+                            flags_tip=np.zeros(4, np.uint8), amplitude_vpp=0.5, stage="linear"))
+    t, xb, xt = live.latest()
+    np.testing.assert_array_equal(xb, np.arange(30, 40))
+    np.testing.assert_array_equal(xt, -np.arange(30, 40))
+    np.testing.assert_allclose(t, np.arange(30, 40) / 1000.0)
+    t, xb, _ = live.latest(0.003)
+    np.testing.assert_array_equal(xb, [37, 38, 39])
+    assert live.stage == "linear" and live.amplitude_vpp == 0.5
