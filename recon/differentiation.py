@@ -70,7 +70,8 @@ def estimate_spectrum(x: np.ndarray, dt: float) -> SpectrumEstimate:
     # median of exponential(chi2_2) bins = ln2 * mean
     floor = float(np.median(upper) / np.log(2.0))
     noise_var = floor / sw2
-    thresh = floor * np.log(spec.size)
+    # a noise bin exceeds floor*ln(n/p) with probability p/n: p = 1 % false-alarm for the whole spectrum
+    thresh = floor * np.log(100.0 * spec.size)
     sig = spec > thresh
     sig[0] = False
     power = np.where(sig, 2.0 * (spec - floor) / (n * sw2), 0.0)

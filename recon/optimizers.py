@@ -51,7 +51,7 @@ class SparseFit:
     threshold: float            # on the normalised scale (fraction of the target)
     thresholds: np.ndarray = field(repr=False, default=None)
     cv_error: np.ndarray = field(repr=False, default=None)
-    cv_se: np.ndarray = field(repr=False, default=None)
+    cv_se: np.ndarray = field(repr=False, default=None)      # BIC for the grouped selector
     n_terms: np.ndarray = field(repr=False, default=None)
     rel_residual: float = 0.0
     stderr: np.ndarray = field(repr=False, default=None)   # standard error of coef (original scaling)
@@ -162,8 +162,8 @@ class CompressedFolds:
         self.d = np.concatenate(self.df)
         self.n_folds = n_folds
 
-    def cv(self, support: np.ndarray) -> tuple[float, float]:
-        """Held-out relative squared residual (mean, standard error) of LS on ``support``."""
+    def cv(self, support: np.ndarray) -> np.ndarray:
+        """Held-out relative squared residual of LS on ``support``, one value per fold."""
         p = self.p
         e = np.empty(self.n_folds)
         for i in range(self.n_folds):
@@ -171,7 +171,7 @@ class CompressedFolds:
             x = _solve(self.R[keep], self.d[keep], support)
             r = self.df[i] - self.Rf[i] @ x
             e[i] = (float(r @ r) + self.ef[i]) / self.bbf[i]
-        return float(e.mean()), float(e.std(ddof=1) / np.sqrt(self.n_folds))
+        return e
 
     def rss(self, support: np.ndarray) -> float:
         x = _solve(self.R, self.d, support)
@@ -186,17 +186,23 @@ class GroupedSparseSelector:
     (2) a greedy forward path over column *groups* (in the agent model a monomial
     brings two columns, s*phi_j' and y'*phi_j, that share a_j), starting from the
     ``core`` columns. Every distinct support is scored by interleaved K-fold CV;
-    the sparsest one within one standard error of the best is chosen. STLSQ alone
+    the one minimising a Bayesian information criterion of the held-out error,
+    BIC = N_eff ln(E_cv) + k ln(N_eff), is chosen. N_eff = N / corr_len is the number
+    of independent samples: Savitzky-Golay filtered noise is correlated over about one
+    window, so corr_len is the window length. (Plain CV keeps adding terms that fit the
+    filter's systematic bias, which is as predictable in held-out folds as the signal.) STLSQ alone
     is fragile when monomials of a near-harmonic response are nearly collinear;
     the grouped forward path keeps the pattern physically paired.
     """
 
-    def __init__(self, groups: list[list[int]], core: list[int], n_folds: int = 5, grid=None, max_groups: int = 12):
+    def __init__(self, groups: list[list[int]], core: list[int], n_folds: int = 5, grid=None, max_groups: int = 12,
+                 corr_len: float = 1.0):
         self.groups = groups
         self.core = core
         self.n_folds = n_folds
         self.grid = np.geomspace(1e-6, 0.5, 46) if grid is None else np.asarray(grid, float)
         self.max_groups = max_groups
+        self.corr_len = max(1.0, float(corr_len))
 
     def fit(self, A: np.ndarray, b: np.ndarray) -> SparseFit:
         n, p = A.shape
@@ -222,12 +228,15 @@ class GroupedSparseSelector:
             cands.setdefault(sup.tobytes(), (sup.copy(), "forward", float("nan")))
         scored = []
         for sup, origin, tau in cands.values():
-            m, se = cf.cv(sup)
-            scored.append((m, se, int(sup.sum()), origin, tau, sup))
-        best = min(scored, key=lambda s: s[0])
-        ok = [s for s in scored if s[0] <= best[0] + best[1]]
-        chosen = min(ok, key=lambda s: (s[2], s[0]))
-        m, se, k, origin, tau, sup = chosen
+            e = cf.cv(sup)
+            scored.append([float(e.mean()), 0.0, int(sup.sum()), origin, tau, sup, e])
+        # information criterion on the held-out error with the effective number of
+        # independent samples: the filtered noise is correlated over ``corr_len`` samples
+        n_eff = max(n / self.corr_len, 2.0 * p)
+        for s_ in scored:
+            s_[1] = n_eff * np.log(max(s_[0], 1e-300)) + s_[2] * np.log(n_eff)
+        chosen = min(scored, key=lambda s: (s[1], s[2]))
+        m, se, k, origin, tau, sup, _ = chosen
         idx = np.flatnonzero(sup)
         coef = np.zeros(p)
         stderr = np.zeros(p)

@@ -147,7 +147,14 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
     # the linear step regresses on noisy columns (y', y): errors-in-variables, so the
     # pointwise-optimal filter is used there; the nonlinear step uses the regression criterion
     lin = stage_signals(run.stage(s.linear_stage), deriv=2, for_regression=False)
-    lf = fit_linear(lin.y[0], lin.y[1], lin.y[2], lin.u[0], exc, lin.column_noise, s.linear_stage)
+    lst = run.stage(s.linear_stage)
+    lines = None
+    if exc != BASE:
+        from recon.differentiation import estimate_spectrum
+        from recon.linear import count_lines
+
+        lines = count_lines(estimate_spectrum(lst.channels["force"], lst.dt).freqs, 1.0 / (lst.t[-1] - lst.t[0]))
+    lf = fit_linear(lin.y[0], lin.y[1], lin.y[2], lin.u[0], exc, lin.column_noise, s.linear_stage, lines)
     timings["linear"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
@@ -163,7 +170,7 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
         raise UserFacingError(f"stage {s.nonlinear_stage!r}: only {theta.shape[0]} samples in the AB/CD clusters for "
                               f"{theta.shape[1]} library columns; record longer or lower --library-order")
     groups, core = lib.groups()
-    sp = GroupedSparseSelector(groups, core, n_folds=s.n_folds).fit(theta, target)
+    sp = GroupedSparseSelector(groups, core, n_folds=s.n_folds, corr_len=nl.choice["window"]).fit(theta, target)
     hp = extract(lib, sp.coef, sp.stderr, sp.support)
     c_m, K_m = lf.c_m, lf.K_m
     if s.refit:

@@ -58,7 +58,7 @@ from recon import resampling
 from recon.newmark import NewmarkParameters, monomial_exponents
 
 __all__ = ["PeriodicRecord", "detect_period", "periodic_record", "linear_step", "hysteresis_step",
-           "SingleLevelResult", "identify", "LinearStep", "HysteresisStep"]
+           "agent_model_step", "AgentStep", "SingleLevelResult", "identify", "LinearStep", "HysteresisStep"]
 
 SNR_DB_DEFAULT = 10.0
 
@@ -119,6 +119,12 @@ class PeriodicRecord:
         spec[0] = 0
         spec[1:] = spec[1:] / (1j * w[1:]).reshape((-1,) + (1,) * (spec.ndim - 1))
         return np.fft.irfft(spec, n=n, axis=0)
+
+    def derivative(self, x: np.ndarray, order: int) -> np.ndarray:
+        """Spectral derivative of a signal at fs * upsample (periodic, exact for band-limited signals)."""
+        n = self.period * self.upsample
+        w = 2 * np.pi * np.fft.rfftfreq(n, self.h)
+        return np.fft.irfft(np.fft.rfft(x) * (1j * w) ** order, n=n)
 
     def summary(self) -> dict:
         return {"period": self.period, "periods_averaged": self.n_periods_used, "snr_db": self.snr_db,
@@ -203,6 +209,76 @@ def linear_step(rec: PeriodicRecord) -> LinearStep:
     return LinearStep(b=float(b), c=float(c), K=float(K), condition=cond)
 
 
+@dataclass
+class AgentStep:
+    """The paper's agent-model step (recon core) run on the single level, iterated with its linear refit."""
+
+    params: NewmarkParameters
+    lam: float
+    fn: dict
+    iterations: list          # per iteration: {inv_m, c_m, K_m, lambda, alpha_m, gamma, delta, fn_m}
+    error: str | None = None  # why it failed, if it did
+
+    def to_dict(self) -> dict:
+        d = self.params.to_benchmark() if self.error is None else {}
+        d.update(lam=self.lam, fn_m=self.fn, iterations=len(self.iterations), error=self.error)
+        return d
+
+
+def agent_model_step(rec: PeriodicRecord, lin: LinearStep, library_order: int = 3,
+                     iterations: int = 4) -> AgentStep:
+    """Agent-model sparse regression (recon.library/optimizers/hysteresis) on the single level.
+
+    Starts from the biased linear step; each iteration builds Fn and Fn' with
+    the current (1/m, c/m, K/m), selects the library terms (GroupedSparseSelector),
+    extracts lambda and alpha, refits the pattern jointly with (c/m, K/m, 1/m)
+    (recon.hysteresis.refit with fit_linear: the linear part re-estimated with
+    the hysteresis accounted for), then estimates delta from the h = 0 samples.
+    Signals are the band-limited periodic ones at fs * upsample, with the third
+    derivative taken spectrally.
+    """
+    from recon.hysteresis import estimate_delta, extract, refit
+    from recon.kernel import cluster
+    from recon.library import AgentLibrary
+    from recon.optimizers import GroupedSparseSelector
+
+    y0, y1, y2 = rec.y0, rec.y1, rec.y2
+    y3 = rec.derivative(y0, 3)
+    u0 = rec.u_up
+    u1 = rec.derivative(u0, 1)
+    g, c, K = lin.b, lin.c, lin.K
+    h = cluster(y0, y1)
+    lib = AgentLibrary(library_order, "joint")
+    groups, core = lib.groups()
+    mask = lib.rows(h)
+    sig = h[mask].astype(float)
+    history = []
+    hp = None
+    try:
+        for _ in range(iterations):
+            Fn = g * u0 - y2 - c * y1 - K * y0
+            dFn = g * u1 - y3 - c * y2 - K * y1
+            theta, target = lib.build(y0, y1, y2, Fn, dFn, h)
+            sp = GroupedSparseSelector(groups, core).fit(theta, target)
+            hp = extract(lib, sp.coef, sp.stderr, sp.support)
+            hp, c, K, g = refit(hp, y0[mask], y1[mask], y2[mask], y3[mask], u0[mask], u1[mask], sig, c, K, g,
+                                fit_g=True, fit_linear=True)
+            Fn = g * u0 - y2 - c * y1 - K * y0
+            dFn = g * u1 - y3 - c * y2 - K * y1
+            hp = estimate_delta(hp, y0, y1, y2, Fn, dFn, h)
+            history.append({"inv_m": g, "c_m": c, "K_m": K, "lambda": hp.lam, "alpha_m": hp.alpha,
+                            "gamma": hp.gamma, "delta": hp.delta, "fn_m": dict(hp.fn)})
+    except UserFacingError as exc:
+        if hp is None or not history:
+            nan = float("nan")
+            return AgentStep(params=NewmarkParameters(nan, nan, nan, nan, nan, nan), lam=nan, fn={},
+                             iterations=history, error=str(exc))
+    last = history[-1]
+    params = NewmarkParameters(c=last["c_m"], k=last["K_m"] - last["alpha_m"], alpha=last["alpha_m"],
+                               gamma=last["gamma"], delta=last["delta"], b=last["inv_m"])
+    return AgentStep(params=params, lam=last["lambda"], fn=last["fn_m"], iterations=history)
+
+
 @njit(cache=True)
 def _z_periodic(v, alpha, gamma, delta, h, passes):
     """Integrate z' = alpha v - gamma |v| z - delta v |z| over ``passes`` periods of v; return the last."""
@@ -236,8 +312,13 @@ class HysteresisStep:
         return d
 
 
-def hysteresis_step(rec: PeriodicRecord, lin: LinearStep, fn_terms=(), passes: int = 3) -> HysteresisStep:
-    """Variable projection: (alpha, gamma, delta) outer, (b, c, k, fn) inner least squares."""
+def hysteresis_step(rec: PeriodicRecord, lin: LinearStep, fn_terms=(), passes: int = 3,
+                    extra_starts=()) -> HysteresisStep:
+    """Variable projection: (alpha, gamma, delta) outer, (b, c, k, fn) inner least squares.
+
+    ``extra_starts``: further (alpha/m, gamma, delta) starting points (e.g. the
+    agent-model step's estimate), tried before the built-in ones.
+    """
     names = list(fn_terms)
     pe, re = monomial_exponents(names) if names else (np.zeros(0, int), np.zeros(0, int))
     target = rec.band_project(rec.y1)
@@ -259,7 +340,9 @@ def hysteresis_step(rec: PeriodicRecord, lin: LinearStep, fn_terms=(), passes: i
     # the hysteresis saturate within the response amplitude (|gamma z| ~ alpha).  Both sign patterns of
     # delta are tried; the smallest equation error wins (the step is cheap: ~1 s per start).
     g0 = 0.5 / y_rms
-    starts = [np.array([0.5 * lin.K, g0, -g0]), np.array([0.5 * lin.K, g0, 0.5 * g0]),
+    starts = [np.asarray(x, dtype=float) for x in extra_starts
+              if np.all(np.isfinite(x)) and np.all(np.asarray(x) != 0) and x[0] > 0]
+    starts += [np.array([0.5 * lin.K, g0, -g0]), np.array([0.5 * lin.K, g0, 0.5 * g0]),
               np.array([0.8 * lin.K, 2 * g0, -2 * g0])]
     best = None
     nfev = 0
@@ -282,43 +365,122 @@ def hysteresis_step(rec: PeriodicRecord, lin: LinearStep, fn_terms=(), passes: i
                           starts=len(starts))
 
 
+def select_fn_terms(rec: PeriodicRecord, hyst: HysteresisStep, order: int = 3, passes: int = 3) -> list[str]:
+    """Candidate static terms fn for the current hysteresis, by sparse regression (recon.optimizers.AutoSTLSQ).
+
+    With z fixed at the hysteresis step's estimate, the integrated momentum
+    equation is linear in (1/m, c, k) and in every fn coefficient; the
+    automatic-threshold STLSQ (the linear columns forced in) proposes terms.
+    Only used when the refined model does not explain the record down to the
+    noise (see :func:`identify`), because equation-error selection on
+    band-limited, densely sampled signals tends to keep small spurious terms.
+    """
+    from recon import monomials
+    from recon.optimizers import AutoSTLSQ
+
+    p = hyst.params
+    z = _z_periodic(np.ascontiguousarray(rec.y1), p.alpha, p.gamma, p.delta, rec.h, passes)
+    target = rec.band_project(rec.y1 + rec.integral(z))
+    terms = monomials.up_to(order)
+    cols = [rec.integral(rec.u_up), -rec.y0, -rec.integral(rec.y0)]
+    cols += [-rec.integral(rec.y0 ** a * rec.y1 ** b) for a, b in terms]
+    fit = AutoSTLSQ(forced=(0, 1, 2)).fit(rec.band_project(np.column_stack(cols)), target)
+    return [monomials.name(*t) for t, keep in zip(terms, fit.support[3:]) if keep]
+
+
 @dataclass
 class SingleLevelResult:
     record: PeriodicRecord
     linear: LinearStep
+    agent: AgentStep | None
     hysteresis: HysteresisStep
     refined: object | None = None   # recon.output_error.OutputErrorResult
+    adequacy: dict = field(default_factory=dict)
 
     @property
     def params(self) -> NewmarkParameters:
         return self.refined.params if self.refined is not None else self.hysteresis.params
 
+    def to_model(self):
+        """The identified model as a recon.model.HystereticModel (force excitation, per unit mass)."""
+        from recon.model import HystereticModel
+        from shakerlab import __version__
+
+        p = self.params
+        return HystereticModel(excitation="force", c_m=p.c, k_m=p.k, alpha_m=p.alpha, gamma=p.gamma,
+                               delta=p.delta, fn_m=dict(p.fn), inv_m=p.b,
+                               provenance={"method": "single-level identification (recon.single_level)",
+                                           "software": f"shakerlab {__version__}", "steps": self.to_dict()})
+
     def to_dict(self) -> dict:
         out = {"record": self.record.summary(), "linear_step": self.linear.to_dict(),
-               "hysteresis_step": self.hysteresis.to_dict()}
+               "agent_model_step": self.agent.to_dict() if self.agent is not None else None,
+               "hysteresis_step": self.hysteresis.to_dict(), "adequacy": self.adequacy}
         if self.refined is not None:
             d = self.refined.params.to_benchmark()
-            d.update(rms_initial=self.refined.rms_initial, rms_final=self.refined.rms_final,
-                     nfev=self.refined.nfev, relative_std=self.refined.relative_std)
+            d.update(fn_m=dict(self.refined.params.fn), rms_initial=self.refined.rms_initial,
+                     rms_final=self.refined.rms_final, nfev=self.refined.nfev,
+                     relative_std=self.refined.relative_std)
             out["output_error"] = d
         return out
 
 
+def _adequacy(rec: PeriodicRecord, refined, n_samples: int) -> dict:
+    """Is the output-error residual at the noise level estimated from the period-to-period scatter?"""
+    ratio = (refined.rms_final / rec.noise_rms) ** 2
+    # sampling spread of the ratio under "residual = noise": residual variance over n_samples, noise
+    # variance estimated with (periods used - 1) * period degrees of freedom
+    tol = 3.0 * np.sqrt(2.0 / n_samples + 2.0 / ((rec.n_periods_used - 1) * rec.period))
+    return {"residual_rms": refined.rms_final, "noise_rms": rec.noise_rms, "variance_ratio": float(ratio),
+            "tolerance": float(tol), "adequate": bool(ratio < 1.0 + tol)}
+
+
 def identify(u, y, fs: float, period: int | None = None, refine: bool = True, upsample_sim: int = 20,
-             fn_terms=(), snr_db: float = SNR_DB_DEFAULT) -> SingleLevelResult:
+             fn_terms="auto", snr_db: float = SNR_DB_DEFAULT, agent: bool = True) -> SingleLevelResult:
     """Identify the force-excited SDOF Bouc-Wen model from one periodic record.
+
+    Steps: periodic preprocessing, linear step, agent-model step (``agent``;
+    reported, and its estimate is the first start of the next step),
+    hysteresis-aware variable projection, output-error refinement (``refine``).
+    ``fn_terms``: static monomials to include (e.g. ``("y^3",)``), or
+    ``"auto"``: none unless the refined model leaves more than noise in the
+    residual, in which case terms proposed by sparse regression are added and
+    kept if the residual drops significantly.
 
     The record must start from rest (zero state) if ``refine`` is on: the
     output-error step simulates all of it from zero initial conditions with
     the input upsampled ``upsample_sim`` times (the benchmark's chain).
     """
+    auto = isinstance(fn_terms, str)
+    if auto and fn_terms != "auto":
+        raise UserFacingError(f"single-level identification: fn_terms must be 'auto' or a list of monomials, "
+                              f"got {fn_terms!r}")
+    terms = () if auto else tuple(fn_terms)
     rec = periodic_record(u, y, fs, period=period, snr_db=snr_db)
     lin = linear_step(rec)
-    hyst = hysteresis_step(rec, lin, fn_terms=fn_terms)
+    ag = agent_model_step(rec, lin) if agent else None
+    extra = []
+    if ag is not None and ag.error is None:
+        extra.append((ag.params.alpha, ag.params.gamma, ag.params.delta))
+    hyst = hysteresis_step(rec, lin, fn_terms=terms, extra_starts=extra)
     refined = None
+    adequacy = {}
     if refine:
         from recon.output_error import refine as oe_refine
 
-        refined = oe_refine(hyst.params, u, y, fs, periodic=True, upsample=upsample_sim, n_warmup_periods=0,
-                            scales={f"fn:{n}": 1.0 for n in fn_terms})
-    return SingleLevelResult(record=rec, linear=lin, hysteresis=hyst, refined=refined)
+        def run_oe(h):
+            return oe_refine(h.params, u, y, fs, periodic=True, upsample=upsample_sim, n_warmup_periods=0)
+
+        refined = run_oe(hyst)
+        adequacy = _adequacy(rec, refined, len(y))
+        if auto and not adequacy["adequate"]:
+            candidates = select_fn_terms(rec, hyst)
+            adequacy["fn_candidates"] = candidates
+            if candidates:
+                hyst2 = hysteresis_step(rec, lin, fn_terms=candidates, extra_starts=extra)
+                refined2 = run_oe(hyst2)
+                adeq2 = _adequacy(rec, refined2, len(y))
+                if adeq2["variance_ratio"] < adequacy["variance_ratio"] - adequacy["tolerance"]:
+                    hyst, refined, adequacy = hyst2, refined2, dict(adeq2, fn_candidates=candidates)
+    return SingleLevelResult(record=rec, linear=lin, agent=ag, hysteresis=hyst, refined=refined,
+                             adequacy=adequacy)
