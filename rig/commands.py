@@ -46,6 +46,10 @@ def register(subparsers) -> None:
     d.add_argument("--quiet", action="store_true", help="print only warnings, errors and the results")
     d.set_defaults(handler=_demo)
 
+    from rig.gui import register_gui  # the operator window (rig/gui/); import-light
+
+    register_gui(subparsers)
+
 
 def _acquire(args) -> int:
     from rig.config import load_config

@@ -1,0 +1,340 @@
+"""The window's panels: connection, protocol, live plots, results (widgets only, no run logic)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6 import QtCore, QtGui, QtWidgets
+
+STAGE_COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#17becf"]
+LIGHT_COLORS = {"off": "#9a9a9a", "ok": "#21a336", "warn": "#e0a800", "bad": "#d62020"}
+INSTRUMENTS = (("generator", "signal generator"), ("amplifier", "power amplifier"),
+               ("sensor_base", "base sensor"), ("sensor_tip", "tip sensor"))
+
+LOOP_WAITING = "nonlinear restoring force Fn vs y (after the linear step)"
+
+pg.setConfigOptions(antialias=False, background="w", foreground="k")
+
+
+class Light(QtWidgets.QWidget):
+    """A status light with a caption: off (grey), ok (green), warn (amber), bad (red)."""
+
+    def __init__(self, caption: str, parent=None):
+        super().__init__(parent)
+        lay = QtWidgets.QHBoxLayout(self)
+        lay.setContentsMargins(0, 0, 8, 0)
+        self.dot = QtWidgets.QLabel()
+        self.dot.setFixedSize(14, 14)
+        self.caption = QtWidgets.QLabel(caption)
+        lay.addWidget(self.dot)
+        lay.addWidget(self.caption)
+        self.state = ""
+        self.set("off", "")
+
+    def set(self, state: str, tip: str = "") -> None:
+        if state != self.state:
+            self.state = state
+            self.dot.setStyleSheet(f"background:{LIGHT_COLORS[state]}; border-radius:7px; border:1px solid #555;")
+        self.setToolTip(tip)
+
+
+class ConnectionPanel(QtWidgets.QGroupBox):
+    """Rig config, simulated-rig switch, addresses, identity strings and status lights."""
+
+    def __init__(self, parent=None):
+        super().__init__("Connection", parent)
+        form = QtWidgets.QGridLayout(self)
+        self.simulated = QtWidgets.QCheckBox("simulated rig (started here, on loopback)")
+        self.simulated.setChecked(True)
+        self.speed = QtWidgets.QDoubleSpinBox()
+        self.speed.setRange(0.0, 20.0)
+        self.speed.setSingleStep(0.5)
+        self.speed.setValue(1.0)
+        self.speed.setToolTip("simulated time per wall time; 1 = real time, 0 = as fast as possible (lockstep)")
+        self.config_path = QtWidgets.QLineEdit()
+        self.config_path.setPlaceholderText("rig/default_rig.toml (shipped limits)")
+        self.browse = QtWidgets.QPushButton("…")
+        self.browse.setFixedWidth(28)
+        self.connect_button = QtWidgets.QPushButton("Connect && identify")
+        form.addWidget(self.simulated, 0, 0, 1, 3)
+        row = QtWidgets.QHBoxLayout()
+        row.addWidget(QtWidgets.QLabel("speed"))
+        row.addWidget(self.speed)
+        row.addStretch(1)
+        form.addLayout(row, 0, 3)
+        form.addWidget(QtWidgets.QLabel("rig config"), 1, 0)
+        form.addWidget(self.config_path, 1, 1, 1, 2)
+        form.addWidget(self.browse, 1, 3, QtCore.Qt.AlignLeft)
+        self.address = {}
+        self.identity = {}
+        for i, (key, label) in enumerate(INSTRUMENTS):
+            form.addWidget(QtWidgets.QLabel(label), 2 + i, 0)
+            self.address[key] = QtWidgets.QLabel("—")
+            self.address[key].setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
+            self.identity[key] = QtWidgets.QLabel("")
+            self.identity[key].setStyleSheet("color:#444;")
+            self.identity[key].setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
+            form.addWidget(self.address[key], 2 + i, 1)
+            form.addWidget(self.identity[key], 2 + i, 2, 1, 2)
+        lights = QtWidgets.QHBoxLayout()
+        self.light_connected = Light("connected")
+        self.light_fault = Light("amplifier fault")
+        self.light_watchdog = Light("watchdog")
+        self.light_output = Light("output on")
+        for w in (self.light_connected, self.light_fault, self.light_watchdog, self.light_output):
+            lights.addWidget(w)
+        lights.addStretch(1)
+        lights.addWidget(self.connect_button)
+        form.addLayout(lights, 6, 0, 1, 4)
+        form.setColumnStretch(2, 1)
+        self.simulated.toggled.connect(self._sim_toggled)
+
+    def _sim_toggled(self, on: bool) -> None:
+        self.speed.setEnabled(on)
+
+    def show_addresses(self, addresses: dict) -> None:
+        for key, _ in INSTRUMENTS:
+            self.address[key].setText(str(addresses.get(key, "—")))
+
+    def show_identities(self, identities: dict) -> None:
+        for key, _ in INSTRUMENTS:
+            self.identity[key].setText(str(identities.get(key, "")))
+
+
+class ProtocolPanel(QtWidgets.QGroupBox):
+    """Protocol file and editor, start / pause / ABORT, stage and progress, limits in force."""
+
+    def __init__(self, parent=None):
+        super().__init__("Protocol", parent)
+        lay = QtWidgets.QVBoxLayout(self)
+        top = QtWidgets.QHBoxLayout()
+        self.source = QtWidgets.QLabel("rig/default_protocol.toml")
+        self.source.setStyleSheet("color:#444;")
+        self.load_button = QtWidgets.QPushButton("Load…")
+        self.save_button = QtWidgets.QPushButton("Save as…")
+        top.addWidget(self.source, 1)
+        top.addWidget(self.load_button)
+        top.addWidget(self.save_button)
+        lay.addLayout(top)
+        self.editor = QtWidgets.QPlainTextEdit()
+        font = QtGui.QFontDatabase.systemFont(QtGui.QFontDatabase.FixedFont)
+        font.setPointSize(9)
+        self.editor.setFont(font)
+        self.editor.setLineWrapMode(QtWidgets.QPlainTextEdit.NoWrap)
+        lay.addWidget(self.editor, 1)
+        buttons = QtWidgets.QHBoxLayout()
+        self.start_button = QtWidgets.QPushButton("Start")
+        self.pause_button = QtWidgets.QPushButton("Pause")
+        self.pause_button.setCheckable(True)
+        self.pause_button.setEnabled(False)
+        for b in (self.start_button, self.pause_button):
+            b.setMinimumHeight(34)
+            buttons.addWidget(b)
+        lay.addLayout(buttons)
+        self.abort_button = QtWidgets.QPushButton("ABORT")
+        self.abort_button.setMinimumHeight(56)
+        self.abort_button.setToolTip("first press: ramp the output to zero and stop; second press: cut at once")
+        self.abort_button.setStyleSheet(
+            "QPushButton { background:#c8102e; color:white; font-size:20px; font-weight:bold; border-radius:6px; }"
+            "QPushButton:pressed { background:#8e0b20; }")
+        lay.addWidget(self.abort_button)
+        self.stage_label = QtWidgets.QLabel("idle")
+        self.stage_label.setStyleSheet("font-weight:bold;")
+        self.drive_label = QtWidgets.QLabel("")
+        self.progress = QtWidgets.QProgressBar()
+        self.progress.setFormat("%v / %m stages")
+        self.progress.setRange(0, 1)
+        self.progress.setValue(0)
+        self.limits_label = QtWidgets.QLabel("")
+        self.limits_label.setWordWrap(True)
+        self.limits_label.setStyleSheet("color:#444;")
+        for w in (self.stage_label, self.drive_label, self.progress, self.limits_label):
+            lay.addWidget(w)
+
+    def set_abort_armed(self, armed: bool) -> None:
+        """After a first press during a run, the button offers the immediate cut."""
+        self.abort_button.setText("CUT OUTPUT NOW" if armed else "ABORT")
+
+    def show_limits(self, limits: dict) -> None:
+        self.limits_label.setText(
+            "Limits in force: generator ≤ {:g} Vpp, gain ≤ {:g}, base ≤ {:.3g} mm, tip ≤ {:.3g} mm, "
+            "current ≤ {:g} A; ramps {:g} Vpp/s, abort ramp {:g} s".format(
+                limits["max_generator_vpp"], limits["max_amplifier_gain"], limits["max_base_displacement_m"] * 1e3,
+                limits["max_tip_displacement_m"] * 1e3, limits["max_amplifier_current_a"],
+                limits["ramp_rate_vpp_per_s"], limits["abort_ramp_s"]))
+
+
+def _curve(plot, color, name=None, width=1):
+    c = plot.plot(pen=pg.mkPen(color, width=width), name=name)
+    c.setDownsampling(auto=True, method="peak")
+    c.setClipToView(True)
+    return c
+
+
+class LivePlots(pg.GraphicsLayoutWidget):
+    """Base and tip traces, relative displacement, live nonlinear restoring-force loop, amplitude per stage."""
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        self.p_traces = self.addPlot(row=0, col=0, title="base and tip displacement (from rest)")
+        self.p_traces.addLegend(offset=(5, 5))
+        self.c_base = _curve(self.p_traces, "#1f77b4", "x_base")
+        self.c_tip = _curve(self.p_traces, "#d62728", "x_tip")
+        self.p_rel = self.addPlot(row=1, col=0, title="relative displacement y = x_tip − x_base")
+        self.c_rel = _curve(self.p_rel, "#2ca02c")
+        for p in (self.p_traces, self.p_rel):
+            p.setLabel("left", "displacement", units="m")
+            p.setLabel("bottom", "run time", units="s")
+            p.showGrid(x=True, y=True, alpha=0.2)
+        self.p_rel.setXLink(self.p_traces)
+        self.p_loop = self.addPlot(row=0, col=1, title=LOOP_WAITING)
+        self.p_loop.setLabel("left", "Fn = −x_tip'' − c_m y' − K_m y", units="m/s²")
+        self.p_loop.setLabel("bottom", "y", units="m")
+        self.p_loop.showGrid(x=True, y=True, alpha=0.2)
+        self.c_loop = self.p_loop.plot(pen=pg.mkPen("#9467bd", width=2))
+        self.p_amp = self.addPlot(row=1, col=1, title="response amplitude, per stage")
+        self.p_amp.setLabel("left", "(max y − min y) / 2", units="m")
+        self.p_amp.setLabel("bottom", "run time", units="s")
+        self.p_amp.showGrid(x=True, y=True, alpha=0.2)
+        self.p_amp.addLegend(offset=(5, 5))
+        self.c_amp: dict = {}
+
+    def reset(self) -> None:
+        for c in (self.c_base, self.c_tip, self.c_rel, self.c_loop):
+            c.setData([], [])
+        for c in self.c_amp.values():
+            self.p_amp.removeItem(c)
+        self.c_amp.clear()
+        self.p_amp.legend.clear()
+        self.p_loop.setTitle(LOOP_WAITING)
+
+    def amplitude_curve(self, stage: str):
+        c = self.c_amp.get(stage)
+        if c is None:
+            color = STAGE_COLORS[len(self.c_amp) % len(STAGE_COLORS)]
+            c = self.p_amp.plot(pen=pg.mkPen(color, width=2), symbol="o", symbolSize=3,
+                                symbolBrush=color, symbolPen=None, name=stage)
+            self.c_amp[stage] = c
+        return c
+
+
+class ResultsPanel(QtWidgets.QWidget):
+    """Equation, parameter table, measured-vs-simulated overlay, hysteresis loop, diagnosis (if any)."""
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        lay = QtWidgets.QVBoxLayout(self)
+        top = QtWidgets.QHBoxLayout()
+        self.open_button = QtWidgets.QPushButton("Open run file…")
+        self.reconstruct_button = QtWidgets.QPushButton("Reconstruct again")
+        self.reconstruct_button.setEnabled(False)
+        self.header = QtWidgets.QLabel("No result yet: finish a run, or open a recorded run file.")
+        self.header.setWordWrap(True)
+        top.addWidget(self.header, 1)
+        top.addWidget(self.open_button)
+        top.addWidget(self.reconstruct_button)
+        lay.addLayout(top)
+        split = QtWidgets.QSplitter(QtCore.Qt.Horizontal)
+        left = QtWidgets.QWidget()
+        ll = QtWidgets.QVBoxLayout(left)
+        ll.setContentsMargins(0, 0, 0, 0)
+        ll.addWidget(QtWidgets.QLabel("Identified equation (per unit mass)"))
+        self.equation = QtWidgets.QPlainTextEdit()
+        self.equation.setReadOnly(True)
+        font = QtGui.QFontDatabase.systemFont(QtGui.QFontDatabase.FixedFont)
+        font.setPointSize(9)
+        self.equation.setFont(font)
+        self.equation.setLineWrapMode(QtWidgets.QPlainTextEdit.WidgetWidth)
+        self.equation.setMaximumHeight(110)
+        ll.addWidget(self.equation)
+        ll.addWidget(QtWidgets.QLabel("Parameters"))
+        self.table = QtWidgets.QTableWidget(0, 4)
+        self.table.setHorizontalHeaderLabels(["parameter", "identified", "unit", "true (simulator)"])
+        self.table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.ResizeToContents)
+        self.table.horizontalHeader().setStretchLastSection(True)
+        self.table.verticalHeader().setVisible(False)
+        self.table.setEditTriggers(QtWidgets.QAbstractItemView.NoEditTriggers)
+        ll.addWidget(self.table, 1)
+        self.diagnosis_box = QtWidgets.QGroupBox("Diagnosis")
+        dl = QtWidgets.QVBoxLayout(self.diagnosis_box)
+        self.diagnosis = QtWidgets.QPlainTextEdit()
+        self.diagnosis.setReadOnly(True)
+        dl.addWidget(self.diagnosis)
+        self.diagnosis_box.setVisible(False)
+        ll.addWidget(self.diagnosis_box)
+        split.addWidget(left)
+        self.plots = pg.GraphicsLayoutWidget()
+        self.p_overlay = self.plots.addPlot(row=0, col=0, title="validation: measured vs simulated")
+        self.p_overlay.addLegend(offset=(5, 5))
+        self.p_overlay.setLabel("left", "y", units="m")
+        self.p_overlay.setLabel("bottom", "stage time", units="s")
+        self.p_overlay.showGrid(x=True, y=True, alpha=0.2)
+        self.c_meas = _curve(self.p_overlay, "#555555", "measured")
+        self.c_sim = _curve(self.p_overlay, "#d62728", "simulated (identified model)")
+        self.p_loop = self.plots.addPlot(row=1, col=0, title="hysteresis loop z vs y")
+        self.p_loop.addLegend(offset=(5, 5))
+        self.p_loop.setLabel("left", "z", units="m/s²")
+        self.p_loop.setLabel("bottom", "y", units="m")
+        self.p_loop.showGrid(x=True, y=True, alpha=0.2)
+        self.c_zmeas = self.p_loop.plot(pen=None, symbol="o", symbolSize=2, symbolBrush=(120, 120, 120, 90),
+                                        symbolPen=None, name="from the data (nonlinear stage)")
+        self.c_zsim = self.p_loop.plot(pen=pg.mkPen("#9467bd", width=2), name="model, validation stage")
+        split.addWidget(self.plots)
+        split.setSizes([430, 800])
+        lay.addWidget(split, 1)
+
+    def clear(self, message: str) -> None:
+        self.header.setText(message)
+        self.equation.setPlainText("")
+        self.table.setRowCount(0)
+        for c in (self.c_meas, self.c_sim, self.c_zmeas, self.c_zsim):
+            c.setData([], [])
+        self.diagnosis_box.setVisible(False)
+
+    def show_view(self, view) -> None:
+        nrmse = "" if not math.isfinite(view.nrmse) else f"; validation NRMSE {view.nrmse * 100:.2f} % on stage '{view.validation_stage}'"
+        notes = "".join(f"<br><i>{n}</i>" for n in view.notes)
+        self.header.setText(f"<b>{view.source}</b> (run {view.status}): {view.origin}{nrmse}{notes}")
+        self.equation.setPlainText(view.equation)
+        has_truth = any(r[3] is not None for r in view.parameters)
+        self.table.setColumnHidden(3, not has_truth)
+        self.table.setRowCount(len(view.parameters))
+        for i, (name, value, unit, true) in enumerate(view.parameters):
+            cells = [name, f"{value:.6g}", unit, "" if true is None else f"{true:.6g}"]
+            for j, text in enumerate(cells):
+                item = QtWidgets.QTableWidgetItem(text)
+                if j in (1, 3):
+                    item.setTextAlignment(QtCore.Qt.AlignRight | QtCore.Qt.AlignVCenter)
+                self.table.setItem(i, j, item)
+        if view.overlay is not None:
+            t, ym, ys = view.overlay
+            t = t - t[0]
+            self.c_meas.setData(t, ym)
+            self.c_sim.setData(t, ys)
+        else:
+            self.c_meas.setData([], [])
+            self.c_sim.setData([], [])
+        if view.loop is not None:
+            y, z = view.loop
+            keep = slice(max(0, y.size - y.size // 3), None)   # the last third: steady state
+            self.c_zsim.setData(y[keep], z[keep])
+        else:
+            self.c_zsim.setData([], [])
+        if view.measured_loop is not None:
+            y, z = view.measured_loop
+            step = max(1, y.size // 4000)
+            self.c_zmeas.setData(y[::step], z[::step])
+        else:
+            self.c_zmeas.setData([], [])
+        self.diagnosis_box.setVisible(view.diagnosis is not None)
+        self.diagnosis.setPlainText(view.diagnosis or "")
+
+
+def set_series(curve, x, y) -> None:
+    """setData that accepts empty arrays."""
+    x = np.asarray(x)
+    if x.size == 0:
+        curve.setData([], [])
+    else:
+        curve.setData(x, np.asarray(y))

@@ -1,0 +1,119 @@
+"""The after-run view: what the results panel shows, computed off the GUI thread (no Qt here).
+
+:func:`view_of_run_file` reads a run file; when it already holds a
+reconstruction result (``entry/results/reconstruction_NNN``, written by
+``shakerlab demo``, ``shakerlab reconstruct`` or this GUI) the newest one is
+shown, otherwise (or with ``reconstruct=True``) the governing equation is
+reconstructed with :func:`recon.pipeline.reconstruct` and written back into
+the file (when it was closed cleanly). The model is then simulated on the
+validation stage to give the measured-vs-simulated overlay and the
+hysteresis loop. A diagnosis is shown only when the file holds a
+``diagnosis_NNN`` result.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+PARAM_ORDER = ("c_m", "k_m", "alpha_m", "gamma", "delta", "inv_m")
+
+
+@dataclass
+class ResultView:
+    source: str
+    status: str                      # the run's status (complete, aborted, ...)
+    equation: str
+    parameters: list                 # rows: (name, value, unit, true or None)
+    nrmse: float
+    validation_stage: str | None
+    overlay: tuple | None            # (t, y measured, y simulated) [s, m, m]
+    loop: tuple | None               # (y, z) simulated on the validation stage [m, m/s^2]
+    measured_loop: tuple | None      # (y, z) estimated from the data (fresh reconstructions only)
+    diagnosis: str | None = None
+    origin: str = ""                 # "stored result <group>" or "reconstructed now"
+    notes: list = field(default_factory=list)
+
+
+def _latest(results: dict, kind: str):
+    names = sorted(n for n in results if n.startswith(kind + "_"))
+    return (names[-1], results[names[-1]]) if names else (None, None)
+
+
+def _rows(params: dict, units: dict, truth: dict | None) -> list:
+    truth = truth or {}
+    rows = []
+    for name in PARAM_ORDER:
+        if name in params and params[name] is not None:
+            rows.append((name, float(params[name]), str(units.get(name, "")),
+                         float(truth[name]) if name in truth else None))
+    tfn = truth.get("fn_m", {}) or {}
+    for name, value in (params.get("fn_m") or {}).items():
+        rows.append((f"fn_m[{name}]", float(value), "", float(tfn[name]) if name in tfn else None))
+    for name in tfn:
+        if name not in (params.get("fn_m") or {}):
+            rows.append((f"fn_m[{name}]", 0.0, "", float(tfn[name])))
+    return rows
+
+
+def _diagnosis_text(payload: dict) -> str:
+    for key in ("text", "summary", "diagnosis"):
+        if isinstance(payload.get(key), str) and payload[key].strip():
+            return payload[key]
+    return json.dumps(payload, indent=2, default=str)
+
+
+def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bool = True) -> ResultView:
+    """The results view of a run file (see the module docstring). Raises UserFacingError on bad files."""
+    from recon.model import HystereticModel
+    from shakerlab.recording import add_result, read_info, read_results
+    from shakerlab.run_data import load_run
+
+    path = Path(path)
+    run = load_run(path)
+    info = read_info(path)
+    results = read_results(path)
+    notes = []
+    group, payload = _latest(results, "reconstruction")
+    measured_loop = None
+    if payload is None or reconstruct:
+        from recon.pipeline import reconstruct as run_recon
+
+        result = run_recon(run)
+        payload = result.to_dict()
+        model = result.model
+        origin = "reconstructed now"
+        sig = result.signals or {}
+        if sig.get("y") is not None and sig.get("z") is not None:
+            measured_loop = (np.asarray(sig["y"]), np.asarray(sig["z"]))
+        if write_back:
+            if info["clean_close"]:
+                group = add_result(path, "reconstruction", payload, text=str(model))
+                origin += f", written to {group}"
+            else:
+                notes.append("the run file was not closed cleanly: the result is not written into it")
+    else:
+        model = HystereticModel.from_dict({"excitation": payload.get("excitation", "base"),
+                                           "parameters": payload["parameters"]})
+        origin = f"stored result {group}"
+    val = payload.get("validation", {}) or {}
+    vstage = val.get("stage")
+    overlay = loop = None
+    if vstage and vstage in run.stages:
+        st = run.stage(vstage)
+        y_sim, _, z_sim = model.simulate(st.t - st.t[0], model.stage_input(st))
+        overlay = (st.t, st.y, y_sim)
+        loop = (y_sim, z_sim)
+    else:
+        notes.append("no validation stage: no overlay")
+    truth = payload.get("truth")
+    _, diag = _latest(results, "diagnosis")
+    return ResultView(
+        source=str(path), status=info.get("status", ""), equation=str(model),
+        parameters=_rows(payload["parameters"], payload.get("units", {}), truth),
+        nrmse=float(val.get("nrmse", float("nan"))), validation_stage=vstage, overlay=overlay, loop=loop,
+        measured_loop=measured_loop, diagnosis=_diagnosis_text(diag) if diag is not None else None,
+        origin=origin, notes=notes,
+    )
