@@ -16,6 +16,7 @@ from rig.protocol import Protocol
 from rig.recorder import Recorder
 from rig.runner import RunOutcome, Runner
 from rig.safety import Supervisor
+from shakerlab.errors import UserFacingError
 
 
 def acquire(config: RigConfig, protocol: Protocol, output: str | Path, *, lockstep: bool = False,
@@ -32,9 +33,10 @@ def acquire(config: RigConfig, protocol: Protocol, output: str | Path, *, lockst
     inst = RigInstruments(config, lockstep=lockstep)
     try:
         inst.connect()
-    except Exception:
+    except Exception as exc:  # noqa: BLE001 - an unreachable instrument is a config problem for the user
         inst.close()
-        raise
+        raise UserFacingError(f"{config.source}: cannot reach the instruments ({type(exc).__name__}: {exc}); "
+                              f"check the addresses and that the instruments are on") from None
     try:
         recorder = Recorder(output, overwrite=overwrite, flush_interval=config.acquisition["flush_interval_s"],
                             fs=inst.fs)

@@ -110,3 +110,17 @@ def test_ctrl_c_ramps_down_and_closes_the_file(tmp_path, realtime_sim):
     info = read_info(out)
     assert info["clean_close"] and info["status"] == "aborted"
     assert any("Ctrl-C" in e["message"] and e["level"] == "warning" for e in read_events(out))
+
+
+def test_unreachable_instrument_is_a_clear_error(tmp_path, capsys):
+    import socket
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text(DEFAULT_RIG_PATH.read_text().replace("socket://127.0.0.1:5025", f"socket://127.0.0.1:{port}"))
+    assert main(["acquire", "--config", str(cfg), "-o", str(tmp_path / "r.h5")]) == 2
+    err = capsys.readouterr().err
+    assert "cannot reach the instruments" in err and "signal generator" in err
+    assert not (tmp_path / "r.h5").exists()
