@@ -95,10 +95,23 @@ def run(data: str | None = None) -> dict:
     result = identify(u, y, FS)
     t_ident = time.perf_counter() - t0
 
+    agent_oe = None
+    if result.agent is not None and result.agent.error is None:
+        from recon.output_error import refine
+
+        # the path the paper's method alone would take: agent-model estimate (with the fn terms it
+        # kept) straight into output-error, skipping the hysteresis-aware step
+        t1 = time.perf_counter()
+        agent_oe = refine(result.agent.params, u, y, FS, periodic=True)
+        t_agent_oe = time.perf_counter() - t1
     steps = {}
     lin = result.linear
     steps["linear step (equivalent linear)"] = NewmarkParameters(c=lin.c, k=lin.K, alpha=0.0, gamma=0.0,
                                                                  delta=0.0, b=lin.b)
+    if result.agent is not None and result.agent.error is None:
+        steps["agent-model step (paper's regression, iterated)"] = result.agent.params
+    if agent_oe is not None:
+        steps["agent-model step + output error"] = agent_oe.params
     steps["hysteresis step (before output error)"] = result.hysteresis.params
     steps["output-error refined (final)"] = result.refined.params
     steps["true parameters (chain check)"] = NewmarkParameters.from_benchmark(*(TRUE[k] for k in
@@ -107,8 +120,12 @@ def run(data: str | None = None) -> dict:
     tests = {name: load_test(path, name) for name in ("multisine", "sinesweep")}
     rows = {}
     for label, p in steps.items():
-        rows[label] = {name: erms(simulate_test(p, ut, name), yt) for name, (ut, yt) in tests.items()}
-        rows[label]["training_rms"] = None
+        rows[label] = {}
+        for name, (ut, yt) in tests.items():
+            try:
+                rows[label][name] = erms(simulate_test(p, ut, name), yt)
+            except FloatingPointError:  # an unstable intermediate model
+                rows[label][name] = float("nan")
     final = result.refined.params.to_benchmark()
     hyst = result.hysteresis.params.to_benchmark()
     errors = {k: 100.0 * (final[k] / TRUE[k] - 1.0) for k in TRUE}
@@ -120,6 +137,14 @@ def run(data: str | None = None) -> dict:
         "hysteresis_step_parameters": hyst,
         "hysteresis_step_errors_pct": {k: 100.0 * (hyst[k] / TRUE[k] - 1.0) for k in TRUE},
         "linear_step": lin.to_dict(),
+        "agent_model_step": result.agent.to_dict() if result.agent is not None else None,
+        "agent_model_step_errors_pct": ({k: 100.0 * (result.agent.to_dict()[k] / TRUE[k] - 1.0) for k in TRUE}
+                                        if result.agent is not None and result.agent.error is None else None),
+        "adequacy": result.adequacy,
+        "agent_model_then_output_error": None if agent_oe is None else {
+            "parameters": agent_oe.params.to_benchmark(), "fn_m": dict(agent_oe.params.fn),
+            "training_rms": agent_oe.rms_final, "seconds": t_agent_oe,
+            "errors_pct": {k: 100.0 * (agent_oe.params.to_benchmark()[k] / TRUE[k] - 1.0) for k in TRUE}},
         "steps_erms": rows,
         "training": {"noise_rms_estimate": result.record.noise_rms,
                      "output_error_rms": result.refined.rms_final,
@@ -137,11 +162,22 @@ def print_report(r: dict) -> None:
     for name, ms, ss in PUBLISHED:
         print(f"{name + ' (published)':54s} {ms:20.3e} {(f'{ss:.3e}' if ss else '-'):>21s}")
     print(f"{'goal':54s} {GOAL['multisine']:20.1e} {GOAL['sinesweep']:21.1e}\n")
-    print(f"{'parameter':10s} {'true':>12s} {'hysteresis step':>16s} {'err %':>8s} {'final':>14s} {'err %':>8s}  unit")
+    ag = r["agent_model_step"] if r["agent_model_step_errors_pct"] else None
+    print(f"{'parameter':10s} {'true':>10s} {'agent step':>12s} {'err %':>8s} {'hysteresis step':>16s} {'err %':>8s} "
+          f"{'final':>12s} {'err %':>8s}  unit")
     for k in TRUE:
-        print(f"{k:10s} {TRUE[k]:12.6g} {r['hysteresis_step_parameters'][k]:16.6g} "
-              f"{r['hysteresis_step_errors_pct'][k]:8.3f} {r['parameters'][k]:14.6g} "
+        agv = f"{ag[k]:12.6g} {r['agent_model_step_errors_pct'][k]:8.1f}" if ag else f"{'-':>12s} {'-':>8s}"
+        print(f"{k:10s} {TRUE[k]:10.6g} {agv} {r['hysteresis_step_parameters'][k]:16.6g} "
+              f"{r['hysteresis_step_errors_pct'][k]:8.3f} {r['parameters'][k]:12.6g} "
               f"{r['parameter_errors_pct'][k]:8.3f}  {UNITS[k]}")
+    if ag:
+        print(f"agent step: lambda = gamma + delta = {ag['lam']:.4g} 1/m (true -300), fn/m terms kept: "
+              + (", ".join(f"{n} {v:.3g}" for n, v in ag["fn_m"].items()) or "none"))
+    ao = r["agent_model_then_output_error"]
+    if ao:
+        print("agent step + output error: " + ", ".join(f"{k} {v:+.3f} %" for k, v in ao["errors_pct"].items())
+              + f"; fn/m after refinement: " + ", ".join(f"{n} {v:.3g}" for n, v in ao["fn_m"].items())
+              + f"; training residual {ao['training_rms']:.4e} m")
     print("(gamma, delta are the benchmark's beta*gamma, beta*delta)\n")
     lin = r["linear_step"]
     print(f"linear step on the single level (biased by hysteresis): 1/m={lin['inv_m']:.4g}, c/m={lin['c_m']:.4g}, "
@@ -149,6 +185,10 @@ def print_report(r: dict) -> None:
     tr = r["training"]
     print(f"training: estimated noise {tr['noise_rms_estimate']:.3e} m rms, output-error residual "
           f"{tr['output_error_rms']:.3e} m rms, identification {tr['identification_seconds']:.1f} s")
+    a = r["adequacy"]
+    if a:
+        print(f"model adequacy: residual/noise variance ratio {a['variance_ratio']:.4f} (tolerance 1 + "
+              f"{a['tolerance']:.3f}): {'residual is noise' if a['adequate'] else 'residual exceeds the noise'}")
     ok = (r["multisine_erms"] < GOAL["multisine"] and r["sinesweep_erms"] < GOAL["sinesweep"]
           and max(abs(v) for v in r["parameter_errors_pct"].values()) < GOAL["parameter_pct"])
     print(f"goal met: {'yes' if ok else 'NO'}")

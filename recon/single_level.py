@@ -275,7 +275,8 @@ def agent_model_step(rec: PeriodicRecord, lin: LinearStep, library_order: int = 
                              iterations=history, error=str(exc))
     last = history[-1]
     params = NewmarkParameters(c=last["c_m"], k=last["K_m"] - last["alpha_m"], alpha=last["alpha_m"],
-                               gamma=last["gamma"], delta=last["delta"], b=last["inv_m"])
+                               gamma=last["gamma"], delta=last["delta"], b=last["inv_m"],
+                               fn=tuple(sorted(last["fn_m"].items())))
     return AgentStep(params=params, lam=last["lambda"], fn=last["fn_m"], iterations=history)
 
 
