@@ -90,6 +90,7 @@ class Runner:
         self._pause_serial = 0
         self._in_pause = False
         self._stopping = False
+        self._aborts_at_stop = 0
         self.samples_lost = 0
 
     # -- control (thread-safe; also from a signal handler) --------------------------------------
@@ -97,7 +98,8 @@ class Runner:
         self.observers.append(observer)
 
     def abort(self, reason: str = "abort requested") -> None:
-        """First call: ramp down and stop. Second call: cut the output at once."""
+        """First call: ramp down and stop. A call while already stopping (after an abort, a trip
+        or an error) cuts the output at once."""
         with self._lock:
             self._abort_count += 1
             if self._abort_count == 1:
@@ -143,7 +145,7 @@ class Runner:
         self.index = block.end_index
         trip = self.sup.check_block(block) if (block.output or not self._stopping) else None
         self._notify("on_block", block)
-        if self._abort_count >= 2 and self._stopping:
+        if self._stopping and self._abort_count > self._aborts_at_stop:
             raise _Cut()
         if trip is not None and not self._stopping:
             raise _Stop("tripped", f"interlock {trip.limit}: {trip.message}")
@@ -323,11 +325,16 @@ class Runner:
     def _stop_safely(self, status: str, reason: str) -> None:
         """Ramp to zero in abort_ramp_s (supervised, recorded); a second abort cuts at once."""
         self._stopping = True
+        # the abort that caused this stop (if any) is used up; any further one cuts at once
+        self._aborts_at_stop = min(self._abort_count, 1) if status == "aborted" else 0
         self._set_state("stopping")
         level = "warning" if status == "aborted" else "error"
         vpp = self.inst.vpp if self.inst.output else 0.0
         self.log(level, f"stopping ({status}): {reason}; ramping {vpp:.3f} Vpp to zero in {self.abort_ramp_s:g} s")
         if vpp <= 0:
+            return
+        if self._abort_count > self._aborts_at_stop:
+            self.log("warning", "second abort: output cut at once")
             return
         rate = vpp / self.abort_ramp_s
         try:
@@ -342,7 +349,7 @@ class Runner:
         try:
             n = max(1, int(self.abort_ramp_s / 0.02))
             for i in range(n - 1, -1, -1):
-                if self._abort_count >= 2:
+                if self._abort_count > self._aborts_at_stop:
                     self.log("warning", "second abort: output cut at once")
                     return
                 self.inst.set_amplitude(vpp * i / n)

@@ -249,3 +249,23 @@ def test_instrument_killed_mid_stage(tmp_path, sim, name):
     assert info["stages"]["linear"]["status"] == "error"
     run = load_run(out.path)
     assert run.stage("linear").t.size >= 0.4 * 10000  # the data up to the failure is kept
+
+
+def test_abort_during_a_trip_ramp_cuts_at_once(tmp_path, sim):
+    cfg = rig_config(tmp_path, sim, max_tip_displacement_m=0.0001)
+    holder = {}
+
+    class AbortWhenStopping(Tape):
+        def on_state(self, state):
+            super().on_state(state)
+            if state == "stopping":
+                self.fired = len(self.blocks)
+                holder["runner"].abort("operator")
+
+    tape = AbortWhenStopping()
+    out = acquire(cfg, small_protocol(), tmp_path / "run.h5", lockstep=True, observers=[tape],
+                  on_runner=lambda r: holder.setdefault("runner", r))
+    assert out.status == "tripped"
+    assert len(tape.blocks) - tape.fired <= 1
+    assert not sim.world.is_driven()
+    assert any("cut at once" in e["message"] for e in read_events(out.path))
