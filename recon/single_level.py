@@ -483,5 +483,15 @@ def identify(u, y, fs: float, period: int | None = None, refine: bool = True, up
                 adeq2 = _adequacy(rec, refined2, len(y))
                 if adeq2["variance_ratio"] < adequacy["variance_ratio"] - adequacy["tolerance"]:
                     hyst, refined, adequacy = hyst2, refined2, dict(adeq2, fn_candidates=candidates)
+                    # drop the terms the refined fit cannot tell from zero (under 3 standard errors)
+                    weak = [n for n in candidates if refined.relative_std.get(f"fn:{n}", 0.0) > 1.0 / 3.0]
+                    if weak:
+                        kept = [n for n in candidates if n not in weak]
+                        hyst3 = hysteresis_step(rec, lin, fn_terms=kept, extra_starts=extra)
+                        refined3 = run_oe(hyst3)
+                        adeq3 = _adequacy(rec, refined3, len(y))
+                        if adeq3["variance_ratio"] < adequacy["variance_ratio"] + adequacy["tolerance"]:
+                            hyst, refined = hyst3, refined3
+                            adequacy = dict(adeq3, fn_candidates=candidates, fn_dropped=weak)
     return SingleLevelResult(record=rec, linear=lin, agent=ag, hysteresis=hyst, refined=refined,
                              adequacy=adequacy)
