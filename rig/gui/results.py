@@ -27,7 +27,7 @@ class ResultView:
     status: str                      # the run's status (complete, aborted, ...)
     equation: str
     parameters: list                 # rows: (name, value, unit, true or None)
-    nrmse: float
+    nrmse: float                     # of the overlay: simulated vs measured y on validation_stage
     validation_stage: str | None
     overlay: tuple | None            # (t, y measured, y simulated) [s, m, m]
     loop: tuple | None               # (y, z) simulated on the validation stage [m, m/s^2]
@@ -98,22 +98,28 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
         model = HystereticModel.from_dict({"excitation": payload.get("excitation", "base"),
                                            "parameters": payload["parameters"]})
         origin = f"stored result {group}"
+    from recon.validation import nrmse
+
     val = payload.get("validation", {}) or {}
     vstage = val.get("stage")
+    if not vstage or vstage not in run.stages:
+        vstage = next((n for n in run.stages if n.startswith("validation")), None)
     overlay = loop = None
-    if vstage and vstage in run.stages:
+    error = float("nan")
+    if vstage:
         st = run.stage(vstage)
         y_sim, _, z_sim = model.simulate(st.t - st.t[0], model.stage_input(st))
         overlay = (st.t, st.y, y_sim)
         loop = (y_sim, z_sim)
+        error = nrmse(y_sim, st.y)
     else:
-        notes.append("no validation stage: no overlay")
+        notes.append("the run holds no validation stage: no measured-vs-simulated overlay")
     truth = payload.get("truth")
     _, diag = _latest(results, "diagnosis")
     return ResultView(
         source=str(path), status=info.get("status", ""), equation=str(model),
         parameters=_rows(payload["parameters"], payload.get("units", {}), truth),
-        nrmse=float(val.get("nrmse", float("nan"))), validation_stage=vstage, overlay=overlay, loop=loop,
+        nrmse=error, validation_stage=vstage, overlay=overlay, loop=loop,
         measured_loop=measured_loop, diagnosis=_diagnosis_text(diag) if diag is not None else None,
         origin=origin, notes=notes,
     )
