@@ -33,7 +33,7 @@ from shakerlab.errors import UserFacingError
 
 from recon.newmark import NewmarkParameters, simulate_chain
 
-__all__ = ["OutputErrorResult", "refine", "PARAMETER_NAMES"]
+__all__ = ["OutputErrorResult", "refine", "refine_model", "PARAMETER_NAMES"]
 
 PARAMETER_NAMES = ("b", "c", "k", "alpha", "gamma", "delta")
 
@@ -93,7 +93,10 @@ def refine(initial, u, y, fs: float, *, periodic: bool, upsample: int = 20, n_wa
     if not 0 <= discard < y.size - 10:
         raise UserFacingError(f"output-error: discard={discard} leaves too few samples of {y.size}")
     theta0, names = _to_vector(p0)
-    free = list(names) if free is None else list(free)
+    base_model = not isinstance(initial, NewmarkParameters) and getattr(initial, "inv_m", None) is None
+    if free is None:  # the input coefficient is exactly 1 under base excitation: never fit it there
+        free = [n for n in names if not (base_model and n == "b")]
+    free = list(free)
     unknown = [f for f in free if f not in names]
     if unknown:
         raise UserFacingError(f"output-error: unknown parameter(s) {unknown}; known: {names}")
@@ -137,3 +140,23 @@ def refine(initial, u, y, fs: float, *, periodic: bool, upsample: int = 20, n_wa
     return OutputErrorResult(params=p_fit, initial=p0, rms_initial=float(np.sqrt(np.mean(r0 ** 2))),
                              rms_final=float(np.sqrt(np.mean(sol.fun ** 2))), nfev=int(sol.nfev),
                              message=str(sol.message), relative_std=rel_std, y_sim=y_sim)
+
+
+def refine_model(model, u, y, fs: float, **kwargs):
+    """Refine a :class:`recon.model.HystereticModel`; returns ``(refined_model, OutputErrorResult)``.
+
+    The refined model keeps the excitation kind and the fn terms of ``model``
+    (with refitted coefficients) and records the refinement in its provenance.
+    Keyword arguments go to :func:`refine`.
+    """
+    from dataclasses import replace as dc_replace
+
+    res = refine(model, u, y, fs, **kwargs)
+    p = res.params
+    provenance = dict(getattr(model, "provenance", {}) or {})
+    provenance["output_error"] = {"rms_initial": res.rms_initial, "rms_final": res.rms_final, "nfev": res.nfev,
+                                  "relative_std": res.relative_std, "message": res.message}
+    inv_m = None if getattr(model, "inv_m", None) is None else p.b
+    new = dc_replace(model, c_m=p.c, k_m=p.k, alpha_m=p.alpha, gamma=p.gamma, delta=p.delta,
+                     fn_m=dict(p.fn), inv_m=inv_m, provenance=provenance)
+    return new, res

@@ -156,3 +156,33 @@ def test_resampling_rejects_bad_input():
         resampling.decimate_fir(np.array([0.0, np.nan] * 40), 2)
     with pytest.raises(UserFacingError, match="too short"):
         resampling.decimate_fir(np.ones(20), 2)
+
+
+def test_refine_model_accepts_a_hysteretic_model(training):
+    from recon.model import HystereticModel
+    from recon.output_error import refine_model
+
+    u, y = training
+    n = 1500
+    truth = TRUE.to_benchmark()
+    rough = HystereticModel(excitation="force", c_m=4.0, k_m=2.4e4, alpha_m=2.6e4, gamma=850.0, delta=-1050.0,
+                            inv_m=0.52, provenance={"method": "test"})
+    model, res = refine_model(rough, u[:n], y[:n], FS, periodic=False)
+    assert isinstance(model, HystereticModel) and model.excitation == "force"
+    assert 1.0 / model.inv_m == pytest.approx(truth["m"], rel=0.01)
+    assert model.alpha_m / model.inv_m == pytest.approx(truth["alpha"], rel=0.02)
+    assert model.provenance["method"] == "test" and model.provenance["output_error"]["rms_final"] < 9e-6
+
+
+def test_refine_keeps_the_base_excitation_input_coefficient_at_one():
+    from recon.model import HystereticModel
+
+    t = np.arange(1500) / FS
+    u = 5.0 * np.sin(2 * np.pi * 12 * t) * np.minimum(t, 1.0)  # a ramped tone, like a shaker stage
+    true = NewmarkParameters(c=3.0, k=2.0e4, alpha=1.5e4, gamma=500.0, delta=-200.0)
+    y = simulate_chain(true, u, FS, periodic=False)
+    start = HystereticModel(excitation="base", c_m=3.3, k_m=1.9e4, alpha_m=1.6e4, gamma=450.0, delta=-220.0)
+    res = refine(start, u, y, FS, periodic=False)
+    assert res.params.b == 1.0
+    assert "b" not in res.relative_std
+    assert res.params.k + res.params.alpha == pytest.approx(3.5e4, rel=1e-3)
