@@ -113,6 +113,7 @@ class RigInstruments:
         self._hb_stop = threading.Event()
         self.heartbeat_error: Exception | None = None
         self.heartbeat_stalled = False
+        self.max_heartbeat_gap = 0.0  # longest time between two heartbeats [s] (diagnostic)
         self.identities: dict[str, str] = {}
         self.vpp = 0.0
         self.frequency = 0.0
@@ -183,12 +184,13 @@ class RigInstruments:
         self._alive = time.monotonic()
 
     def start_heartbeat(self) -> None:
-        period = self.config.data["amplifier"]["watchdog_timeout_s"] / 4
+        period = self.config.data["amplifier"]["watchdog_timeout_s"] / 8
         stall = self.config.acquisition["stall_timeout_s"]
         self._hb_stop.clear()
         self.mark_alive()
 
         def loop():
+            last = time.monotonic()
             while not self._hb_stop.wait(period):
                 if time.monotonic() - self._alive > stall:
                     self.heartbeat_stalled = True  # let the watchdog mute the amplifier
@@ -199,6 +201,9 @@ class RigInstruments:
                 except Exception as exc:  # noqa: BLE001 - reported to the runner
                     self.heartbeat_error = exc
                     return
+                now = time.monotonic()
+                self.max_heartbeat_gap = max(self.max_heartbeat_gap, now - last)
+                last = now
 
         self._hb_thread = threading.Thread(target=loop, name="amplifier-heartbeat", daemon=True)
         self._hb_thread.start()

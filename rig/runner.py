@@ -313,6 +313,10 @@ class Runner:
                 self._notify("on_stage_end", self.stage, self.stage_status[self.stage], {"stop_reason": reason})
                 self.stage = None
             self.inst.stop_heartbeat()
+            if self.inst.heartbeat_stalled:
+                self.log("warning", "the runner stalled: the heartbeat was withheld so the amplifier watchdog "
+                                    "could mute the output")
+            self.log("debug", f"longest gap between amplifier heartbeats: {self.inst.max_heartbeat_gap:.3f} s")
             self.log("info" if status == "complete" else "error",
                      f"run {status}" + (f": {reason}" if reason else "") + "; output off, amplifier muted")
             self._notify("on_run_end", status, reason)

@@ -54,7 +54,9 @@ def small_protocol(**changes):
 
 
 def rig_config(tmp_path, sim, **limits):
-    text = DEFAULT_RIG_PATH.read_text().replace("watchdog_timeout_s = 1.0", "watchdog_timeout_s = 0.5")
+    # the shipped watchdog timeout (1 s): shorter ones trip spuriously when the test machine is
+    # heavily loaded (the simulated amplifier shares this process and its GIL)
+    text = DEFAULT_RIG_PATH.read_text()
     for key, value in limits.items():
         import re
 
@@ -119,7 +121,7 @@ def test_protocol_records_every_stage(tmp_path, sim):
     assert list(info["stages"]) == ["linear", "resonance_search", "nonlinear", "validation"]
     assert set(info["instruments"]) == {"generator", "amplifier", "sensor_base", "sensor_tip"}
     assert "SIM" in info["instruments"]["sensor_tip"]["identity"].upper()
-    assert info["instruments"]["amplifier"]["settings"]["watchdog_timeout_s"] == 0.5
+    assert info["instruments"]["amplifier"]["settings"]["watchdog_timeout_s"] == 1.0
     assert "frequency_factor" in info["config"]["protocol_toml"]
     assert sim.addresses["generator"] in info["config"]["rig_toml"] or "[limits]" in info["config"]["rig_toml"]
     nl = info["stages"]["nonlinear"]["summary"]
@@ -240,7 +242,7 @@ def test_instrument_killed_mid_stage(tmp_path, sim, name):
     label = {"generator": "signal generator", "amplifier": "amplifier", "sensor_base": "laser sensor",
              "sensor_tip": "laser sensor"}[name]
     assert label in out.reason.lower()
-    deadline = time.monotonic() + 1.0  # the amplifier watchdog (0.5 s) covers a dead amplifier link
+    deadline = time.monotonic() + 2.0  # the amplifier watchdog (1 s) covers a dead amplifier link
     while sim.world.is_driven() and time.monotonic() < deadline:
         time.sleep(0.02)
     assert not sim.world.is_driven()
