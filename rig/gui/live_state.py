@@ -117,6 +117,7 @@ class LiveData:
             self.amplitudes: dict[str, list] = {}   # stage -> [(run time, amplitude)], insertion = run order
             self._next_amp_index = 0
             self._level_index: int | None = None
+            self.last_change_index = 0            # sample index of the last amplitude/frequency setpoint
             self.linear: LinearStep | None = None
             self.linear_error = ""
             self.blocks = 0
@@ -144,6 +145,7 @@ class LiveData:
             self._level_index = None
 
     def on_setpoint(self, index: int, vpp: float, hz: float, label: str) -> None:
+        self.last_change_index = index
         if self.stage == "linear" and label.startswith("level"):
             self._level_index = index
 
@@ -206,15 +208,18 @@ class LiveData:
             xt = xt - self.rest[1]
         return t, xb, xt
 
+    LOOP_SETTLE_S = 0.5
+
     def live_loop(self, periods: int = 3):
-        """(y, Fn) of the newest whole ``periods`` at the drive frequency, or None (no linear step,
-        no output, too few samples)."""
+        """(y, Fn) of the newest whole ``periods`` at the drive frequency, or None: no linear step yet,
+        output off, or the window starts less than ``LOOP_SETTLE_S`` after the last setpoint change
+        (the harmonic cycle stands for a steady state only)."""
         d, step = self.drive, self.linear
         if step is None or not d.output or d.frequency_hz <= 0:
             return None
         n = int(round(periods * self.fs / d.frequency_hz))
-        _, xb, xt = self.buffer.latest(n / self.fs)
-        if xb.size < n:
+        t, xb, xt = self.buffer.latest(n / self.fs)
+        if xb.size < n or t[0] < self.last_change_index / self.fs + self.LOOP_SETTLE_S:
             return None
         return nonlinear_loop(xb, xt, self.fs, d.frequency_hz, step)
 

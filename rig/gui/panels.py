@@ -12,7 +12,8 @@ LIGHT_COLORS = {"off": "#9a9a9a", "ok": "#21a336", "warn": "#e0a800", "bad": "#d
 INSTRUMENTS = (("generator", "signal generator"), ("amplifier", "power amplifier"),
                ("sensor_base", "base sensor"), ("sensor_tip", "tip sensor"))
 
-LOOP_WAITING = "nonlinear restoring force Fn vs y (after the linear step)"
+LOOP_WAITING = "Fn vs y (drawn once the linear step is known)"
+LOOP_TITLE = "Fn = −x_tip'' − c_m y' − K_m y vs y"
 
 pg.setConfigOptions(antialias=False, background="w", foreground="k")
 
@@ -32,7 +33,9 @@ class Light(QtWidgets.QWidget):
         self.state = ""
         self.set("off", "")
 
-    def set(self, state: str, tip: str = "") -> None:
+    def set(self, state: str, tip: str = "", caption: str | None = None) -> None:
+        if caption is not None and caption != self.caption.text():
+            self.caption.setText(caption)
         if state != self.state:
             self.state = state
             self.dot.setStyleSheet(f"background:{LIGHT_COLORS[state]}; border-radius:7px; border:1px solid #555;")
@@ -142,6 +145,8 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         self.stage_label = QtWidgets.QLabel("idle")
         self.stage_label.setStyleSheet("font-weight:bold;")
         self.drive_label = QtWidgets.QLabel("")
+        self.linear_label = QtWidgets.QLabel("linear step: not yet known")
+        self.linear_label.setToolTip("K_m and c_m from the fundamental of the linear stage (rig.gui.live_state)")
         self.progress = QtWidgets.QProgressBar()
         self.progress.setFormat("%v / %m stages")
         self.progress.setRange(0, 1)
@@ -149,7 +154,7 @@ class ProtocolPanel(QtWidgets.QGroupBox):
         self.limits_label = QtWidgets.QLabel("")
         self.limits_label.setWordWrap(True)
         self.limits_label.setStyleSheet("color:#444;")
-        for w in (self.stage_label, self.drive_label, self.progress, self.limits_label):
+        for w in (self.stage_label, self.drive_label, self.linear_label, self.progress, self.limits_label):
             lay.addWidget(w)
 
     def set_abort_armed(self, armed: bool) -> None:
@@ -189,7 +194,7 @@ class LivePlots(pg.GraphicsLayoutWidget):
             p.showGrid(x=True, y=True, alpha=0.2)
         self.p_rel.setXLink(self.p_traces)
         self.p_loop = self.addPlot(row=0, col=1, title=LOOP_WAITING)
-        self.p_loop.setLabel("left", "Fn = −x_tip'' − c_m y' − K_m y", units="m/s²")
+        self.p_loop.setLabel("left", "Fn", units="m/s²")
         self.p_loop.setLabel("bottom", "y", units="m")
         self.p_loop.showGrid(x=True, y=True, alpha=0.2)
         self.c_loop = self.p_loop.plot(pen=pg.mkPen("#9467bd", width=2))
@@ -278,8 +283,8 @@ class ResultsPanel(QtWidgets.QWidget):
         self.p_loop.setLabel("bottom", "y", units="m")
         self.p_loop.showGrid(x=True, y=True, alpha=0.2)
         self.c_zmeas = self.p_loop.plot(pen=None, symbol="o", symbolSize=2, symbolBrush=(120, 120, 120, 90),
-                                        symbolPen=None, name="from the data (nonlinear stage)")
-        self.c_zsim = self.p_loop.plot(pen=pg.mkPen("#9467bd", width=2), name="model, validation stage")
+                                        symbolPen=None, name="estimated from the data (nonlinear stage)")
+        self.c_zsim = self.p_loop.plot(pen=pg.mkPen("#9467bd", width=2), name="identified model")
         split.addWidget(self.plots)
         split.setSizes([430, 800])
         lay.addWidget(split, 1)
@@ -293,7 +298,12 @@ class ResultsPanel(QtWidgets.QWidget):
         self.diagnosis_box.setVisible(False)
 
     def show_view(self, view) -> None:
-        nrmse = "" if not math.isfinite(view.nrmse) else f"; validation NRMSE {view.nrmse * 100:.2f} % on stage '{view.validation_stage}'"
+        if view.validation_stage is None:
+            nrmse = ""
+        elif math.isinf(view.nrmse):
+            nrmse = f"; <b>the model diverges</b> when simulated on stage '{view.validation_stage}'"
+        else:
+            nrmse = f"; validation NRMSE {view.nrmse * 100:.2f} % on stage '{view.validation_stage}'"
         notes = "".join(f"<br><i>{n}</i>" for n in view.notes)
         self.header.setText(f"<b>{view.source}</b> (run {view.status}): {view.origin}{nrmse}{notes}")
         self.equation.setPlainText(view.equation)
@@ -319,8 +329,11 @@ class ResultsPanel(QtWidgets.QWidget):
             y, z = view.loop
             keep = slice(max(0, y.size - y.size // 3), None)   # the last third: steady state
             self.c_zsim.setData(y[keep], z[keep])
+            self.p_loop.setTitle(f"hysteresis loop z vs y: model simulated on stage '{view.loop_stage}' "
+                                 "(last third)")
         else:
             self.c_zsim.setData([], [])
+            self.p_loop.setTitle("hysteresis loop z vs y")
         if view.measured_loop is not None:
             y, z = view.measured_loop
             step = max(1, y.size // 4000)

@@ -30,8 +30,9 @@ class ResultView:
     nrmse: float                     # of the overlay: simulated vs measured y on validation_stage
     validation_stage: str | None
     overlay: tuple | None            # (t, y measured, y simulated) [s, m, m]
-    loop: tuple | None               # (y, z) simulated on the validation stage [m, m/s^2]
+    loop: tuple | None               # (y, z) simulated on loop_stage [m, m/s^2]
     measured_loop: tuple | None      # (y, z) estimated from the data (fresh reconstructions only)
+    loop_stage: str | None = None    # nonlinear (the largest loop) when recorded, else the validation stage
     diagnosis: str | None = None
     origin: str = ""                 # "stored result <group>" or "reconstructed now"
     notes: list = field(default_factory=list)
@@ -65,8 +66,13 @@ def _diagnosis_text(payload: dict) -> str:
     return json.dumps(payload, indent=2, default=str)
 
 
-def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bool = True) -> ResultView:
-    """The results view of a run file (see the module docstring). Raises UserFacingError on bad files."""
+def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bool = True,
+                     truth: dict | None = None) -> ResultView:
+    """The results view of a run file (see the module docstring). Raises UserFacingError on bad files.
+
+    ``truth``: the simulated specimen's true parameters (runs on the simulated rig); shown beside the
+    identified ones and stored with a new result.
+    """
     from recon.model import HystereticModel
     from shakerlab.recording import add_result, read_info, read_results
     from shakerlab.run_data import load_run
@@ -83,6 +89,8 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
 
         result = run_recon(run)
         payload = result.to_dict()
+        if truth is not None:
+            payload["truth"] = truth
         model = result.model
         origin = "reconstructed now"
         sig = result.signals or {}
@@ -114,12 +122,17 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
         error = nrmse(y_sim, st.y)
     else:
         notes.append("the run holds no validation stage: no measured-vs-simulated overlay")
-    truth = payload.get("truth")
+    loop_stage = vstage
+    if "nonlinear" in run.stages:
+        st = run.stage("nonlinear")
+        y_nl, _, z_nl = model.simulate(st.t - st.t[0], model.stage_input(st))
+        loop, loop_stage = (y_nl, z_nl), "nonlinear"
+    truth = payload.get("truth") or truth
     _, diag = _latest(results, "diagnosis")
     return ResultView(
         source=str(path), status=info.get("status", ""), equation=str(model),
         parameters=_rows(payload["parameters"], payload.get("units", {}), truth),
         nrmse=error, validation_stage=vstage, overlay=overlay, loop=loop,
-        measured_loop=measured_loop, diagnosis=_diagnosis_text(diag) if diag is not None else None,
+        measured_loop=measured_loop, loop_stage=loop_stage if loop is not None else None, diagnosis=_diagnosis_text(diag) if diag is not None else None,
         origin=origin, notes=notes,
     )

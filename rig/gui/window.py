@@ -28,7 +28,7 @@ import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from rig.gui.live_state import LiveData
-from rig.gui.panels import ConnectionPanel, LivePlots, ProtocolPanel, ResultsPanel, set_series
+from rig.gui.panels import LOOP_TITLE, ConnectionPanel, LivePlots, ProtocolPanel, ResultsPanel, set_series
 from shakerlab.errors import UserFacingError
 
 FPS = 25
@@ -96,6 +96,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._stage_t0 = None
         self._n_stages = 1
         self.run_path: Path | None = None
+        self._run_simulated = False
         self.last_outcome = None
         self.last_view = None
         self.last_error = ""
@@ -363,6 +364,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._error_box(f"output directory {self.output_dir}: {exc}")
             return False
         simulated = self.connection.simulated.isChecked()
+        self._run_simulated = simulated
         path = self.new_run_path()
         self.run_path = path
         self.last_outcome = None
@@ -371,6 +373,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._abort_presses = 0
         self.live.reset()
         self.plots.reset()
+        self.protocol_panel.linear_label.setText("linear step: not yet known")
         self._show_config(config)
         self._n_stages = 2 + int(protocol["resonance_search"]["enabled"]) + len(protocol.validation)
         p = self.protocol_panel
@@ -383,7 +386,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.connection.simulated.setEnabled(False)
         self.connection.speed.setEnabled(False)
         self.connection.connect_button.setEnabled(False)
-        self.connection.light_fault.set("ok", "no amplifier fault")
+        self.connection.light_fault.set("ok", "no amplifier fault", "no amplifier fault")
         self.log("info", f"starting {protocol.source} → {path}")
         bridge = _Bridge(self.signals)
 
@@ -465,6 +468,8 @@ class MainWindow(QtWidgets.QMainWindow):
         p.progress.setValue(min(p.progress.maximum(), len(self.live.stages_done)))
         if name == "linear" and self.live.linear is not None:
             self.log("info", f"linear step: {self.live.linear.text()}")
+            p.linear_label.setText(f"linear step: {self.live.linear.text()}")
+            self.plots.p_loop.setTitle(LOOP_TITLE)
         elif name == "linear" and self.live.linear_error:
             self.log("warning", self.live.linear_error)
 
@@ -495,7 +500,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self.close()
             return
         if outcome.status == "complete" and self.auto_reconstruct:
-            self.open_run(outcome.path)
+            truth = self.sim.world.truth() if self._run_simulated and self.sim is not None else None
+            self.open_run(outcome.path, truth=truth)
         elif outcome.status != "complete":
             self.results.clear(f"run {outcome.status} ({outcome.reason}): {outcome.path}. Open it to reconstruct "
                                "from the stages it holds.")
@@ -513,8 +519,10 @@ class MainWindow(QtWidgets.QMainWindow):
             self.close()
 
     # -- results --------------------------------------------------------------------------------------
-    def open_run(self, path, reconstruct: bool = False) -> bool:
-        """Show a run file's result (stored, or reconstructed now) in the Results tab (worker thread)."""
+    def open_run(self, path, reconstruct: bool = False, truth: dict | None = None) -> bool:
+        """Show a run file's result (stored, or reconstructed now) in the Results tab (worker thread).
+
+        ``truth``: the simulated specimen's parameters, shown beside the identified ones."""
         if path is None:
             return False
         if self._recon_thread is not None and self._recon_thread.is_alive():
@@ -532,7 +540,7 @@ class MainWindow(QtWidgets.QMainWindow):
             from rig.gui.results import view_of_run_file
 
             try:
-                self.signals.result_ready.emit(view_of_run_file(path, reconstruct=reconstruct))
+                self.signals.result_ready.emit(view_of_run_file(path, reconstruct=reconstruct, truth=truth))
             except Exception as exc:  # noqa: BLE001 - shown to the operator
                 msg = str(exc) if isinstance(exc, UserFacingError) else f"{type(exc).__name__}: {exc}"
                 self.signals.result_failed.emit(msg)
@@ -567,9 +575,6 @@ class MainWindow(QtWidgets.QMainWindow):
             if loop is not None:
                 y, fn = loop
                 self.plots.c_loop.setData(y, fn)
-            if live.linear is not None and self.frames % FPS == 0:
-                s = live.linear
-                self.plots.p_loop.setTitle(f"Fn vs y, linear step K_m = {s.K_m:.4g} 1/s², c_m = {s.c_m:.3g} 1/s")
         if self.frames % 5 == 0:
             for stage, (ts, amp) in live.amplitude_series().items():
                 set_series(self.plots.amplitude_curve(stage), ts, amp)
@@ -598,7 +603,8 @@ class MainWindow(QtWidgets.QMainWindow):
         c = self.connection
         c.light_output.set("warn" if running and d.output else "off", "generator output on" if d.output else "")
         if live.max_faults:
-            c.light_fault.set("bad", "amplifier faults seen: " + ", ".join(sorted(live.max_faults)))
+            c.light_fault.set("bad", "amplifier faults seen: " + ", ".join(sorted(live.max_faults)),
+                              "amplifier FAULT")
         runner = self._runner
         inst = getattr(runner, "inst", None)
         if "watchdog" in live.max_faults:
