@@ -199,7 +199,7 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
 
         tp = time.perf_counter()
         data = []
-        for name in (s.linear_stage, s.nonlinear_stage):
+        for name in (s.nonlinear_stage,):
             st = run.stage(name)
             data.append((st.t - st.t[0], model.stage_input(st), st.y))
         model, polish_info = polish(model, data)
