@@ -102,6 +102,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.last_error = ""
         self.frames = 0                    # live redraws done (for bench/gui_fps.py)
         self.redraw_seconds = 0.0          # time spent in them
+        self.redraw_times: list[float] = []  # the last 1000 redraw durations [s]
         self._build(config_path, protocol_path, simulated, speed)
         self._wire()
         self.timer = QtCore.QTimer(self)
@@ -580,7 +581,11 @@ class MainWindow(QtWidgets.QMainWindow):
                 set_series(self.plots.amplitude_curve(stage), ts, amp)
             self._update_status()
         self.frames += 1
-        self.redraw_seconds += time.perf_counter() - t_start
+        dt = time.perf_counter() - t_start
+        self.redraw_seconds += dt
+        self.redraw_times.append(dt)
+        if len(self.redraw_times) > 1000:
+            del self.redraw_times[:500]
 
     def _update_status(self) -> None:
         live, d = self.live, self.live.drive
