@@ -87,10 +87,7 @@ def write_plots(result, run, outdir):
         st = run.stage(name)
         u = result.model.stage_input(st)
         ysim, _, zsim = result.model.simulate(st.t - st.t[0], u)
-        zmeas = None
-        if name == result.settings.nonlinear_stage:
-            pass
-        paths.append(plot_overlay(outdir / f"{name}.png", st.t, st.y, ysim, z_meas=zmeas, z_sim=zsim,
+        paths.append(plot_overlay(outdir / f"{name}.png", st.t, st.y, ysim, z_sim=zsim,
                                   title=f"{name}: measured vs reconstructed (NRMSE {result.validation['per_stage'].get(name, float('nan')):.3g})"))
     sig = result.signals
     st = run.stage(result.settings.nonlinear_stage)
