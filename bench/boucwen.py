@@ -154,6 +154,29 @@ def run(data: str | None = None) -> dict:
     }
 
 
+def monte_carlo(n_runs: int, data: str | None = None, seed: int = 0) -> dict:
+    """Spread of the estimator: the training input through the chain with the TRUE parameters, plus
+    fresh white noise of the level estimated from the real record, identified n_runs times."""
+    from recon.newmark import NewmarkParameters, simulate_chain
+    from recon.single_level import identify, periodic_record
+
+    u, y = load_training(data_dir(data))
+    noise = periodic_record(u, y, FS).noise_rms
+    true = NewmarkParameters.from_benchmark(*(TRUE[k] for k in ("m", "c", "k", "alpha", "gamma", "delta")))
+    clean = simulate_chain(true, u, FS, periodic=True)
+    rng = np.random.default_rng(seed)
+    errs = []
+    for _ in range(n_runs):
+        res = identify(u, clean + noise * rng.standard_normal(clean.size), FS)
+        p = res.params.to_benchmark()
+        errs.append([100.0 * (p[k] / TRUE[k] - 1.0) for k in TRUE])
+    errs = np.array(errs)
+    return {"runs": n_runs, "noise_rms": noise,
+            "mean_error_pct": dict(zip(TRUE, errs.mean(axis=0).tolist())),
+            "std_error_pct": dict(zip(TRUE, errs.std(axis=0, ddof=1).tolist() if n_runs > 1 else [0.0] * 6)),
+            "max_abs_error_pct": dict(zip(TRUE, np.abs(errs).max(axis=0).tolist()))}
+
+
 def print_report(r: dict) -> None:
     print("Bouc-Wen benchmark: identification from the training record only (simulation, not prediction)\n")
     print(f"{'model':54s} {'multisine e_RMS [m]':>20s} {'sine sweep e_RMS [m]':>21s}")
@@ -198,8 +221,22 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     ap.add_argument("--data", help="directory with the benchmark files (default ../shared/data/boucwen)")
+    ap.add_argument("--monte-carlo", type=int, default=0, metavar="N",
+                    help="instead: identify N synthetic copies of the training record (true parameters, fresh "
+                         "noise) and print the spread of the parameter errors")
     args = ap.parse_args(argv)
     try:
+        if args.monte_carlo:
+            mc = monte_carlo(args.monte_carlo, args.data)
+            if args.json:
+                print(json.dumps(mc))
+            else:
+                print(f"Monte Carlo: {mc['runs']} synthetic training records, noise {mc['noise_rms']:.3e} m rms")
+                print(f"{'parameter':10s} {'mean err %':>11s} {'std %':>8s} {'max |err| %':>12s}")
+                for k in TRUE:
+                    print(f"{k:10s} {mc['mean_error_pct'][k]:11.4f} {mc['std_error_pct'][k]:8.4f} "
+                          f"{mc['max_abs_error_pct'][k]:12.4f}")
+            return 0
         r = run(args.data)
     except UserFacingError as exc:
         print(f"boucwen: error: {exc}", file=sys.stderr)
