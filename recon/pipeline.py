@@ -91,6 +91,17 @@ def stage_signals(stage: Stage, deriv: int, window: int | None = None, order: in
                         choice=ch.to_dict(), column_noise=cn)
 
 
+def _corr_len(choice: dict) -> float:
+    """Correlation length (in samples) of white noise after the stage's highest-derivative
+    filter: sum of the squared normalised autocorrelation (Bartlett), which sets the
+    effective number of independent residuals N/corr_len."""
+    from recon.differentiation import _coeffs
+
+    c = _coeffs(choice["window"], choice["order"], choice["deriv"], 1.0)
+    r = np.correlate(c, c, "full")
+    return float(np.sum((r / r.max()) ** 2))
+
+
 @dataclass
 class ReconResult:
     model: HystereticModel
@@ -170,7 +181,7 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
         raise UserFacingError(f"stage {s.nonlinear_stage!r}: only {theta.shape[0]} samples in the AB/CD clusters for "
                               f"{theta.shape[1]} library columns; record longer or lower --library-order")
     groups, core = lib.groups()
-    sp = GroupedSparseSelector(groups, core, n_folds=s.n_folds, corr_len=nl.choice["window"]).fit(theta, target)
+    sp = GroupedSparseSelector(groups, core, n_folds=s.n_folds, corr_len=_corr_len(nl.choice)).fit(theta, target)
     hp = extract(lib, sp.coef, sp.stderr, sp.support)
     c_m, K_m = lf.c_m, lf.K_m
     if s.refit:
