@@ -92,15 +92,22 @@ class AgentLibrary:
         self.columns = cols
 
     def groups(self):
-        """(groups, core): the columns that share one monomial's a_j, and the always-offered core."""
+        """(groups, core): the columns one monomial's a_j enters, and the always-offered core.
+
+        joint: y^p y'^r -> {s*d(phi), y'*phi}. ab: non-pure -> {psi, xi}; pure y^m ->
+        {xi(y^m y'), xi(y^(m-1) y')} because d(y^m)/dt = m y^(m-1) y' merges into the
+        lower column (for m = 2 that is the core column y y')."""
         core = [k for k, c in enumerate(self.columns) if c.role in ("lam_alpha", "lam", "yy", "yFn")]
         by_term = {}
+        index = {(c.role, c.p, c.r): k for k, c in enumerate(self.columns)}
         for k, c in enumerate(self.columns):
             if c.role in ("a", "lam_a", "psi"):
                 by_term.setdefault((c.p, c.r), []).append(k)
             elif c.role == "xi":
                 by_term.setdefault((c.p, c.r), []).append(k)
-        return list(by_term.values()), core
+                if c.r == 0 and ("xi", c.p - 1, 0) in index:
+                    by_term[(c.p, c.r)].append(index[("xi", c.p - 1, 0)])
+        return [sorted(set(g)) for g in by_term.values()], core
 
     @property
     def names(self) -> list[str]:
