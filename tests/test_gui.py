@@ -23,7 +23,7 @@ stop_hz = 25.0
 steps = 5
 refine_steps = 2
 amplitude_vpp = 0.05
-settle_s = 0.4
+settle_s = 0.6
 measure_s = 0.3
 [nonlinear]
 start_vpp = 0.1
@@ -67,7 +67,8 @@ def test_live_plots_grow_and_abort_ramps_down_mutes_and_closes_the_file(qtbot, w
     # the linear stage ends after ~1.9 s of rig time: the linear step is known, the loop is drawn
     qtbot.waitUntil(lambda: w.live.linear is not None, timeout=15000)
     assert w.live.linear.K_m == pytest.approx(8000.0, rel=0.03)  # simulator: k_m + alpha_m = 8000 1/s^2
-    qtbot.waitUntil(lambda: w.plots.c_loop.xData is not None and w.plots.c_loop.xData.size > 0, timeout=5000)
+    # drawn from windows starting 0.5 s after a setpoint: here at each frequency of the resonance search
+    qtbot.waitUntil(lambda: w.plots.c_loop.xData is not None and w.plots.c_loop.xData.size > 0, timeout=10000)
     assert w.connection.light_connected.state == "ok"
     assert "SIM" in w.connection.identity["amplifier"].text().upper()
     x1 = w.plots.c_rel.xData
@@ -97,14 +98,22 @@ def test_live_plots_grow_and_abort_ramps_down_mutes_and_closes_the_file(qtbot, w
     assert not any("cut at once" in m for m in messages)
     # the live amplitude of the linear stage matches the recorded stage's own analysis (fundamental)
     resp = read_info(out.path)["stages"]["linear"]["summary"]["response"]
-    assert np.median(amps[amps > 0.8 * amps.max()]) == pytest.approx(resp["relative_amplitude"], rel=0.15)
+    assert np.median(amps) == pytest.approx(resp["relative_amplitude"], rel=0.2)  # the level dominates the stage
     assert w.protocol_panel.start_button.isEnabled() and w.protocol_panel.abort_button.text() == "ABORT"
 
 
-def test_second_abort_cuts_at_once(qtbot, window):
+def test_pause_resume_then_second_abort_cuts_at_once(qtbot, window):
     w = window
     _start(qtbot, w)
     qtbot.waitUntil(lambda: w.live.drive.output and w.live.drive.amplitude_vpp >= 0.3, timeout=15000)
+    pause = w.protocol_panel.pause_button
+    qtbot.mouseClick(pause, QtCore.Qt.LeftButton)
+    assert pause.text() == "Resume"
+    qtbot.waitUntil(lambda: w.live.state == "paused", timeout=5000)
+    assert not w.sim.world.is_driven()  # paused = output ramped to zero
+    qtbot.waitUntil(lambda: "paused" in w.protocol_panel.stage_label.text(), timeout=2000)
+    qtbot.mouseClick(pause, QtCore.Qt.LeftButton)
+    qtbot.waitUntil(lambda: w.live.state == "running" and w.live.drive.amplitude_vpp >= 0.3, timeout=5000)
     qtbot.mouseClick(w.protocol_panel.abort_button, QtCore.Qt.LeftButton)
     qtbot.mouseClick(w.protocol_panel.abort_button, QtCore.Qt.LeftButton)
     qtbot.waitUntil(lambda: w.last_outcome is not None, timeout=10000)
@@ -127,6 +136,15 @@ def test_closing_the_window_mid_run_aborts_safely(qtbot, window):
     info = read_info(path)
     assert info["clean_close"] and info["status"] == "aborted"
     assert any("window closed" in e["message"] for e in read_events(path))
+
+
+def test_connect_identifies_the_instruments(qtbot, window):
+    w = window
+    qtbot.mouseClick(w.connection.connect_button, QtCore.Qt.LeftButton)
+    qtbot.waitUntil(lambda: w.connection.light_connected.state == "ok", timeout=10000)
+    assert "SIM33521B" in w.connection.identity["generator"].text()
+    assert w.connection.address["amplifier"].text() == w.sim.addresses["amplifier"]
+    assert not w.running()
 
 
 def test_bad_protocol_or_limit_is_refused_before_anything_moves(qtbot, window):
