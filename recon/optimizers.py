@@ -185,7 +185,7 @@ class GroupedSparseSelector:
     Candidates: (1) the STLSQ path over a log grid of thresholds (normalised scale),
     (2) a greedy forward path over column *groups* (in the agent model a monomial
     brings two columns, s*phi_j' and y'*phi_j, that share a_j), starting from the
-    ``core`` columns. Every distinct support is scored by interleaved K-fold CV;
+    ``core`` columns, which the STLSQ path never drops either. Every distinct support is scored by interleaved K-fold CV;
     the one minimising a Bayesian information criterion of the held-out error,
     BIC = N_eff ln(E_cv) + k ln(N_eff), is chosen. N_eff = N / corr_len is the number
     of independent samples: Savitzky-Golay filtered noise is correlated over about one
@@ -208,8 +208,10 @@ class GroupedSparseSelector:
         n, p = A.shape
         cf = CompressedFolds(A, b, self.n_folds)
         cands = {}   # support bytes -> (support, origin, threshold)
+        core = np.zeros(p, bool)
+        core[self.core] = True       # the hysteresis agent (y y', y' Fn) is the model's premise
         for tau in self.grid:
-            _, sup = stlsq(cf.R, cf.d, tau)
+            _, sup = stlsq(cf.R, cf.d, tau, forced=core)
             cands.setdefault(sup.tobytes(), (sup, "stlsq", float(tau)))
         sup = np.zeros(p, bool)
         sup[self.core] = True
