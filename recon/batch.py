@@ -48,6 +48,7 @@ class BatchSettings:
     workers: int = 2
     scheduler: str | None = None                      # address of a running scheduler
     processes: bool = True                            # LocalCluster workers as processes (False: threads)
+    connect_timeout: float = 10.0                     # seconds to reach --scheduler
 
     def job(self) -> dict:
         """What a worker needs (JSON-safe)."""
@@ -250,7 +251,7 @@ def run_batch(paths: list[str], settings: BatchSettings | None = None, progress:
     try:
         if s.scheduler:
             try:
-                client = Client(s.scheduler, timeout="10s")
+                client = Client(s.scheduler, timeout=f"{s.connect_timeout}s")
             except (OSError, TimeoutError) as exc:
                 raise UserFacingError(f"--scheduler {s.scheduler}: cannot connect ({exc})") from None
         else:
@@ -339,7 +340,8 @@ def format_table(rows: list[dict]) -> str:
     lines = [header]
     for r in rows:
         nr = r.get("nrmse")
-        line = [Path(r["run"]).name, r["status"], "" if nr is None else f"{nr:.3g}"]
+        shown = "" if r["status"] == "failed" else "diverged" if nr is None else f"{nr:.3g}"
+        line = [Path(r["run"]).name, r["status"], shown]
         line += ["" if _value(r, c) is None else f"{_value(r, c):.4g}" for c in cols]
         lines.append(line)
     widths = [max(len(str(l[i])) for l in lines) for i in range(len(header))]
@@ -348,7 +350,8 @@ def format_table(rows: list[dict]) -> str:
     if bad:
         out.append("")
         out.append("failed runs:")
-        out += [f"  {r['run']}: {r['reason']}" for r in bad]
+        out += [f"  {r['reason']}" if r["reason"].startswith(r["run"]) else f"  {r['run']}: {r['reason']}"
+                for r in bad]
     notes = [(r["run"], n) for r in rows for n in r.get("notes", [])]
     if notes:
         out.append("")
