@@ -1,0 +1,264 @@
+"""A baseline HystereticModel plus the optional extra physics the diagnosis can add.
+
+Per unit mass (g = 1 and u = -x_base'' under base excitation, g = 1/m and u = F under
+force excitation):
+
+    y'' + c y' + k (1 + drift t) y + fn(y, y') + z
+        + mu tanh(y'/v0) + c2 y'|y'| + kc max(side*y - gap, 0)*side   = g u
+    z'  = alpha y' - gamma |y'| z - delta y' |z|
+    q'' + 2 zeta2 w2 q' + w2^2 q = g u                  (higher mode, only when w2 > 0)
+
+What the sensors report (the output the model is compared with):
+
+    base:  y_rec(t) = (1 + tip_scale) x_tip(t - delay) - x_base(t),  x_tip = x_base + y + phi2 q
+    force: y_rec(t) = (1 + tip_scale) (y + phi2 q)(t - delay)
+
+``t`` in the drift term is the stage's recorded time (session time when the
+recording keeps it). Every extra is off when its parameter is 0, so an
+``AugmentedModel`` with no extras simulates exactly like its baseline.
+The integrator is the same fixed-step RK4 as :mod:`recon.simulate` (input
+interpolated linearly between samples, sub-steps when sampling is coarse).
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+from shakerlab.errors import UserFacingError
+from shakerlab.run_data import BASE, Stage
+from recon.model import HystereticModel
+from recon.simulate import substeps
+
+EXTRAS = {
+    # name: (default, unit, meaning)
+    "mu": (0.0, "m/s^2", "Coulomb friction level per unit mass (mu tanh(y'/v0))"),
+    "v0": (0.0, "m/s", "velocity scale of the smoothed sign (0: 1e-4 m/s)"),
+    "c2": (0.0, "1/m", "quadratic damping c2 y'|y'|"),
+    "kc": (0.0, "1/s^2", "one-sided contact stiffness"),
+    "gap": (0.0, "m", "contact gap"),
+    "side": (1.0, "-", "+1: contact when y > gap, -1: when y < -gap"),
+    "drift": (0.0, "1/s", "relative stiffness drift: k(t) = k (1 + drift t)"),
+    "delay": (0.0, "s", "the displacement (tip) channel lags the input (base/force) channel"),
+    "tip_scale": (0.0, "-", "relative calibration error of the displacement (tip) sensor"),
+    "w2": (0.0, "rad/s", "higher-mode natural frequency (0: off)"),
+    "zeta2": (0.02, "-", "higher-mode damping ratio"),
+    "phi2": (0.0, "m/m", "higher-mode participation in the displacement reading"),
+}
+
+
+@njit(cache=True)
+def _acc(y, v, z, q, vq, t, u, P, coef, p, r):
+    # P: g, c, k, alpha, gamma, delta, mu, v0, c2, kc, gap, side, drift, w2, zeta2
+    fn = 0.0
+    for j in range(coef.size):
+        fn += coef[j] * y ** p[j] * v ** r[j]
+    k = P[2] * (1.0 + P[12] * t)
+    f = P[1] * v + k * y + fn + z
+    if P[6] != 0.0:
+        f += P[6] * math.tanh(v / P[7])
+    if P[8] != 0.0:
+        f += P[8] * v * abs(v)
+    if P[9] != 0.0:
+        d = P[11] * y - P[10]
+        if d > 0.0:
+            f += P[11] * P[9] * d
+    gu = P[0] * u
+    acc = gu - f
+    dz = P[3] * v - P[4] * abs(v) * z - P[5] * v * abs(z)
+    aq = 0.0
+    if P[13] > 0.0:
+        aq = gu - 2.0 * P[14] * P[13] * vq - P[13] * P[13] * q
+    return acc, dz, aq
+
+
+@njit(cache=True)
+def simulate_augmented(u, t0, dt, n_sub, P, coef, p, r):
+    n = u.size
+    out = np.zeros((4, n))  # y, v, z, q
+    y = 0.0
+    v = 0.0
+    z = 0.0
+    q = 0.0
+    w = 0.0
+    h = dt / n_sub
+    for i in range(n - 1):
+        du = (u[i + 1] - u[i]) / n_sub
+        for sub in range(n_sub):
+            ta = t0 + i * dt + sub * h
+            ua = u[i] + du * sub
+            um = ua + 0.5 * du
+            a1, z1, q1 = _acc(y, v, z, q, w, ta, ua, P, coef, p, r)
+            y2 = y + 0.5 * h * v
+            v2 = v + 0.5 * h * a1
+            zz2 = z + 0.5 * h * z1
+            q2 = q + 0.5 * h * w
+            w2 = w + 0.5 * h * q1
+            a2, z2, qa2 = _acc(y2, v2, zz2, q2, w2, ta + 0.5 * h, um, P, coef, p, r)
+            y3 = y + 0.5 * h * v2
+            v3 = v + 0.5 * h * a2
+            zz3 = z + 0.5 * h * z2
+            q3 = q + 0.5 * h * w2
+            w3 = w + 0.5 * h * qa2
+            a3, z3, qa3 = _acc(y3, v3, zz3, q3, w3, ta + 0.5 * h, um, P, coef, p, r)
+            y4 = y + h * v3
+            v4 = v + h * a3
+            zz4 = z + h * z3
+            q4 = q + h * w3
+            w4 = w + h * qa3
+            a4, z4, qa4 = _acc(y4, v4, zz4, q4, w4, ta + h, ua + du, P, coef, p, r)
+            y += h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
+            v += h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+            z += h / 6.0 * (z1 + 2.0 * z2 + 2.0 * z3 + z4)
+            q += h / 6.0 * (w + 2.0 * w2 + 2.0 * w3 + w4)
+            w += h / 6.0 * (q1 + 2.0 * qa2 + 2.0 * qa3 + qa4)
+        if not (math.isfinite(y) and math.isfinite(v) and math.isfinite(z) and math.isfinite(q)):
+            out[:, i + 1:] = np.nan
+            return out
+        out[0, i + 1] = y
+        out[1, i + 1] = v
+        out[2, i + 1] = z
+        out[3, i + 1] = q
+    return out
+
+
+def shift(x: np.ndarray, delay: float, dt: float) -> np.ndarray:
+    """x(t - delay) by linear interpolation (the first samples hold x[0])."""
+    if delay == 0.0:
+        return x
+    idx = np.arange(x.size) - delay / dt
+    return np.interp(idx, np.arange(x.size), x)
+
+
+@dataclass
+class AugmentedModel:
+    """``baseline`` (a HystereticModel) plus extra physics ``extras`` (see EXTRAS)."""
+
+    baseline: HystereticModel
+    extras: dict = field(default_factory=dict)
+    added: list = field(default_factory=list)      # catalog ids this model adds to its baseline
+
+    def __post_init__(self):
+        unknown = set(self.extras) - set(EXTRAS)
+        if unknown:
+            raise UserFacingError(f"augmented model: unknown extra parameter(s) {sorted(unknown)} "
+                                  f"(known: {', '.join(EXTRAS)})")
+        self.extras = {k: float(v) for k, v in self.extras.items()}
+
+    def get(self, name: str) -> float:
+        return self.extras.get(name, EXTRAS[name][0])
+
+    @property
+    def excitation(self) -> str:
+        return self.baseline.excitation
+
+    def copy(self) -> "AugmentedModel":
+        return AugmentedModel(copy.deepcopy(self.baseline), dict(self.extras), list(self.added))
+
+    # --------------------------------------------------------------- simulation
+    def simulate(self, t: np.ndarray, u: np.ndarray, x_in: np.ndarray | None = None):
+        """Recorded-output prediction for input ``u`` on time base ``t`` (from rest).
+
+        ``x_in`` is the base displacement (base excitation; needed for the tip-scale
+        and delay output terms). Returns (y_rec, states) with states = (y, y', z, q).
+        """
+        m = self.baseline
+        t = np.asarray(t, float)
+        u = np.asarray(u, float)
+        dt = float(np.median(np.diff(t)))
+        coef, p, r = m.fn_arrays()
+        mu = self.get("mu")
+        v0 = self.get("v0")
+        if mu != 0.0 and v0 <= 0.0:
+            v0 = 1e-4
+        w2 = self.get("w2")
+        stiff = max(abs(m.K_m), abs(m.k_m), 1.0, abs(self.get("kc")) + abs(m.K_m))
+        n_sub = max(substeps(dt, stiff), substeps(dt, w2 ** 2, 20))   # the extra mode is linear: 20 steps/period
+        if mu != 0.0:   # keep h * mu / v0 (the friction's local damping) inside RK4's stability
+            n_sub = max(n_sub, int(math.ceil(dt * abs(mu) / v0 / 1.5)))
+        n_sub = min(n_sub, 64)
+        P = np.array([m.input_gain, m.c_m, m.k_m, m.alpha_m, m.gamma, m.delta, mu, v0 or 1.0,
+                      self.get("c2"), self.get("kc"), self.get("gap"), 1.0 if self.get("side") >= 0 else -1.0,
+                      self.get("drift"), w2, self.get("zeta2")], float)
+        st = simulate_augmented(u, float(t[0]), dt, int(n_sub), P, coef, p, r)
+        y = st[0] + self.get("phi2") * st[3]
+        scale = 1.0 + self.get("tip_scale")
+        delay = self.get("delay")
+        if m.excitation == BASE and x_in is not None:
+            tip = shift(x_in + y, delay, dt)
+            y_rec = scale * tip - x_in
+        else:
+            y_rec = scale * shift(y, delay, dt)
+        return y_rec, st
+
+    def simulate_stage(self, stage: Stage, u: np.ndarray | None = None):
+        u = self.baseline.stage_input(stage) if u is None else u
+        x_in = stage.channels["x_base"] if stage.excitation == BASE else None
+        return self.simulate(stage.t, u, x_in)[0]
+
+    # ---------------------------------------------------------------- printing
+    def equation(self) -> str:
+        eq = self.baseline.equation()
+        lhs, _, rest = eq.partition(" + z = ")
+        extra = []
+        if self.get("mu"):
+            extra.append(f"+ {self.get('mu'):.6g} sign(y')")
+        if self.get("c2"):
+            extra.append(f"+ {self.get('c2'):.6g} y'|y'|")
+        if self.get("kc"):
+            s = self.get("side")
+            extra.append(f"+ {self.get('kc'):.6g} max({'' if s >= 0 else '-'}y - {self.get('gap'):.4g}, 0)"
+                         + ("" if s >= 0 else " * (-1)"))
+        if self.get("drift"):
+            lhs = lhs.replace(" y", " y", 1)
+            extra.append(f"+ {self.get('drift'):.4g} t * k y (stiffness drift)")
+        out = lhs + (" " + " ".join(extra) if extra else "") + " + z = " + rest
+        notes = []
+        if self.get("w2"):
+            notes.append(f"q'' + 2*{self.get('zeta2'):.3g}*{self.get('w2'):.6g} q' + {self.get('w2'):.6g}^2 q = u; "
+                         f"displacement reading += {self.get('phi2'):.4g} q  (higher mode at "
+                         f"{self.get('w2') / 2 / math.pi:.4g} Hz)")
+        if self.get("delay"):
+            notes.append(f"displacement channel lags the input channel by {self.get('delay') * 1e3:.4g} ms")
+        if self.get("tip_scale"):
+            notes.append(f"displacement (tip) sensor reads (1 {'+' if self.get('tip_scale') >= 0 else '-'} "
+                         f"{abs(self.get('tip_scale')):.4g}) x")
+        return "\n".join([out] + notes)
+
+    # ----------------------------------------------------------- serialisation
+    def to_dict(self) -> dict:
+        return {"kind": "shakerlab.recon.AugmentedModel", "baseline": self.baseline.to_dict(),
+                "extras": dict(self.extras), "added": list(self.added),
+                "extras_units": {k: EXTRAS[k][1] for k in self.extras}, "equation": self.equation()}
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "AugmentedModel":
+        if d.get("kind") == "shakerlab.recon.HystereticModel":
+            return cls(HystereticModel.from_dict(d))
+        try:
+            return cls(HystereticModel.from_dict(d["baseline"]), dict(d.get("extras", {})), list(d.get("added", [])))
+        except KeyError as exc:
+            raise UserFacingError(f"augmented model JSON lacks field {exc}") from None
+
+    @classmethod
+    def load(cls, path) -> "AugmentedModel":
+        path = Path(path)
+        if not path.exists():
+            raise UserFacingError(f"{path}: no such model file")
+        try:
+            return cls.from_dict(json.loads(path.read_text()))
+        except json.JSONDecodeError as exc:
+            raise UserFacingError(f"{path}: model JSON is not valid JSON ({exc})") from None
+        except UserFacingError as exc:
+            raise UserFacingError(f"{path}: {exc}") from None
+
+    def save(self, path) -> None:
+        Path(path).write_text(self.to_json())

@@ -1,0 +1,163 @@
+"""The catalog of candidate missing physics: stable ids, plain explanations, model changes.
+
+Each entry says what it adds to the model (library terms or a model change) and how
+the augmented model is simulated (see :mod:`recon.diagnosis.augmented`).
+``starts(baseline, ctx)`` gives the starting points of its fit: a list of
+(AugmentedModel, new free keys, scales, bounds); several starts when the fit is
+multimodal (contact gap and side, higher-mode frequency).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from shakerlab.run_data import BASE
+from recon.diagnosis.augmented import AugmentedModel
+from recon.model import HystereticModel
+
+
+@dataclass(frozen=True)
+class Candidate:
+    id: str
+    explanation: str
+    adds: str
+    simulated: str
+    parameters: tuple           # the keys reported for it
+    starts: Callable
+    applies: Callable = lambda base, ctx: True
+    screen_keys: int = 99       # with several starts: how many of the new keys the screening frees
+    column: Callable | None = None   # col(am, t, y, dy): the term's regressor when linear in its first key
+
+
+def _am(base: HystereticModel, extras: dict, cid: str) -> AugmentedModel:
+    return AugmentedModel(HystereticModel.from_dict(base.to_dict()), dict(extras), [cid])
+
+
+def _fn_start(term: str, cid: str, scale_of: Callable):
+    def starts(base, ctx):
+        m = _am(base, {}, cid)
+        m.baseline.fn_m[term] = 0.0
+        return [(m, [f"fn:{term}"], {f"fn:{term}": scale_of(ctx)}, {})]
+    return starts
+
+
+def _coulomb(base, ctx):
+    m = _am(base, {"mu": 0.0, "v0": 0.01 * ctx["v_rms_min"]}, "coulomb_friction")
+    return [(m, ["x:mu"], {"x:mu": 0.01 * ctx["acc_rms"]}, {"x:mu": (0.0, np.inf)})]
+
+
+def _quad_damp(base, ctx):
+    m = _am(base, {"c2": 0.0}, "quadratic_damping")
+    return [(m, ["x:c2"], {"x:c2": 0.01 * ctx["acc_rms"] / ctx["v_rms"] ** 2}, {})]
+
+
+def _contact(base, ctx):
+    out = []
+    for side, ymax in ((1.0, ctx["y_max_pos"]), (-1.0, ctx["y_max_neg"])):
+        for frac in (0.35, 0.55, 0.75):
+            m = _am(base, {"kc": 0.0, "gap": frac * ymax, "side": side}, "contact_stiffness")
+            out.append((m, ["x:kc", "x:gap"], {"x:kc": 0.1 * abs(base.K_m) + 1.0, "x:gap": 0.1 * ymax},
+                        {"x:kc": (0.0, np.inf), "x:gap": (0.0, 0.98 * ymax)}))
+    return out
+
+
+def _delay(base, ctx):
+    m = _am(base, {"delay": 0.0}, "channel_delay")
+    return [(m, ["x:delay"], {"x:delay": ctx["dt"]}, {"x:delay": (-20 * ctx["dt"], 20 * ctx["dt"])})]
+
+
+def _scale(base, ctx):
+    m = _am(base, {"tip_scale": 0.0}, "sensor_scale")
+    return [(m, ["x:tip_scale"], {"x:tip_scale": 0.01}, {"x:tip_scale": (-0.5, 0.5)})]
+
+
+def _drift(base, ctx):
+    m = _am(base, {"drift": 0.0}, "parameter_drift")
+    return [(m, ["x:drift"], {"x:drift": 0.01 / max(ctx["t_end"], 1e-9)}, {})]
+
+
+def _higher_mode(base, ctx):
+    out = []
+    for f in ctx["mode_freqs"]:
+        w = 2 * math.pi * f
+        m = _am(base, {"w2": w, "zeta2": 0.02, "phi2": 0.0}, "higher_mode")
+        out.append((m, ["x:phi2", "x:w2", "x:zeta2"], {"x:phi2": 0.01, "x:w2": 0.02 * w, "x:zeta2": 0.01},
+                    {"x:w2": (0.5 * w, 2.0 * w), "x:zeta2": (0.001, 0.3)}))
+    return out
+
+
+def _hysteresis(base, ctx):
+    out = []
+    for lam_y in (1.0, 3.0):
+        m = _am(base, {}, "hysteresis")
+        lam = lam_y / ctx["y_rms"]
+        m.baseline.alpha_m = 0.0
+        m.baseline.gamma = 0.6 * lam
+        m.baseline.delta = 0.4 * lam
+        out.append((m, ["alpha_m", "gamma", "delta"],
+                    {"alpha_m": 0.05 * abs(base.K_m), "gamma": 0.3 * lam, "delta": 0.3 * lam}, {}))
+    return out
+
+
+CATALOG: dict[str, Candidate] = {c.id: c for c in (
+    Candidate("cubic_stiffness",
+              "the spring stiffens (or softens) with amplitude symmetrically: a cubic restoring-force term",
+              "library term y^3 in fn", "fn gains a_3 y^3 (RK4 of the augmented SDOF)", ("fn:y^3",),
+              _fn_start("y^3", "cubic_stiffness", lambda c: 0.01 * c["acc_rms"] / c["y_rms"] ** 3),
+              lambda b, c: "y^3" not in b.fn_m, column=lambda am, t, y, dy: y ** 3),
+    Candidate("quadratic_stiffness",
+              "the spring is stiffer on one side than on the other: a quadratic (asymmetric) restoring-force term",
+              "library term y^2 in fn", "fn gains a_2 y^2", ("fn:y^2",),
+              _fn_start("y^2", "quadratic_stiffness", lambda c: 0.01 * c["acc_rms"] / c["y_rms"] ** 2),
+              lambda b, c: "y^2" not in b.fn_m, column=lambda am, t, y, dy: y ** 2),
+    Candidate("quadratic_damping",
+              "dissipation grows with the square of the velocity (air drag, turbulent losses)",
+              "term c2 y'|y'| in the restoring force", "extra force c2 y'|y'|", ("x:c2",), _quad_damp,
+              column=lambda am, t, y, dy: dy * np.abs(dy)),
+    Candidate("coulomb_friction",
+              "dry friction: a force of constant size opposing the motion, independent of amplitude",
+              "term mu sign(y') (smoothed: tanh(y'/v0)) in the restoring force",
+              "extra force mu tanh(y'/v0), v0 = 1 % of the smallest stage rms velocity", ("x:mu",), _coulomb,
+              column=lambda am, t, y, dy: np.tanh(dy / am.get("v0"))),
+    Candidate("contact_stiffness",
+              "one-sided contact: beyond a gap the specimen touches a stop and gets stiffer on that side only",
+              "term kc max(s*y - gap, 0) (s = +1 or -1) in the restoring force",
+              "extra force kc (y - gap) when y is beyond the gap on side s", ("x:kc", "x:gap", "x:side"), _contact,
+              screen_keys=1, column=lambda am, t, y, dy: (1.0 if am.get("side") >= 0 else -1.0)
+              * np.maximum((1.0 if am.get("side") >= 0 else -1.0) * y - am.get("gap"), 0.0)),
+    Candidate("channel_delay",
+              "the two sensors are not sampled at the same instant: the displacement channel lags the input channel",
+              "model change: output y_rec(t) = x_tip(t - d) - x_base(t) (force: y(t - d))",
+              "simulate, then delay the displacement channel by d (linear interpolation)", ("x:delay",), _delay),
+    Candidate("sensor_scale",
+              "a sensor is mis-calibrated: the tip reading is (1 + e) times the true value "
+              "(a base-sensor error of -e looks nearly the same)",
+              "model change: y_rec = (1 + e) x_tip - x_base",
+              "simulate, then scale the tip channel", ("x:tip_scale",), _scale,
+              lambda b, c: b.excitation == BASE),
+    Candidate("parameter_drift",
+              "the stiffness changes slowly during the session (temperature, fatigue, settling)",
+              "model change: k(t) = k (1 + drift t), t = recorded stage time",
+              "k_m varies linearly with the recorded time", ("x:drift",), _drift,
+              column=lambda am, t, y, dy: am.baseline.k_m * t * y),
+    Candidate("higher_mode",
+              "a second resonance the one-mode model leaves out shows up in the displacement reading",
+              "model change: extra mode q'' + 2 zeta w q' + w^2 q = g u, reading += phi q",
+              "a second-order oscillator driven by the same input, added to the displacement output",
+              ("x:w2", "x:zeta2", "x:phi2"), _higher_mode, screen_keys=1),
+    Candidate("hysteresis",
+              "the restoring force depends on the history of motion (a Bouc-Wen hysteretic loop) "
+              "that the baseline without hysteresis cannot produce",
+              "Bouc-Wen state z' = alpha y' - gamma |y'| z - delta y' |z| added to the restoring force",
+              "the SDOF with its Bouc-Wen state", ("alpha_m", "gamma", "delta"), _hysteresis,
+              lambda b, c: b.alpha_m == 0.0),
+)}
+
+
+def describe() -> list[dict]:
+    """The catalog as plain records (for docs and --json consumers)."""
+    return [{"id": c.id, "explanation": c.explanation, "adds": c.adds, "simulated": c.simulated}
+            for c in CATALOG.values()]

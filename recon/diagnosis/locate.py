@@ -1,0 +1,248 @@
+"""Where the model and the recording disagree: time, frequency, state plane, channel.
+
+Two residuals per stage:
+- the simulation residual r = y_rec - y_sim (output error);
+- the equation residual e = g u - y'' - c y' - k y - fn(y, y') - z  (the part of the
+  restoring force the model leaves unexplained), with y', y'' from Savitzky-Golay
+  derivatives of the recording and z integrated from the measured y'.
+Each finding is {kind, stage, region, size, ...}; ``size`` is relative (rms of the
+residual part over rms of the recorded y, or over rms of the restoring force).
+The Billings-Voon correlation tests (95 % bands +-1.96/sqrt(N)) run on the
+equation residual decimated to roughly independent samples.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.signal import welch
+
+from shakerlab.run_data import BASE
+from recon.differentiation import choose_window, derivatives
+from recon.kernel import cluster
+
+N_SEGMENTS = 8
+QUADRANTS = {1: "AB (y>0, y'>0)", 2: "BC (y>0, y'<0)", 3: "CD (y<0, y'<0)", 4: "DA (y<0, y'>0)"}
+
+
+def _quadrant(y, dy):
+    q = np.where(y >= 0, np.where(dy >= 0, 1, 2), np.where(dy < 0, 3, 4))
+    return q
+
+
+def z_from_velocity(model, dy, dt):
+    """Bouc-Wen z driven by the measured velocity (RK2 on the samples)."""
+    a, g, d = model.alpha_m, model.gamma, model.delta
+    z = np.zeros_like(dy)
+    if a == 0.0:
+        return z
+    zi = 0.0
+    for i in range(dy.size - 1):
+        v0, v1 = dy[i], dy[i + 1]
+        k1 = a * v0 - g * abs(v0) * zi - d * v0 * abs(zi)
+        zp = zi + dt * k1
+        k2 = a * v1 - g * abs(v1) * zp - d * v1 * abs(zp)
+        zi = zi + 0.5 * dt * (k1 + k2)
+        z[i + 1] = zi
+    return z
+
+
+def stage_derivatives(run, data) -> dict:
+    """Per stage: (t, y, y', y'', u) from Savitzky-Golay derivatives of the recorded y, edges trimmed."""
+    out = {}
+    for d in data:
+        st = run.stage(d.name)
+        ch = choose_window({"y": st.y}, st.dt, deriv=2, for_regression=False)
+        y, dy, ddy = derivatives(st.y, st.dt, ch.window, ch.order, 2)
+        h = ch.window // 2
+        sl = slice(h, y.size - h)
+        out[d.name] = (st.t[sl], y[sl], dy[sl], ddy[sl], d.u[sl], float(np.median(np.diff(st.t))))
+    return out
+
+
+def model_force(am, t, y, dy, dt):
+    """Restoring force per unit mass of the (augmented) model along the measured motion."""
+    m = am.baseline
+    z = z_from_velocity(m, dy, dt)
+    f = m.c_m * dy + m.k_m * (1.0 + am.get("drift") * t) * y + m.fn(y, dy) + z
+    if am.get("mu"):
+        f = f + am.get("mu") * np.tanh(dy / (am.get("v0") or 1e-4))
+    if am.get("c2"):
+        f = f + am.get("c2") * dy * np.abs(dy)
+    if am.get("kc"):
+        s = 1.0 if am.get("side") >= 0 else -1.0
+        f = f + s * am.get("kc") * np.maximum(s * y - am.get("gap"), 0.0)
+    return f
+
+
+def equation_residual(am, derivs):
+    """(y, y', e, u, restoring-force rms) for one stage's derivatives."""
+    t, y, dy, ddy, u, dt = derivs
+    f = model_force(am, t, y, dy, dt)
+    e = am.baseline.input_gain * u - ddy - f
+    return y, dy, e, u, float(np.sqrt(np.mean((f + ddy) ** 2))) or 1.0
+
+
+def _peaks(freqs, power, floor, n=5, ratio=10.0):
+    idx = np.flatnonzero(power > ratio * floor)
+    out = []
+    for i in idx:
+        lo, hi = max(i - 1, 0), min(i + 2, power.size)
+        if power[i] == power[lo:hi].max():
+            out.append((float(freqs[i]), float(power[i] / floor)))
+    out.sort(key=lambda x: -x[1])
+    return out[:n]
+
+
+def billings_voon(e, u, max_lag=20):
+    """Billings-Voon correlation tests; returns {test: fraction of lags outside the 95 % band, band}."""
+    e = (e - e.mean()) / (e.std() or 1.0)
+    u = (u - u.mean()) / (u.std() or 1.0)
+    n = e.size
+    band = 1.96 / math.sqrt(n)
+
+    def xc(a, b, lags):
+        a = (a - a.mean()) / (a.std() or 1.0)
+        b = (b - b.mean()) / (b.std() or 1.0)
+        return np.array([np.mean(a[: n - k] * b[k:]) if k >= 0 else np.mean(a[-k:] * b[: n + k]) for k in lags])
+
+    pos = range(1, max_lag + 1)
+    allk = range(0, max_lag + 1)
+    u2 = u ** 2 - np.mean(u ** 2)
+    tests = {
+        "phi_ee": xc(e, e, pos),
+        "phi_ue": xc(u, e, allk),
+        "phi_e_eu": xc(e, e[:] * np.r_[0.0, u[:-1]], allk),
+        "phi_u2_e": xc(u2, e, allk),
+        "phi_u2_e2": xc(u2, e ** 2 - np.mean(e ** 2), allk),
+    }
+    return {k: {"outside_95": float(np.mean(np.abs(v) > band)), "max_abs": float(np.max(np.abs(v)))}
+            for k, v in tests.items()} | {"band_95": band, "n": n}
+
+
+def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
+    """Findings for the model ``am`` (simulations ``sims`` per stage) and a context for the catalog."""
+    findings = []
+    bv_all = {}
+    derivs = derivs or stage_derivatives(run, data)
+    y_fit = np.concatenate([d.y[d.fit] for d in data if d.fit.any()])
+    m = am.baseline
+    f_res = math.sqrt(max(m.K_m, 1.0)) / (2 * math.pi)
+    mode_freqs = []
+    acc_parts, v_parts = [], []
+    for d, ys in zip(data, sims):
+        st = run.stage(d.name)
+        r = d.y - ys
+        if not np.all(np.isfinite(r)):
+            findings.append({"kind": "diverged", "stage": d.name, "region": {}, "size": float("inf")})
+            continue
+        noise_rel = d.noise / d.rms
+        # ---- time: segments and trend
+        seg = np.array_split(r, N_SEGMENTS)
+        tseg = np.array_split(d.t, N_SEGMENTS)
+        rms = np.array([np.sqrt(np.mean(s ** 2)) for s in seg]) / d.rms
+        tc = np.array([s.mean() for s in tseg])
+        slope = np.polyfit(tc - tc.mean(), rms, 1)[0] * (tc[-1] - tc[0]) if rms.size > 2 else 0.0
+        worst = int(np.argmax(rms))
+        if rms[worst] > 3 * noise_rel:
+            findings.append({"kind": "time_segment", "stage": d.name,
+                             "region": {"t_from": float(tseg[worst][0]), "t_to": float(tseg[worst][-1])},
+                             "size": float(rms[worst]), "median_segment": float(np.median(rms))})
+        if abs(slope) > 0.5 * np.median(rms) and np.max(rms) > 3 * noise_rel:
+            findings.append({"kind": "time_trend", "stage": d.name,
+                             "region": {"t_from": float(d.t[0]), "t_to": float(d.t[-1])},
+                             "size": float(slope), "meaning": "residual rms grows (>0) or shrinks over the stage"})
+        # ---- frequency: residual spectrum, harmonics, resonance
+        nper = min(1024, r.size)
+        fq, pr = welch(r, fs=st.fs, nperseg=nper)
+        _, py = welch(d.y, fs=st.fs, nperseg=nper)
+        floor = max(float(np.median(pr[pr.size // 2:])), (d.noise ** 2) * 2 / st.fs)
+        uin = st.channels["x_base"] if st.excitation == BASE else st.channels["force"]
+        _, pu = welch(uin, fs=st.fs, nperseg=nper)
+        ufloor = float(np.median(pu[pu.size // 2:])) or 1e-300
+        exc_lines = [f for f, _ in _peaks(fq, pu, ufloor, n=8, ratio=100.0)]
+        for f, snr in _peaks(fq, pr, floor):
+            at_input = any(abs(f - fe) <= 2 * st.fs / nper for fe in exc_lines)
+            harm = [k for fe in exc_lines[:2] for k in (2, 3, 4, 5) if abs(f - k * fe) <= 2 * st.fs / nper]
+            kind = "harmonic" if harm and not at_input else ("band_at_input" if at_input else "resonance")
+            size = float(np.sqrt(np.sum(pr[max(0, np.searchsorted(fq, f) - 2): np.searchsorted(fq, f) + 3])
+                                 * (fq[1] - fq[0])) / d.rms)
+            findings.append({"kind": f"frequency_{kind}", "stage": d.name, "region": {"frequency_hz": f},
+                             "size": size, "above_floor": snr, **({"harmonic_of": harm} if harm else {})})
+            if kind == "resonance" and f > 1.3 * f_res:
+                mode_freqs.append(f)
+        # ---- per channel (base excitation): feedthrough of a channel and a time skew
+        if st.excitation == BASE:
+            xb = st.channels["x_base"]
+            dyr = np.gradient(d.y, d.dt)
+            A = np.column_stack([xb, dyr * d.dt])
+            coef, *_ = np.linalg.lstsq(A, r, rcond=None)
+            expl = A @ coef
+            for j, (name, meaning) in enumerate((("x_base", "scale error (feedthrough of a channel)"),
+                                                 ("x_tip'", "time skew between the channels"))):
+                part = float(np.sqrt(np.mean((A[:, j] * coef[j]) ** 2)) / d.rms)
+                if part > 2 * noise_rel:
+                    findings.append({"kind": "channel", "stage": d.name, "region": {"channel": name},
+                                     "size": part, "coefficient": float(coef[j]), "meaning": meaning})
+        # ---- state plane: equation residual by cluster, near y' = 0, beyond a displacement
+        y, dy, e, u, frms = equation_residual(am, derivs[d.name])
+        acc_parts.append(frms)
+        v_parts.append(float(np.sqrt(np.mean(dy ** 2))))
+        q = _quadrant(y, dy)
+        for qi, qname in QUADRANTS.items():
+            sel = q == qi
+            if sel.sum() > 20:
+                mean = float(e[sel].mean())
+                se = float(e[sel].std() / math.sqrt(max(sel.sum() / 10.0, 1.0)))
+                if abs(mean) > 3 * se and abs(mean) > 0.005 * frms:
+                    findings.append({"kind": "state_cluster", "stage": d.name, "region": {"cluster": qname},
+                                     "size": abs(mean) / frms, "mean_residual": mean})
+        vmax = np.max(np.abs(dy))
+        near = np.abs(dy) < 0.15 * vmax
+        if near.sum() > 20:
+            jump = float(e[near & (dy > 0)].mean() - e[near & (dy < 0)].mean()) if (near & (dy > 0)).any() and (near & (dy < 0)).any() else 0.0
+            far = float(e[~near & (dy > 0)].mean() - e[~near & (dy < 0)].mean()) if (~near & (dy > 0)).any() and (~near & (dy < 0)).any() else 0.0
+            if abs(jump) > 0.01 * frms:
+                findings.append({"kind": "state_near_zero_velocity", "stage": d.name,
+                                 "region": {"abs_dy_below": float(0.15 * vmax)}, "size": abs(jump) / frms,
+                                 "jump_across_dy0": jump, "jump_at_high_speed": far})
+        for side, nm in ((1, "y_beyond_pos"), (-1, "y_beyond_neg")):
+            ymax = np.max(side * y)
+            if ymax <= 0:
+                continue
+            beyond = side * y > 0.7 * ymax
+            mid = np.abs(y) < 0.3 * np.max(np.abs(y))
+            if beyond.sum() > 20 and mid.sum() > 20:
+                diff = float(e[beyond].mean() - e[mid].mean())
+                se = float(e[beyond].std() / math.sqrt(max(beyond.sum() / 10.0, 1.0)))
+                if abs(diff) > 3 * se and abs(diff) > 0.01 * frms:
+                    findings.append({"kind": "state_beyond_displacement", "stage": d.name,
+                                     "region": {"y_side": side, "beyond_m": float(0.7 * ymax * side)},
+                                     "size": abs(diff) / frms, "mean_residual": diff})
+        # ---- Billings-Voon on decimated equation residual
+        step = max(1, int(round(st.fs / (8 * max(f_res, 1.0)))))
+        bv = billings_voon(e[::step], u[::step])
+        bv_all[d.name] = bv
+        bad = [k for k, v in bv.items() if isinstance(v, dict) and v["outside_95"] > 0.1]
+        if bad:
+            findings.append({"kind": "correlation_tests", "stage": d.name, "region": {"tests_failed": bad},
+                             "size": float(max(bv[k]["max_abs"] for k in bad))})
+    y_all = np.concatenate([d.y for d in data])
+    ctx = {
+        "y_max_pos": float(max(np.max(y_fit), 1e-12)), "y_max_neg": float(max(-np.min(y_fit), 1e-12)),
+        "y_rms": float(np.sqrt(np.mean(y_all ** 2))),
+        "v_rms": float(np.mean(v_parts)) if v_parts else 1e-3,
+        "v_rms_min": float(np.min(v_parts)) if v_parts else 1e-3,
+        "acc_rms": float(np.mean(acc_parts)) if acc_parts else 1.0,
+        "dt": data[0].dt, "t_end": float(max(d.t[-1] for d in data)),
+        "f_res": f_res, "billings_voon": bv_all,
+    }
+    nyq = 0.5 / data[0].dt
+    defaults = [f for f in (2.5 * f_res, 4.0 * f_res, 6.0 * f_res) if f < 0.4 * nyq]
+    seen = []
+    for f in mode_freqs + defaults:
+        if all(abs(f - s) > 0.1 * s for s in seen):
+            seen.append(f)
+    ctx["mode_freqs"] = seen[:4]
+    findings.sort(key=lambda f: -(f["size"] if math.isfinite(f["size"]) else 1e9))
+    return findings, ctx

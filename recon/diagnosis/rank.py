@@ -1,0 +1,293 @@
+"""Fit each candidate's augmented model by simulation and rank them on held-out data.
+
+Output-error fit: the free parameters (the baseline's own ones, refitted, plus the
+candidate's) minimise sum over fitting stages of |y_sim - y_rec|^2 / (N rms(y)^2).
+The held-out data are the validation stage(s); without one, the last 30 % of
+every stage (the simulation runs through the whole stage, only the score is split).
+
+Every candidate is compared with the *null* model: the baseline refitted the same
+way on the same data, so a candidate only gets credit for what its extra terms add.
+A candidate counts as missing physics when, on the held-out data,
+
+    dBIC = n_eff ln(MSE_cand / MSE_null) + k_added ln(n_eff) < -BIC_MARGIN
+
+(n_eff: the held-out residual's effective number of independent samples, from its
+autocorrelation), it removes at least MIN_EXPLAINED of the null model's held-out
+excess over the noise floor, and the held-out mean-square reduction is at least
+MIN_GAIN_NOISE times the noise variance (an improvement smaller than the noise
+cannot be told from a better fit of input-estimation errors); terms fitted to
+noise fail all three.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from shakerlab.run_data import BASE, Run
+from recon.diagnosis.augmented import AugmentedModel
+from recon.differentiation import estimate_spectrum
+from recon.model import HystereticModel
+
+BIC_MARGIN = 10.0
+MIN_EXPLAINED = 0.15
+MIN_GAIN_NOISE = 2.0
+HOLD_FRACTION = 0.3
+
+
+@dataclass
+class StageData:
+    name: str
+    t: np.ndarray
+    u: np.ndarray
+    x_in: np.ndarray | None
+    y: np.ndarray
+    fit: np.ndarray          # boolean mask of fitting samples
+    held: np.ndarray         # boolean mask of held-out samples
+    noise: float             # white-noise std of the recorded y
+    rms: float
+
+    @property
+    def dt(self) -> float:
+        return float(np.median(np.diff(self.t)))
+
+
+def prepare(run: Run, model: HystereticModel) -> list[StageData]:
+    """Per stage: input (computed once), recorded y, fit/held masks, noise level."""
+    names = list(run.stages)
+    has_val = any(n.startswith("validation") for n in names) and any(not n.startswith("validation") for n in names)
+    out = []
+    for n in names:
+        st = run.stage(n)
+        u = model.stage_input(st)
+        y = st.y
+        fit = np.ones(y.size, bool)
+        held = np.zeros(y.size, bool)
+        if has_val:
+            if n.startswith("validation"):
+                fit[:] = False
+                held[:] = True
+        else:
+            cut = int((1 - HOLD_FRACTION) * y.size)
+            fit[cut:] = False
+            held[cut:] = True
+        if st.excitation == BASE:
+            noise = math.hypot(estimate_spectrum(st.channels["x_tip"], st.dt).noise_std,
+                               estimate_spectrum(st.channels["x_base"], st.dt).noise_std)
+        else:
+            noise = estimate_spectrum(st.channels["x"], st.dt).noise_std
+        out.append(StageData(n, st.t, u, st.channels.get("x_base") if st.excitation == BASE else None, y,
+                             fit, held, noise, float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0))
+    return out
+
+
+def simulate_all(am: AugmentedModel, data: list[StageData]) -> list[np.ndarray]:
+    return [am.simulate(d.t, d.u, d.x_in)[0] for d in data]
+
+
+def nrmse_per_stage(am: AugmentedModel, data: list[StageData], sims=None) -> dict:
+    sims = sims if sims is not None else simulate_all(am, data)
+    out = {}
+    for d, ys in zip(data, sims):
+        if not np.all(np.isfinite(ys)):
+            out[d.name] = float("inf")
+            continue
+        out[d.name] = float(np.sqrt(np.mean((ys - d.y) ** 2)) / d.rms)
+    return out
+
+
+# ------------------------------------------------------------------ parameters
+def _get(am: AugmentedModel, key: str) -> float:
+    if key.startswith("fn:"):
+        return am.baseline.fn_m.get(key[3:], 0.0)
+    if key.startswith("x:"):
+        return am.get(key[2:])
+    v = getattr(am.baseline, key)
+    return float(v) if v is not None else 0.0
+
+
+def _set(am: AugmentedModel, key: str, value: float) -> None:
+    if key.startswith("fn:"):
+        am.baseline.fn_m[key[3:]] = float(value)
+    elif key.startswith("x:"):
+        am.extras[key[2:]] = float(value)
+    else:
+        setattr(am.baseline, key, float(value))
+
+
+def baseline_keys(model: HystereticModel) -> list[str]:
+    keys = ["c_m", "k_m"]
+    if model.alpha_m != 0.0:
+        keys += ["alpha_m", "gamma", "delta"]
+    keys += [f"fn:{k}" for k in model.fn_m]
+    if model.excitation != BASE:
+        keys.append("inv_m")
+    return keys
+
+
+@dataclass
+class FitResult:
+    model: AugmentedModel
+    cost_fit: float                  # mean-square normalised residual on the fitting samples
+    mse_held: float                  # mean-square held-out residual [m^2]
+    nrmse: dict                      # per stage (whole stage)
+    nrmse_held: float                # held-out NRMSE (all held-out samples together)
+    n_held: int
+    resid_held: np.ndarray = field(repr=False, default=None)
+    stderr: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict | None = None,
+        max_nfev: int = 40, bounds: dict | None = None) -> FitResult:
+    """Output-error least squares of ``keys`` (start: ``am``'s values)."""
+    t0 = time.perf_counter()
+    scales = scales or {}
+    bounds = bounds or {}
+    x0 = np.array([_get(am, k) for k in keys], float)
+    lam = abs(am.baseline.gamma + am.baseline.delta) or 1.0
+    sc = np.array([scales.get(k, abs(v) if v != 0 else 1.0) for k, v in zip(keys, x0)], float)
+    for i, k in enumerate(keys):
+        if k in ("gamma", "delta") and k not in scales:
+            sc[i] = max(abs(x0[i]), 0.1 * lam)
+    lo = np.array([(bounds.get(k, (-np.inf, np.inf))[0] - x0[i]) / sc[i] for i, k in enumerate(keys)])
+    hi = np.array([(bounds.get(k, (-np.inf, np.inf))[1] - x0[i]) / sc[i] for i, k in enumerate(keys)])
+    lo = np.minimum(lo, -1e-12)
+    hi = np.maximum(hi, 1e-12)
+    fit_n = sum(int(d.fit.sum()) for d in data)
+    w = [1.0 / (d.rms * math.sqrt(max(int(d.fit.sum()), 1))) for d in data]
+
+    def build(p):
+        m = am.copy()
+        for i, k in enumerate(keys):
+            _set(m, k, x0[i] + p[i] * sc[i])
+        return m
+
+    def resid(p):
+        m = build(p)
+        out = []
+        for d, wi in zip(data, w):
+            if not d.fit.any():
+                continue
+            ys = m.simulate(d.t, d.u, d.x_in)[0]
+            if not np.all(np.isfinite(ys)):
+                return np.full(fit_n, 1e2)
+            out.append((ys[d.fit] - d.y[d.fit]) * wi)
+        return np.concatenate(out)
+
+    p0 = np.clip(np.zeros(len(keys)), lo, hi)
+    if keys:
+        sol = least_squares(resid, p0, method="trf", bounds=(lo, hi), x_scale=1.0, diff_step=1e-5,
+                            max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
+        p = sol.x
+        cost = float(sol.fun @ sol.fun)
+        stderr = {}
+        try:
+            J = sol.jac
+            dof = max(sol.fun.size - len(keys), 1)
+            s2 = cost / dof
+            cov = np.linalg.pinv(J.T @ J) * s2
+            stderr = {k: float(math.sqrt(max(cov[i, i], 0.0)) * sc[i]) for i, k in enumerate(keys)}
+        except (np.linalg.LinAlgError, ValueError):
+            stderr = {}
+    else:
+        p = p0
+        r = resid(p0)
+        cost = float(r @ r)
+        stderr = {}
+    m = build(p)
+    sims = simulate_all(m, data)
+    held = [(ys - d.y)[d.held] for d, ys in zip(data, sims)]
+    rh = np.concatenate(held) if held else np.zeros(0)
+    yh = np.concatenate([d.y[d.held] - d.y[d.held].mean() for d in data if d.held.any()]) if rh.size else np.zeros(0)
+    mse = float(np.mean(rh ** 2)) if rh.size and np.all(np.isfinite(rh)) else float("inf")
+    nh = float(math.sqrt(mse / np.mean(yh ** 2))) if rh.size and np.mean(yh ** 2) > 0 else float("nan")
+    return FitResult(model=m, cost_fit=cost / max(len([d for d in data if d.fit.any()]), 1), mse_held=mse,
+                     nrmse=nrmse_per_stage(m, data, sims), nrmse_held=nh, n_held=int(rh.size), resid_held=rh,
+                     stderr=stderr, seconds=time.perf_counter() - t0)
+
+
+def effective_samples(r: np.ndarray, max_lag: int = 2000) -> float:
+    """N / (1 + 2 sum rho_k), the sum truncated at the first non-positive autocorrelation."""
+    r = np.asarray(r, float) - np.mean(r)
+    n = r.size
+    if n < 8 or not np.any(r):
+        return float(max(n, 1))
+    f = np.fft.rfft(r, 2 * n)
+    ac = np.fft.irfft(f * np.conj(f))[: min(n, max_lag)]
+    ac = ac / ac[0]
+    s = 0.0
+    for k in range(1, ac.size):
+        if ac[k] <= 0:
+            break
+        s += ac[k]
+    return float(max(n / (1.0 + 2.0 * s), 1.0))
+
+
+def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> dict:
+    """Held-out comparison of a candidate with the null model (see the module docstring)."""
+    n_eff = effective_samples(null.resid_held)
+    if not math.isfinite(cand.mse_held) or cand.mse_held <= 0:
+        return {"dbic": float("inf"), "explained": 0.0, "n_eff": n_eff, "significant": False}
+    dbic = n_eff * math.log(cand.mse_held / null.mse_held) + k_added * math.log(n_eff)
+    excess = max(null.mse_held - noise_mse, 1e-300)
+    explained = (null.mse_held - cand.mse_held) / excess
+    gain = (null.mse_held - cand.mse_held) / max(noise_mse, 1e-300)
+    return {"dbic": float(dbic), "explained": float(explained), "gain_over_noise": float(gain),
+            "n_eff": float(n_eff),
+            "significant": bool(dbic < -BIC_MARGIN and explained >= MIN_EXPLAINED and gain >= MIN_GAIN_NOISE)}
+
+
+def equation_step(am: AugmentedModel, keys: list[str], new_key: str | None, column, derivs: dict,
+                  data: list[StageData]):
+    """Start for a candidate whose term is linear in its parameter: one least-squares step on the
+    equation residual of ``am`` over the fitting samples,
+
+        e = du.c y' + du.k y + sum du.a_j phi_j + theta col(y, y', t) - du.g u,
+
+    then ``am`` moved by those increments (the differentiation bias is common to every
+    column, so increments are far less biased than a fresh equation-error fit).
+    Returns (model, relative residual rms)."""
+    from recon.diagnosis.locate import equation_residual
+    from recon import monomials
+
+    rows, rhs = [], []
+    for d in data:
+        if not d.fit.any() or d.name not in derivs:
+            continue
+        t, y, dy, ddy, u, dt = derivs[d.name]
+        sel = t <= d.t[d.fit][-1]
+        _, _, e, _, frms = equation_residual(am, derivs[d.name])
+        cols = []
+        for k in keys:
+            if k == "c_m":
+                cols.append(dy)
+            elif k == "k_m":
+                cols.append(y * (1.0 + am.get("drift") * t))
+            elif k.startswith("fn:"):
+                p, r = monomials.parse(k[3:])
+                cols.append(y ** p * dy ** r)
+            elif k == "inv_m":
+                cols.append(-u)
+        if new_key is not None:
+            cols.append(column(am, t, y, dy))
+        A = np.column_stack(cols)[sel] / frms
+        rows.append(A)
+        rhs.append(e[sel] / frms)
+    A = np.vstack(rows)
+    b = np.concatenate(rhs)
+    names = [k for k in keys if k in ("c_m", "k_m", "inv_m") or k.startswith("fn:")]
+    norms = np.linalg.norm(A, axis=0)
+    norms[norms == 0] = 1.0
+    coef, *_ = np.linalg.lstsq(A / norms, b, rcond=None)
+    coef = coef / norms
+    resid = float(np.linalg.norm(b - A @ coef) / (np.linalg.norm(b) or 1.0))
+    m = am.copy()
+    for k, c in zip(names, coef):
+        _set(m, k, _get(m, k) + c)
+    if new_key is not None:
+        _set(m, new_key, _get(m, new_key) + coef[-1])
+    return m, resid
