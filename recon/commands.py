@@ -97,13 +97,13 @@ def write_plots(result, run, outdir):
     for name in names:
         st = run.stage(name)
         u = result.model.stage_input(st)
-        ysim, _, zsim = result.model.simulate(st.t - st.t[0], u)
+        ysim, _, zsim = result.model.simulate(st.t - st.t[0], u, initial=result.model.stage_start(st, u))
         paths.append(plot_overlay(outdir / f"{name}.png", st.t, st.y, ysim, z_sim=zsim,
                                   title=f"{name}: measured vs reconstructed (NRMSE {result.validation['per_stage'].get(name, float('nan')):.3g})"))
     sig = result.signals
     st = run.stage(result.settings.nonlinear_stage)
     u = result.model.stage_input(st)
-    ysim, _, zsim = result.model.simulate(st.t - st.t[0], u)
+    ysim, _, zsim = result.model.simulate(st.t - st.t[0], u, initial=result.model.stage_start(st, u))
     half = (st.t.size - sig["t"].size) // 2
     paths.append(plot_overlay(outdir / "nonlinear_loop.png", sig["t"], sig["y"], ysim[half:half + sig["t"].size],
                               z_meas=sig["z"], z_sim=zsim[half:half + sig["t"].size],

@@ -136,10 +136,11 @@ class HystereticModel:
             raise UserFacingError(f"{path}: {exc}") from None
 
     # -------------------------------------------------------------- simulation
-    def simulate(self, t, u, n_sub: int | None = None):
+    def simulate(self, t, u, n_sub: int | None = None, initial=None):
         """Response to the per-unit-mass input (base) or force (force), from rest.
 
         Returns (y, dy, z) sampled at ``t`` (uniform sampling required).
+        ``initial=(y0, dy0, z0)`` starts from that state instead of rest.
         """
         from recon.simulate import simulate_sdof, substeps
 
@@ -154,8 +155,9 @@ class HystereticModel:
         coef, p, r = self.fn_arrays()
         if n_sub is None:
             n_sub = substeps(dt, max(abs(self.K_m), abs(self.k_m), 1.0))
+        y0, v0, z0 = (0.0, 0.0, 0.0) if initial is None else (float(v) for v in initial)
         return simulate_sdof(u, dt, int(n_sub), self.input_gain, self.c_m, self.k_m, self.alpha_m,
-                             self.gamma, self.delta, coef, p, r)
+                             self.gamma, self.delta, coef, p, r, y0, v0, z0)
 
     def stage_input(self, stage: Stage) -> np.ndarray:
         """The input u the model is driven by, built from the stage's channels."""
@@ -169,8 +171,29 @@ class HystereticModel:
         ch = choose_window({"x_base": xb}, stage.dt, deriv=2, for_regression=False)
         return -derivatives(xb, stage.dt, ch.window, ch.order, 2)[2]
 
+    def stage_start(self, stage: Stage, u=None):
+        """The stage's state at its first sample (y, y', z), estimated from the recording.
+
+        y, y', y'' by a Savitzky-Golay fit at the start; z from the equation of motion,
+        z = g u - y'' - c y' - k y - fn(y, y'). A stage recorded from rest gives ~0."""
+        from recon.differentiation import choose_window, derivatives
+
+        u = self.stage_input(stage) if u is None else u
+        y = stage.y
+        ch = choose_window({"y": y}, stage.dt, deriv=2, for_regression=False)
+        # recorded from rest (the first window moves less than 2 % of the stage's peak): an
+        # edge estimate of y'' (hence z0) would only add noise, so start from rest exactly
+        head = y[:ch.window] - y[0]
+        if np.sqrt(np.mean(y[:ch.window] ** 2)) < 0.02 * np.max(np.abs(y)) and np.max(np.abs(head)) < 0.02 * np.max(np.abs(y)):
+            return 0.0, 0.0, 0.0
+        n = min(y.size, 4 * ch.window)
+        d = derivatives(y[:n], stage.dt, min(ch.window, n - (1 - n % 2)), ch.order, 2)
+        y0, v0, a0 = d[0][0], d[1][0], d[2][0]
+        z0 = self.input_gain * u[0] - a0 - self.c_m * v0 - self.k_m * y0 - float(self.fn(np.array([y0]), np.array([v0]))[0])
+        return float(y0), float(v0), float(z0)
+
     def simulate_stage(self, stage: Stage):
-        """(t, y_sim) for the stage's recorded input."""
+        """(t, y_sim) for the stage's recorded input, started from the stage's initial state."""
         u = self.stage_input(stage)
-        y, _, _ = self.simulate(stage.t - stage.t[0], u)
+        y, _, _ = self.simulate(stage.t - stage.t[0], u, initial=self.stage_start(stage, u))
         return stage.t, y

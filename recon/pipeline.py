@@ -212,7 +212,11 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
         data = []
         for name in (s.nonlinear_stage,):
             st = run.stage(name)
-            data.append((st.t - st.t[0], model.stage_input(st), st.y))
+            u_st = model.stage_input(st)
+            y0, v0, z0 = model.stage_start(st, u_st)
+            a0 = model.input_gain * u_st[0] - z0 - model.c_m * v0 - model.k_m * y0 - float(
+                model.fn(np.array([y0]), np.array([v0]))[0])
+            data.append((st.t - st.t[0], u_st, st.y, (y0, v0, a0)))
         model, polish_info = polish(model, data)
         timings["polish"] = time.perf_counter() - tp
     model.provenance["equation_error_estimate"] = equation_error_model.to_dict()["parameters"]

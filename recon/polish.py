@@ -19,8 +19,11 @@ from shakerlab.run_data import BASE
 NAMES = ("c_m", "k_m", "alpha_m", "gamma", "delta")
 
 
-def polish(model: HystereticModel, data: list[tuple[np.ndarray, np.ndarray, np.ndarray]], max_nfev: int = 60):
-    """Refine ``model`` on ``data`` = [(t, u, y_meas), ...]; returns (model, info)."""
+def polish(model: HystereticModel, data: list, max_nfev: int = 60):
+    """Refine ``model`` on ``data`` = [(t, u, y_meas[, (y0, dy0, a0)]), ...]; returns (model, info).
+
+    The optional start (y, y', y'' at the first sample) sets the initial state; z0 follows
+    from the equation of motion for each trial parameter set."""
     keys = list(NAMES) + [f"fn:{k}" for k in model.fn_m] + (["inv_m"] if model.excitation != BASE else [])
 
     def get(m, k):
@@ -40,13 +43,19 @@ def polish(model: HystereticModel, data: list[tuple[np.ndarray, np.ndarray, np.n
         return HystereticModel(excitation=model.excitation, fn_m=fn, provenance=model.provenance,
                                inv_m=kw.pop("inv_m", model.inv_m), **kw)
 
-    rms = [float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0 for _, _, y in data]
+    rms = [float(np.sqrt(np.mean((d[2] - d[2].mean()) ** 2))) or 1.0 for d in data]
 
     def resid(p):
         m = build(p)
         out = []
-        for (t, u, y), r in zip(data, rms):
-            ys, _, _ = m.simulate(t, u)
+        for d, r in zip(data, rms):
+            t, u, y = d[:3]
+            init = None
+            if len(d) > 3 and d[3] is not None:
+                y0, v0, a0 = d[3]
+                z0 = m.input_gain * u[0] - a0 - m.c_m * v0 - m.k_m * y0 - float(m.fn(np.array([y0]), np.array([v0]))[0])
+                init = (y0, v0, z0)
+            ys, _, _ = m.simulate(t, u, initial=init)
             if not np.all(np.isfinite(ys)):
                 return np.full(sum(d[2].size for d in data), 1e3)
             out.append((ys - y) / (r * np.sqrt(y.size)))

@@ -6,7 +6,7 @@
 ``u`` is sampled at the recording rate; between samples it is interpolated
 linearly (RK4 half steps use the mid-point value). When the sampling is coarse
 compared with the model's time scales, each sample interval is split into
-``n_sub`` RK4 sub-steps. Zero initial conditions.
+``n_sub`` RK4 sub-steps. Zero initial conditions unless (y0, v0, z0) are given.
 """
 from __future__ import annotations
 
@@ -27,14 +27,17 @@ def _rhs(y, v, z, u, g, c, k, alpha, gamma, delta, coef, p, r):
 
 
 @njit(cache=True)
-def simulate_sdof(u, dt, n_sub, g, c, k, alpha, gamma, delta, coef, p, r):
+def simulate_sdof(u, dt, n_sub, g, c, k, alpha, gamma, delta, coef, p, r, y0=0.0, v0=0.0, z0=0.0):
     n = u.size
     ys = np.zeros(n)
     vs = np.zeros(n)
     zs = np.zeros(n)
-    y = 0.0
-    v = 0.0
-    z = 0.0
+    y = y0
+    v = v0
+    z = z0
+    ys[0] = y0
+    vs[0] = v0
+    zs[0] = z0
     h = dt / n_sub
     for i in range(n - 1):
         u0 = u[i]

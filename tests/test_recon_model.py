@@ -90,3 +90,23 @@ def test_library_reproduces_fn_derivative_exactly(form):
     bad = theta.copy()
     bad[:, k] = y[lib.rows(cluster(y, dy))] * Fn[lib.rows(cluster(y, dy))]
     assert np.linalg.norm(bad @ coef - target) > 1e-2 * np.linalg.norm(target)
+
+
+def test_simulate_stage_starts_from_the_recorded_state():
+    # a stage cut in the middle of the motion (as a rig stage that follows another one)
+    from recon.truth import sdof_run
+    from shakerlab.run_data import Stage
+
+    run, truth = sdof_run("base", snr_db=80.0, duration=4.0, seed=4)
+    st = run.stage("validation")
+    keep = st.t >= 1.5
+    cut = Stage("cut", st.t[keep], {k: v[keep] for k, v in st.channels.items()}, "base")
+    y0, v0, z0 = truth.stage_start(cut)
+    tr = st.settings["truth"]
+    i = int(np.flatnonzero(keep)[0])
+    assert abs(y0 - tr["y"][i]) < 0.01 * np.max(np.abs(tr["y"]))
+    assert abs(z0 - tr["z"][i]) < 0.05 * np.max(np.abs(tr["z"]))
+    _, ysim = truth.simulate_stage(cut)
+    from_rest = truth.simulate(cut.t - cut.t[0], truth.stage_input(cut))[0]
+    assert nrmse(ysim, cut.y) < 0.02
+    assert nrmse(from_rest, cut.y) > 3 * nrmse(ysim, cut.y)
