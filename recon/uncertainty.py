@@ -7,8 +7,8 @@
 Method (the ensembling idea of PySINDy, applied to the fit that produces the
 reported numbers). The reported parameters come from the output-error fit
 (:mod:`recon.polish`): the regression rows are the samples of the simulated
-minus measured response over the fitting stages (``linear`` and
-``nonlinear``), each stage weighted as in the polish. An ensemble of refits is
+minus measured response over the stages that fit used (:func:`fitted_stages`),
+weighted and started as in the polish. An ensemble of refits is
 made by resampling what is random in those rows:
 
 1. the residual ``r`` at the estimate and the Jacobian ``J`` of the residual
@@ -66,15 +66,28 @@ class UncertaintySettings:
     n_resamples: int = 200
     level: float = 0.95
     input_noise: bool = True      # redraw the input noise per member (see the module doc)
-    stages: tuple = ("linear", "nonlinear")
+    stages: tuple | None = None   # None: the stages the output-error polish fitted (see fitted_stages)
     block: int | None = None      # block length in samples (None: stage length / n_blocks)
     n_blocks: int = 40            # blocks per stage when block is None (long blocks keep the residual's colour)
     seed: int = 0
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        d["stages"] = list(self.stages)
+        d["stages"] = None if self.stages is None else list(self.stages)
         return d
+
+
+def fitted_stages(model: HystereticModel) -> list[str]:
+    """The stages the output-error polish fitted: recorded in the model's provenance when the
+    polish says so, else the pipeline's choice (the nonlinear stage from its recorded initial
+    state when the model can start from one, the linear and nonlinear stages from rest before)."""
+    prov = model.provenance or {}
+    info = prov.get("output_error_polish") or {}
+    if info.get("stages"):
+        return list(info["stages"])
+    st = prov.get("settings") or {}
+    lin, non = st.get("linear_stage", "linear"), st.get("nonlinear_stage", "nonlinear")
+    return [non] if hasattr(model, "stage_start") else [lin, non]
 
 
 def parameter_keys(model: HystereticModel) -> list[str]:
@@ -99,6 +112,27 @@ def _scales(model: HystereticModel, keys: list[str], x0: np.ndarray) -> np.ndarr
         if k in ("gamma", "delta"):
             scale[i] = max(abs(x0[i]), 0.1 * lam)
     return scale
+
+
+def _start(model: HystereticModel, stage, u):
+    """(y, y', y'') at the stage's first sample when the model can start from a recorded state
+    (as the output-error polish does), else None (from rest)."""
+    if not hasattr(model, "stage_start"):
+        return None
+    y0, v0, z0 = model.stage_start(stage, u)
+    a0 = model.input_gain * u[0] - z0 - model.c_m * v0 - model.k_m * y0 - float(
+        model.fn(np.array([y0]), np.array([v0]))[0])
+    return y0, v0, a0
+
+
+def _simulate(m: HystereticModel, t, u, start):
+    """Simulate from rest, or from the recorded (y, y', y'') with z0 from the equation of motion
+    for this parameter set (what recon.polish does)."""
+    if start is None:
+        return m.simulate(t, u)
+    y0, v0, a0 = start
+    z0 = m.input_gain * u[0] - a0 - m.c_m * v0 - m.k_m * y0 - float(m.fn(np.array([y0]), np.array([v0]))[0])
+    return m.simulate(t, u, initial=(y0, v0, z0))
 
 
 class _InputNoise:
@@ -165,24 +199,26 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
         raise UserFacingError(f"uncertainty level must be between 0.5 and 1, got {s.level}")
     if s.n_resamples < 50:
         raise UserFacingError(f"uncertainty needs at least 50 resamples, got {s.n_resamples}")
-    names = [n for n in s.stages if n in run.stages]
+    wanted = list(s.stages) if s.stages is not None else fitted_stages(model)
+    names = [n for n in wanted if n in run.stages]
     if not names:
-        raise UserFacingError(f"{run.source or 'run'}: none of the fitting stages {list(s.stages)} is recorded")
+        raise UserFacingError(f"{run.source or 'run'}: none of the fitting stages {wanted} is recorded")
     data, noise = [], []
     for name in names:
         st = run.stage(name)
-        data.append((st.t - st.t[0], model.stage_input(st), st.y))
+        u = model.stage_input(st)
+        data.append((st.t - st.t[0], u, st.y, _start(model, st, u)))
         noise.append(input_noise_model(st))
     keys = parameter_keys(model)
     x0 = np.array([_get(model, k) for k in keys], float)
     scale = _scales(model, keys, x0)
-    w = [1.0 / ((float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0) * np.sqrt(y.size)) for _, _, y in data]
+    w = [1.0 / ((float(np.sqrt(np.mean((d[2] - d[2].mean()) ** 2))) or 1.0) * np.sqrt(d[2].size)) for d in data]
 
     def resid(x):
         m = _build(model, keys, x)
         out = []
-        for (t, u, y), wi in zip(data, w):
-            ys, _, _ = m.simulate(t, u)
+        for (t, u, y, start), wi in zip(data, w):
+            ys, _, _ = _simulate(m, t, u, start)
             out.append((ys - y) * wi)
         return out
 
@@ -222,11 +258,11 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
     members = x0[:, None] - (contrib @ signs) * scale[:, None]     # p x B
     if s.input_noise:
         m0 = _build(model, keys, x0)
-        base = [m0.simulate(t, u)[0] for t, u, _ in data]
+        base = [_simulate(m0, t, u, start)[0] for t, u, _, start in data]
         for b in range(s.n_resamples):
             dr = []
-            for (t, u, _), ys0, wi, nm in zip(data, base, w, noise):
-                ys, _, _ = m0.simulate(t, u + nm(rng))
+            for (t, u, _, start), ys0, wi, nm in zip(data, base, w, noise):
+                ys, _, _ = _simulate(m0, t, u + nm(rng), start)
                 dr.append((ys - ys0) * wi)
             dr = np.concatenate(dr)
             if np.all(np.isfinite(dr)):
