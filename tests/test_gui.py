@@ -204,6 +204,9 @@ def test_open_recorded_run_fills_the_result_panels(qtbot, window, recorded_run):
     assert not r.table.isColumnHidden(3)  # the stored result carries the simulator's truth
     assert r.c_meas.yData.size > 1000 and r.c_sim.yData.size == r.c_meas.yData.size
     assert r.c_zsim.xData.size > 100
+    # the loop implied by the data and the (true) model's other terms lies on the simulated loop
+    assert np.ptp(r.c_zmeas.yData) == pytest.approx(np.ptp(r.c_zsim.yData), rel=0.1)
+    assert np.ptp(r.c_zmeas.xData) == pytest.approx(np.ptp(r.c_zsim.xData), rel=0.05)
     # the true model, simulated on the recorded validation stage, matches the measurement
     assert w.last_view.nrmse < 0.1
     assert "NRMSE" in r.header.text() and "stored result" in r.header.text()

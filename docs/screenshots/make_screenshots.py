@@ -1,6 +1,6 @@
 """Render the operator window offscreen during a run and after it; write the PNGs shown in README.md.
 
-    QT_QPA_PLATFORM=offscreen python docs/screenshots/make_screenshots.py [--speed 4] [--out docs/screenshots]
+    QT_QPA_PLATFORM=offscreen python docs/screenshots/make_screenshots.py [--speed 1] [--out docs/screenshots]
 
 Runs the shipped protocol (rig/default_protocol.toml) on the simulated rig at ``--speed`` times real
 time through the window (same code path as ``shakerlab gui``), grabs the Run tab during the nonlinear
@@ -18,7 +18,7 @@ from pathlib import Path
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--speed", type=float, default=4.0, help="simulated time per wall time (default 4)")
+    ap.add_argument("--speed", type=float, default=1.0, help="simulated time per wall time (default 1: real time)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent)
     ap.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds")

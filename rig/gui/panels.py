@@ -283,7 +283,7 @@ class ResultsPanel(QtWidgets.QWidget):
         self.p_loop.setLabel("bottom", "y", units="m")
         self.p_loop.showGrid(x=True, y=True, alpha=0.2)
         self.c_zmeas = self.p_loop.plot(pen=None, symbol="o", symbolSize=2, symbolBrush=(120, 120, 120, 90),
-                                        symbolPen=None, name="estimated from the data (nonlinear stage)")
+                                        symbolPen=None, name="data: −x_base'' − y'' − c_m y' − k_m y − fn")
         self.c_zsim = self.p_loop.plot(pen=pg.mkPen("#9467bd", width=2), name="identified model")
         split.addWidget(self.plots)
         split.setSizes([430, 800])
@@ -336,7 +336,7 @@ class ResultsPanel(QtWidgets.QWidget):
             self.p_loop.setTitle("hysteresis loop z vs y")
         if view.measured_loop is not None:
             y, z = view.measured_loop
-            step = max(1, y.size // 4000)
+            step = max(1, y.size // 3000)
             self.c_zmeas.setData(y[::step], z[::step])
         else:
             self.c_zmeas.setData([], [])

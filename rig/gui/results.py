@@ -31,7 +31,7 @@ class ResultView:
     validation_stage: str | None
     overlay: tuple | None            # (t, y measured, y simulated) [s, m, m]
     loop: tuple | None               # (y, z) simulated on loop_stage [m, m/s^2]
-    measured_loop: tuple | None      # (y, z) estimated from the data (fresh reconstructions only)
+    measured_loop: tuple | None      # (y, z) implied by the data of loop_stage and the identified model
     loop_stage: str | None = None    # nonlinear (the largest loop) when recorded, else the validation stage
     diagnosis: str | None = None
     origin: str = ""                 # "stored result <group>" or "reconstructed now"
@@ -66,6 +66,22 @@ def _diagnosis_text(payload: dict) -> str:
     return json.dumps(payload, indent=2, default=str)
 
 
+def data_loop(model, stage):
+    """(y, z) implied by a base-excitation stage's data and the model's other terms, last third:
+    ``z = -x_base'' - y'' - c_m y' - k_m y - fn(y, y')`` with Savitzky-Golay derivatives."""
+    from recon.differentiation import choose_window, derivatives
+
+    n = stage.t.size
+    xb, xt = stage.channels["x_base"][2 * n // 3:], stage.channels["x_tip"][2 * n // 3:]
+    dt = stage.dt
+    ch = choose_window({"x_tip": xt, "x_base": xb}, dt, deriv=2, for_regression=False)
+    y = derivatives(xt - xb, dt, ch.window, ch.order, 2)
+    ddb = derivatives(xb, dt, ch.window, ch.order, 2)[2]
+    z = -ddb - y[2] - model.c_m * y[1] - model.k_m * y[0] - model.fn(y[0], y[1])
+    keep = slice(ch.window, max(ch.window, y[0].size - ch.window))   # Savitzky-Golay edges left out
+    return y[0][keep], z[keep]
+
+
 def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bool = True,
                      truth: dict | None = None) -> ResultView:
     """The results view of a run file (see the module docstring). Raises UserFacingError on bad files.
@@ -93,9 +109,6 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
             payload["truth"] = truth
         model = result.model
         origin = "reconstructed now"
-        sig = result.signals or {}
-        if sig.get("y") is not None and sig.get("z") is not None:
-            measured_loop = (np.asarray(sig["y"]), np.asarray(sig["z"]))
         if write_back:
             if info["clean_close"]:
                 group = add_result(path, "reconstruction", payload, text=str(model))
@@ -127,6 +140,8 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
         st = run.stage("nonlinear")
         y_nl, _, z_nl = model.simulate(st.t - st.t[0], model.stage_input(st))
         loop, loop_stage = (y_nl, z_nl), "nonlinear"
+    if loop_stage is not None and model.excitation == "base":
+        measured_loop = data_loop(model, run.stage(loop_stage))
     truth = payload.get("truth") or truth
     _, diag = _latest(results, "diagnosis")
     return ResultView(
