@@ -87,6 +87,12 @@ def extract(lib: AgentLibrary, coef: np.ndarray, stderr: np.ndarray, support: np
                 fn[pr] = coef[kb] / lam
         kyy = next(iter(by_role["lam_alpha"].values()))
         alpha = -coef[kyy] / lam
+        if "lin" in by_role:
+            # y y' also carries lambda*dK from the linear step's error; dK is -coef(s y')
+            k_dy = by_role["lin"][(0, 1)]
+            alpha = -(coef[kyy] - lam * coef[k_dy]) / lam
+            info["linear_step_correction"] = {"dK_m": float(-coef[k_dy]),
+                                              "dc_m": float(-coef[by_role["lin"][(0, 0)]])}
     else:
         for pr, ka in by_role["psi"].items():
             kb = by_role["xi"].get(pr)

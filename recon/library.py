@@ -64,13 +64,14 @@ class Column:
 
 
 class AgentLibrary:
-    def __init__(self, order: int = 5, form: str = "joint"):
+    def __init__(self, order: int = 5, form: str = "joint", linear_correction: bool = False):
         if order < 2:
             raise UserFacingError(f"library order must be >= 2, got {order}")
         if form not in FORMS:
             raise UserFacingError(f"library form must be one of {FORMS}, got {form!r}")
         self.order = int(order)
         self.form = form
+        self.linear_correction = bool(linear_correction)
         self.terms = monomials.up_to(self.order)
         cols = []
         if form == "joint":
@@ -80,6 +81,12 @@ class AgentLibrary:
                 cols.append(Column(f"dy*{monomials.name(p, r)}", "lam_a", p, r))
             cols.append(Column("y*dy", "lam_alpha", 1, 1))
             cols.append(Column("dy*Fn", "lam"))
+            if self.linear_correction:
+                # absorb the linear step's errors dc, dK: Fn carries -dc y' - dK y, so s Fn'
+                # gains s y'', s y' and the y' Fn column gains y'^2 (and y y', already present)
+                cols.append(Column("s*ddy", "lin", 0, 0))
+                cols.append(Column("s*dy", "lin", 0, 1))
+                cols.append(Column("dy^2", "lin", 0, 2))
         else:
             for m in range(2, self.order + 1):
                 for i in range(m + 1):
@@ -97,7 +104,7 @@ class AgentLibrary:
         joint: y^p y'^r -> {s*d(phi), y'*phi}. ab: non-pure -> {psi, xi}; pure y^m ->
         {xi(y^m y'), xi(y^(m-1) y')} because d(y^m)/dt = m y^(m-1) y' merges into the
         lower column (for m = 2 that is the core column y y')."""
-        core = [k for k, c in enumerate(self.columns) if c.role in ("lam_alpha", "lam", "yy", "yFn")]
+        core = [k for k, c in enumerate(self.columns) if c.role in ("lam_alpha", "lam", "yy", "yFn", "lin")]
         by_term = {}
         index = {(c.role, c.p, c.r): k for k, c in enumerate(self.columns)}
         for k, c in enumerate(self.columns):
@@ -132,6 +139,8 @@ class AgentLibrary:
                 theta[:, k] = dphi(y, dy, ddy, c.p, c.r)
             elif c.role in ("lam_alpha", "yy"):
                 theta[:, k] = y * dy
+            elif c.role == "lin":
+                theta[:, k] = s * ddy if c.r == 0 else (s * dy if c.r == 1 else dy * dy)
             else:
                 theta[:, k] = dy * Fn
         target = s * dFn if self.form == "joint" else dFn

@@ -31,6 +31,9 @@ class ReconSettings:
     refit: bool = True              # structured refit of (a_j, lambda, alpha) on the fixed pattern
     refit_linear: bool = True       # ... and of (c_m, K_m[, inv_m]) on the nonlinear stage too
     polish: bool = True             # output-error refinement of all parameters by simulation
+    # library columns that absorb the linear step's c/K error (joint form): "auto" tries without
+    # first and falls back to them when the result is not physically admissible
+    linear_correction: bool | str = "auto"
     linear_stage: str = "linear"
     nonlinear_stage: str = "nonlinear"
     n_folds: int = 5
@@ -150,8 +153,43 @@ def validate(model: HystereticModel, run: Run, skip: tuple = ()) -> dict:
             "fitted_on_validation_stage": main == "nonlinear"}
 
 
+def admissible(model: HystereticModel) -> bool:
+    """Physically admissible Bouc-Wen model: lambda > 0, alpha > 0, K > 0, finite."""
+    vals = [model.c_m, model.k_m, model.alpha_m, model.gamma, model.delta, *model.fn_m.values()]
+    return bool(np.all(np.isfinite(vals)) and model.lam > 0 and model.alpha_m > 0 and model.K_m > 0)
+
+
 def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model: bool = True) -> ReconResult:
+    """Identify the model. With ``linear_correction="auto"`` a second pass with the
+    linear-correction columns runs only if the first result is not admissible (e.g. the
+    linear stage was large enough for the hysteresis to bias c and K); the pass whose
+    simulation fits the nonlinear stage better is kept."""
+    from dataclasses import replace
+
     s = settings or ReconSettings()
+    if s.linear_correction != "auto":
+        return _reconstruct(run, s, validate_model)
+    first = _reconstruct(run, replace(s, linear_correction=False), validate_model)
+    first.settings = s
+    if admissible(first.model) and np.isfinite(first.validation.get("nrmse", 0.0)):
+        return first
+    try:
+        second = _reconstruct(run, replace(s, linear_correction=True), validate_model)
+    except UserFacingError:
+        return first
+    second.settings = s
+
+    def fit_err(r):
+        info = r.model.provenance.get("output_error_polish", {})
+        e = info.get("nrmse_after" if info.get("applied") else "nrmse_before", np.inf)
+        return (not admissible(r.model), e if np.isfinite(e) else np.inf)
+
+    best = min((first, second), key=fit_err)
+    best.hysteresis_info["linear_correction_pass"] = best is second
+    return best
+
+
+def _reconstruct(run: Run, s: ReconSettings, validate_model: bool = True) -> ReconResult:
     exc = run.excitation
     timings = {}
     t0 = time.perf_counter()
@@ -175,7 +213,7 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
     Fn = g * nl.u[0] - ddy - lf.c_m * dy - lf.K_m * y
     dFn = g * nl.u[1] - dddy - lf.c_m * ddy - lf.K_m * dy
     h = cluster(y, dy)
-    lib = AgentLibrary(s.library_order, s.form)
+    lib = AgentLibrary(s.library_order, s.form, linear_correction=bool(s.linear_correction) and s.form == "joint")
     theta, target = lib.build(y, dy, ddy, Fn, dFn, h)
     if theta.shape[0] < 4 * theta.shape[1]:
         raise UserFacingError(f"stage {s.nonlinear_stage!r}: only {theta.shape[0]} samples in the AB/CD clusters for "
