@@ -283,3 +283,30 @@ def test_reconstruct_off_the_gui_thread_and_write_back(qtbot, window, tmp_path):
     k = float(r.table.item(1, 1).text()) + float(r.table.item(2, 1).text())  # k_m + alpha_m
     assert k == pytest.approx(truth["k_m"] + truth["alpha_m"], rel=0.1)
     assert r.c_zmeas.xData.size > 100  # the loop estimated from the data is drawn too
+
+
+def test_shakerlab_gui_command_opens_and_quits(qapp, tmp_path):
+    """`shakerlab gui` (the handler behind the sub-command) runs the event loop and returns on quit."""
+    from PySide6 import QtWidgets
+
+    from rig.gui import run_gui
+    from shakerlab.cli import build_parser, main
+
+    args = build_parser().parse_args(["gui", "--sim-speed", "0", "--output-dir", str(tmp_path / "runs")])
+    assert args.handler is run_gui and args.sim_speed == 0.0 and args.config is None
+    seen = {}
+
+    def look_and_quit():
+        wins = [w for w in QtWidgets.QApplication.topLevelWidgets() if w.isVisible() and w.windowTitle()
+                .startswith("shakerlab")]
+        seen["windows"] = wins
+        seen["speed"] = wins[0].connection.speed.value() if wins else None
+        seen["simulated"] = wins[0].connection.simulated.isChecked() if wins else None
+        for w in wins:
+            w.close()
+        qapp.quit()
+
+    QtCore.QTimer.singleShot(300, look_and_quit)
+    assert main(["gui", "--sim-speed", "0", "--output-dir", str(tmp_path / "runs")]) == 0
+    assert len(seen["windows"]) == 1 and seen["speed"] == 0.0 and seen["simulated"] is True
+    assert not (tmp_path / "runs").exists()  # nothing ran

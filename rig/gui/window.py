@@ -430,9 +430,12 @@ class MainWindow(QtWidgets.QMainWindow):
         self._abort_presses += 1
         runner = self._runner
         reason = "operator pressed ABORT (GUI)" if not self._close_pending else "window closed during the run"
+        stopping = runner is not None and runner.state == "stopping"
         if runner is not None:
             runner.abort(reason)
-        if self._abort_presses == 1:
+        if stopping:  # the runner cuts at once when an abort comes during a stop (trip, error, abort)
+            self.log("warning", "ABORT during the ramp-down: cutting the output at once")
+        elif self._abort_presses == 1:
             self.log("warning", "ABORT: ramping the output to zero (press again to cut at once)")
             self.protocol_panel.set_abort_armed(True)
         else:
