@@ -81,9 +81,9 @@ def _drift(base, ctx):
 
 def _higher_mode(base, ctx):
     out = []
-    for f in ctx["mode_freqs"]:
+    for f, phi in ctx["mode_starts"][:3]:
         w = 2 * math.pi * f
-        m = _am(base, {"w2": w, "zeta2": 0.02, "phi2": 0.0}, "higher_mode")
+        m = _am(base, {"w2": w, "zeta2": 0.02, "phi2": phi}, "higher_mode")
         out.append((m, ["x:phi2", "x:w2", "x:zeta2"], {"x:phi2": 0.01, "x:w2": 0.02 * w, "x:zeta2": 0.01},
                     {"x:w2": (0.5 * w, 2.0 * w), "x:zeta2": (0.001, 0.3)}))
     return out
