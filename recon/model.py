@@ -181,14 +181,16 @@ class HystereticModel:
         u = self.stage_input(stage) if u is None else u
         y = stage.y
         ch = choose_window({"y": y}, stage.dt, deriv=2, for_regression=False)
-        # recorded from rest (the first window moves less than 2 % of the stage's peak): an
-        # edge estimate of y'' (hence z0) would only add noise, so start from rest exactly
-        head = y[:ch.window] - y[0]
-        if np.sqrt(np.mean(y[:ch.window] ** 2)) < 0.02 * np.max(np.abs(y)) and np.max(np.abs(head)) < 0.02 * np.max(np.abs(y)):
-            return 0.0, 0.0, 0.0
         n = min(y.size, 4 * ch.window)
         d = derivatives(y[:n], stage.dt, min(ch.window, n - (1 - n % 2)), ch.order, 2)
         y0, v0, a0 = d[0][0], d[1][0], d[2][0]
+        # recorded from rest: y0 within the noise and y'0 small against the stage's rms
+        # velocity (a zero crossing mid-motion has y'0 near its peak). Then start from rest
+        # exactly: an edge estimate of y'' (hence z0) is noisy.
+        sigma = ch.noise_level["y"]
+        v_rms = float(np.sqrt(np.mean(derivatives(y, stage.dt, ch.window, ch.order, 1)[1] ** 2)))
+        if abs(y0) < 5 * sigma and abs(v0) < 0.05 * v_rms:
+            return 0.0, 0.0, 0.0
         z0 = self.input_gain * u[0] - a0 - self.c_m * v0 - self.k_m * y0 - float(self.fn(np.array([y0]), np.array([v0]))[0])
         return float(y0), float(v0), float(z0)
 
