@@ -71,3 +71,21 @@ def test_identify_finds_the_cubic_term_and_the_parameters(record):
     model = res.to_model()
     assert model.excitation == "force" and model.inv_m == pytest.approx(p.b)
     assert "y^3" in model.fn_m
+
+
+@pytest.mark.slow
+def test_identify_on_a_sweep_from_rest_uses_the_time_domain_path():
+    """A non-periodic single level (a force sweep through the resonance, from rest)."""
+    t = np.arange(int(20 * FS)) / FS
+    u = 40.0 * np.sin(2 * np.pi * (10.0 * t + 60.0 * t ** 2 / 40.0))  # 10 -> 70 Hz in 20 s
+    true = NewmarkParameters(c=TRUE.c, k=TRUE.k, alpha=TRUE.alpha, gamma=TRUE.gamma, delta=TRUE.delta, b=TRUE.b)
+    y = simulate_chain(true, u, FS, periodic=False)
+    rng = np.random.default_rng(3)
+    res = identify(u, y + 0.01 * y.std() * rng.standard_normal(y.size), FS, agent=False)
+    assert res.record.kind == "transient"
+    assert res.adequacy["adequate"]
+    fit, truth = res.params.to_benchmark(), true.to_benchmark()
+    for name in ("m", "k", "alpha", "gamma"):
+        assert fit[name] == pytest.approx(truth[name], rel=0.01), name
+    for name in ("c", "delta"):
+        assert fit[name] == pytest.approx(truth[name], rel=0.03), name
