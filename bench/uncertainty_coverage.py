@@ -113,7 +113,7 @@ def main(argv=None) -> int:
     true_keys = list(NAMES) + [f"fn_m[{t}]" for t in tp["fn_m"]]
     modes = ("pipeline", "structure") if a.mode == "both" else (a.mode,)
     report = {}
-    with LocalCluster(n_workers=a.workers, threads_per_worker=1, processes=True, dashboard_address=None,
+    with LocalCluster(n_workers=a.workers, threads_per_worker=1, processes=True, dashboard_address=":0",
                       host="127.0.0.1") as cluster, Client(cluster) as client:
         for mode in modes:
             t0 = time.perf_counter()

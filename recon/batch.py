@@ -256,7 +256,7 @@ def run_batch(paths: list[str], settings: BatchSettings | None = None, progress:
                 raise UserFacingError(f"--scheduler {s.scheduler}: cannot connect ({exc})") from None
         else:
             cluster = LocalCluster(n_workers=s.workers, threads_per_worker=1, processes=s.processes,
-                                   dashboard_address=None, host="127.0.0.1")
+                                   dashboard_address=":0", host="127.0.0.1")
             client = Client(cluster)
         with client:
             job = s.job()
