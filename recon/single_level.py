@@ -1,4 +1,4 @@
-"""Identification from ONE excitation level under force excitation (periodic records).
+"""Identification from ONE excitation level under force excitation.
 
 The project's main pipeline (recon.pipeline) separates a small-amplitude
 *linear* stage from a large-amplitude *nonlinear* stage: the linear step sees
@@ -19,10 +19,18 @@ What this module does instead (all on the same record):
    those bins and the signals are interpolated to ``upsample`` times the
    recording rate, so that products such as ``|y'| z`` (whose spectra reach far
    past the recording's Nyquist frequency) are formed without aliasing.
+   A record that is not periodic (and starts from rest) goes through
+   :func:`transient_record` instead: Savitzky-Golay derivatives (recon core),
+   polyphase interpolation, running integrals from the first sample.
 2. **Linear step** (:func:`linear_step`): least squares of
    ``y'' = b u - c y' - K y`` (b = 1/m), band-limited to the kept bins.  Its
    result is biased by the hysteresis; it is reported and used only to seed
-   step 3.
+   the next steps.
+   **Agent-model step** (:func:`agent_model_step`): the paper's regression with
+   the recon core (library, grouped sparse selection, extraction, structured
+   refit with the linear terms free), iterated from the linear step.  Reported,
+   and its estimate is the first start of step 3; at 40 dB SNR its third
+   derivatives are too noisy for accurate parameters on their own.
 3. **Hysteresis-aware linear re-estimation** (:func:`hysteresis_step`).  The
    hysteretic force is not measurable, but its ODE
    ``z' = alpha y' - gamma |y'| z - delta y' |z|`` is driven by the velocity
@@ -37,7 +45,9 @@ What this module does instead (all on the same record):
    (variable projection: "linear estimate -> nonlinear step -> re-estimate the
    linear part" iterated to convergence by the optimiser).  Optional static
    nonlinear terms ``fn`` (monomials ``y^p y'^r``) enter the inner linear
-   least squares as extra columns ``I[y^p y'^r]``.
+   least squares as extra columns ``I[y^p y'^r]``; by default they are added
+   only when the refined model leaves more than noise in the residual
+   (:func:`select_fn_terms`, adequacy test in :func:`identify`).
 4. **Output-error refinement** (:mod:`recon.output_error`): the benchmark's
    own simulation chain, fitted to the full record from zero initial state.
 
