@@ -22,6 +22,7 @@ def register(subparsers) -> None:
                    help="add 95%% intervals of every parameter (key 'uncertainty'; see docs/reprocessing.md)")
     p.set_defaults(handler=_reconstruct)
     register_reprocessing(subparsers)
+    register_diagnosis(subparsers)
 
 
 def _clean(obj):
@@ -217,3 +218,61 @@ def _reprocess(args) -> int:
     print(f"summary: {write_csv(rows, args.csv)}")
     n_bad = sum(r["status"] == "failed" for r in rows)
     return 1 if n_bad else 0
+
+
+# --- mismatch diagnosis: `diagnose` (recon/diagnosis/, docs/diagnosis.md) -----------------------------
+
+def register_diagnosis(subparsers) -> None:
+    p = subparsers.add_parser(
+        "diagnose",
+        help="locate where a model and a recording disagree, name the missing physics, show the fit improve",
+        description="Compare a model's simulation with RUN, locate the mismatch (time, frequency, state plane, "
+                    "channel), fit every candidate from the physics catalog as an augmented model and rank them "
+                    "on held-out data (validation stage, else the last 30 %% of each stage).",
+    )
+    p.add_argument("run", metavar="RUN", help="run file (.h5 or .npz)")
+    p.add_argument("--baseline", default="paper", metavar="paper|linear|MODEL.json",
+                   help="model to test: 'paper' (reconstructed from RUN, default), 'linear', or a saved model JSON")
+    p.add_argument("--json", action="store_true", help="print one JSON object (machine-readable)")
+    p.add_argument("--report", metavar="DIR", help="write PNG figures and diagnosis.json to DIR")
+    p.add_argument("--save-model", metavar="PATH", help="write the augmented model as JSON to PATH")
+    p.set_defaults(handler=_diagnose_cmd)
+
+
+def _diagnose_cmd(args) -> int:
+    import json
+    from pathlib import Path
+
+    from shakerlab.run_data import load_run
+    from recon.diagnosis.diagnose import diagnose
+
+    run = load_run(args.run)
+    d = diagnose(run, baseline=args.baseline)
+    out = d.to_dict()
+    if args.report:
+        from recon.diagnosis.report import write_report
+
+        out["report"] = [str(p) for p in write_report(d, run, Path(args.report))]
+    if args.save_model:
+        d.best.save(args.save_model)
+    if args.json:
+        print(json.dumps(_clean(out)))
+        return 0
+    print(f"{run.source}: baseline ({d.baseline_kind})")
+    print(out["baseline"])
+    fb, fa = out["fit_before"]["nrmse"], out["fit_after"]["nrmse"]
+    for stage in fb:
+        print(f"  NRMSE {stage:12s} before {fb[stage]:.4g}  refit {out['fit_before']['refit_nrmse'][stage]:.4g}"
+              f"  after {fa[stage]:.4g}")
+    for f in out["mismatch"][:8]:
+        print(f"  mismatch: {f['kind']} in {f['stage']} {f['region']} size {f['size']:.3g}")
+    print(out["result"])
+    for m in out["missing_physics"]:
+        ps = ", ".join(f"{k} = {v['value']:.4g}" for k, v in m["parameters"].items())
+        print(f"  {m['id']}: {m['explanation']} ({ps}); held-out NRMSE "
+              f"{m['evidence']['held_out_nrmse_before']:.4g} -> {m['evidence']['held_out_nrmse_after']:.4g}")
+    if out["missing_physics"]:
+        print("augmented model:\n" + out["fit_after"]["model"])
+    for p in out.get("report", []):
+        print(f"report: {p}")
+    return 0
