@@ -88,6 +88,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.live = LiveData()
         self.sim = None                    # SimulatedRig while the switch is on and it was started
         self._sim_speed = None
+        self._sim_lock = threading.Lock()
         self._runner = None
         self._run_thread: threading.Thread | None = None
         self._recon_thread: threading.Thread | None = None
@@ -173,6 +174,7 @@ class MainWindow(QtWidgets.QMainWindow):
         c.connect_button.clicked.connect(self.connect_instruments)
         c.browse.clicked.connect(self._choose_config)
         c.config_path.editingFinished.connect(self._config_edited)
+        c.simulated.toggled.connect(self._simulated_toggled)
         self.results.open_button.clicked.connect(self._choose_run)
         self.results.reconstruct_button.clicked.connect(lambda: self.open_run(self.results_path, reconstruct=True))
         self.open_action.triggered.connect(self._choose_run)
@@ -283,19 +285,28 @@ class MainWindow(QtWidgets.QMainWindow):
 
         v = self.connection.speed.value()
         speed = None if v == 0 else float(v)
-        if self.sim is not None and self._sim_speed != speed:
-            self.sim.stop()
-            self.sim = None
-        if self.sim is None:
-            sim = SimulatedRig(None, speed=speed, seed=self.seed)
-            sim.start()
-            self.sim, self._sim_speed = sim, speed
-        return self.sim
+        with self._sim_lock:
+            if self.sim is not None and self._sim_speed != speed:
+                self.sim.stop()
+                self.sim = None
+            if self.sim is None:
+                sim = SimulatedRig(None, speed=speed, seed=self.seed)
+                sim.start()
+                self.sim, self._sim_speed = sim, speed
+            return self.sim
 
     def stop_sim(self) -> None:
-        if self.sim is not None and not self.running():
-            self.sim.stop()
-            self.sim = None
+        with self._sim_lock:
+            if self.sim is not None and not self.running():
+                self.sim.stop()
+                self.sim = None
+
+    def _simulated_toggled(self, on: bool) -> None:
+        if not on:
+            self.stop_sim()
+        self.connection.light_connected.set("off", "")
+        self.connection.show_identities({})
+        self._config_edited()
 
     # -- connect ----------------------------------------------------------------------------------
     def connect_instruments(self) -> None:
