@@ -137,6 +137,24 @@ def test_closing_the_window_mid_run_aborts_safely(qtbot, window):
     assert any("window closed" in e["message"] for e in read_events(path))
 
 
+def test_amplifier_fault_lights_up_and_trips_the_run(qtbot, window, tmp_path):
+    import re
+
+    from rig.config import DEFAULT_RIG_PATH
+
+    w = window
+    cfg = tmp_path / "low-current.toml"  # the amplifier's own over-current trip below the linear stage's current
+    cfg.write_text(re.sub(r"^current_limit_a = .*$", "current_limit_a = 0.02", DEFAULT_RIG_PATH.read_text(), flags=re.M))
+    w.connection.config_path.setText(str(cfg))
+    _start(qtbot, w)
+    qtbot.waitUntil(lambda: w.last_outcome is not None, timeout=15000)
+    assert w.last_outcome.status == "tripped" and "over_current" in w.last_outcome.reason
+    assert w.connection.light_fault.state == "bad" and "over_current" in w.connection.light_fault.toolTip()
+    assert w.connection.light_watchdog.state == "off" and w.connection.light_output.state == "off"
+    assert not w.sim.world.is_driven()
+    assert read_info(w.last_outcome.path)["clean_close"]
+
+
 def test_connect_identifies_the_instruments(qtbot, window):
     w = window
     qtbot.mouseClick(w.connection.connect_button, QtCore.Qt.LeftButton)
@@ -190,6 +208,7 @@ def test_open_recorded_run_fills_the_result_panels(qtbot, window, recorded_run):
     d = model.to_dict()
     add_result(path, "reconstruction", {**d, "validation": {"stage": "validation"}, "truth": truth},
                text=str(model))
+    add_result(path, "diagnosis", {"text": "hysteresis present (test entry)"})
     assert w.open_run(path)
     qtbot.waitUntil(lambda: w.last_view is not None, timeout=15000)
     r = w.results
@@ -209,13 +228,7 @@ def test_open_recorded_run_fills_the_result_panels(qtbot, window, recorded_run):
     # the true model, simulated on the recorded validation stage, matches the measurement
     assert w.last_view.nrmse < 0.1
     assert "NRMSE" in r.header.text() and "stored result" in r.header.text()
-    assert not r.diagnosis_box.isVisibleTo(w)  # no diagnosis in the file: no panel
     assert w.tabs.currentWidget() is r
-
-    add_result(path, "diagnosis", {"text": "hysteresis present (test entry)"})
-    w.last_view = None
-    assert w.open_run(path)
-    qtbot.waitUntil(lambda: w.last_view is not None, timeout=15000)
     assert r.diagnosis_box.isVisibleTo(w) and "hysteresis present" in r.diagnosis.toPlainText()
 
 
@@ -281,7 +294,8 @@ def test_reconstruct_off_the_gui_thread_and_write_back(qtbot, window, tmp_path):
     assert list(read_results(path)) == ["reconstruction_000"]
     k = float(r.table.item(1, 1).text()) + float(r.table.item(2, 1).text())  # k_m + alpha_m
     assert k == pytest.approx(truth["k_m"] + truth["alpha_m"], rel=0.1)
-    assert r.c_zmeas.xData.size > 100  # the loop estimated from the data is drawn too
+    assert r.c_zmeas.xData.size > 100  # the loop implied by the data is drawn too
+    assert not r.diagnosis_box.isVisibleTo(w)  # no diagnosis in the file: no panel
 
 
 def test_shakerlab_gui_command_opens_and_quits(qapp, tmp_path):

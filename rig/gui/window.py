@@ -506,6 +506,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.last_outcome = outcome
         self._end_of_run_ui()
         self._redraw()
+        self._update_status()
+        if outcome.status == "error":
+            self.connection.light_connected.set("bad", outcome.reason)
         p = self.protocol_panel
         p.stage_label.setText(f"run {outcome.status}" + (f": {outcome.reason}" if outcome.reason else ""))
         p.drive_label.setText(f"{outcome.run_time_s:.1f} s of rig time, {outcome.n_samples} samples per channel, "
