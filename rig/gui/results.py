@@ -1,6 +1,7 @@
 """The after-run view: what the results panel shows, computed off the GUI thread (no Qt here).
 
-:func:`view_of_run_file` reads a run file; when it already holds a
+:func:`view_of_run_file` reads a run file (``.h5``; an ``.npz`` of arrays is reconstructed and
+shown but nothing is written into it); when it already holds a
 reconstruction result (``entry/results/reconstruction_NNN``, written by
 ``shakerlab demo``, ``shakerlab reconstruct`` or this GUI) the newest one is
 shown, otherwise (or with ``reconstruct=True``) the governing equation is
@@ -95,9 +96,13 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
 
     path = Path(path)
     run = load_run(path)
-    info = read_info(path)
-    results = read_results(path)
     notes = []
+    if path.suffix == ".npz":  # plain arrays: no metadata, no stored results, nothing written back
+        info, results = {"status": "imported (.npz)", "clean_close": False}, {}
+        write_back = False
+    else:
+        info = read_info(path)
+        results = read_results(path)
     group, payload = _latest(results, "reconstruction")
     measured_loop = None
     if payload is None or reconstruct:

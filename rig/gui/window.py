@@ -274,7 +274,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _choose_run(self) -> None:
         path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Open run file", str(self.output_dir),
-                                                        "run files (*.h5 *.hdf5 *.nxs);;all (*)")
+                                                        "run files (*.h5 *.hdf5 *.nxs *.npz);;all (*)")
         if path:
             self.open_run(path)
 
