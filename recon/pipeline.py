@@ -27,7 +27,8 @@ from recon.validation import nrmse
 @dataclass
 class ReconSettings:
     library_order: int = 5
-    form: str = "joint"            # "joint" (AB and CD together) or "ab" (the paper's AB-only form)
+    form: str = "joint"            # "joint" (AB and CD together), "ab" (the paper's AB-only form) or
+    #                                "weak" (joint form integrated against test functions, recon/weak.py)
     refit: bool = True              # structured refit of (a_j, lambda, alpha) on the fixed pattern
     refit_linear: bool = True       # ... and of (c_m, K_m[, inv_m]) on the nonlinear stage too
     polish: bool = True             # output-error refinement of all parameters by simulation
@@ -190,6 +191,10 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
 
 
 def _reconstruct(run: Run, s: ReconSettings, validate_model: bool = True) -> ReconResult:
+    if s.form == "weak":
+        from recon.weak import reconstruct_weak
+
+        return reconstruct_weak(run, s, validate_model)
     exc = run.excitation
     timings = {}
     t0 = time.perf_counter()
