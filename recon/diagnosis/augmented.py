@@ -78,12 +78,15 @@ def _acc(y, v, z, q, vq, t, u, P, coef, p, r):
 
 
 @njit(cache=True)
-def simulate_augmented(u, t0, dt, n_sub, P, coef, p, r):
+def simulate_augmented(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
     n = u.size
     out = np.zeros((4, n))  # y, v, z, q
-    y = 0.0
-    v = 0.0
-    z = 0.0
+    y = y0
+    v = v0
+    z = z0
+    out[0, 0] = y0
+    out[1, 0] = v0
+    out[2, 0] = z0
     q = 0.0
     w = 0.0
     h = dt / n_sub
@@ -161,8 +164,9 @@ class AugmentedModel:
         return AugmentedModel(copy.deepcopy(self.baseline), dict(self.extras), list(self.added))
 
     # --------------------------------------------------------------- simulation
-    def simulate(self, t: np.ndarray, u: np.ndarray, x_in: np.ndarray | None = None):
-        """Recorded-output prediction for input ``u`` on time base ``t`` (from rest).
+    def simulate(self, t: np.ndarray, u: np.ndarray, x_in: np.ndarray | None = None, initial=None):
+        """Recorded-output prediction for input ``u`` on time base ``t`` (from rest, or from
+        ``initial`` = (y0, y'0, z0); the higher mode always starts at rest).
 
         ``x_in`` is the base displacement (base excitation; needed for the tip-scale
         and delay output terms). Returns (y_rec, states) with states = (y, y', z, q).
@@ -185,7 +189,8 @@ class AugmentedModel:
         P = np.array([m.input_gain, m.c_m, m.k_m, m.alpha_m, m.gamma, m.delta, mu, v0 or 1.0,
                       self.get("c2"), self.get("kc"), self.get("gap"), 1.0 if self.get("side") >= 0 else -1.0,
                       self.get("drift"), w2, self.get("zeta2")], float)
-        st = simulate_augmented(u, float(t[0]), dt, int(n_sub), P, coef, p, r)
+        y0, dy0, z0 = (0.0, 0.0, 0.0) if initial is None else (float(v) for v in initial)
+        st = simulate_augmented(u, float(t[0]), dt, int(n_sub), P, coef, p, r, y0, dy0, z0)
         y = st[0] + self.get("phi2") * st[3]
         scale = 1.0 + self.get("tip_scale")
         delay = self.get("delay")
@@ -197,9 +202,10 @@ class AugmentedModel:
         return y_rec, st
 
     def simulate_stage(self, stage: Stage, u: np.ndarray | None = None):
+        """Recorded-output prediction for the stage, started from its estimated initial state."""
         u = self.baseline.stage_input(stage) if u is None else u
         x_in = stage.channels["x_base"] if stage.excitation == BASE else None
-        return self.simulate(stage.t, u, x_in)[0]
+        return self.simulate(stage.t, u, x_in, initial=self.baseline.stage_start(stage, u))[0]
 
     # ---------------------------------------------------------------- printing
     def equation(self) -> str:

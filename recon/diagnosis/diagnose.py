@@ -191,36 +191,37 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             m, keys, sc, b = starts[0]
         fr = rank.fit(m, bkeys + extra_keys + keys, data, sc, max_nfev=max_nfev, bounds=b)
         sc_ = rank.score(null, fr, len(keys), noise_mse)
-        fits[cid] = (fr, keys)
+        fits[cid] = (fr, keys, sc, b)
         tested.append({"id": cid, **sc_, "held_out_nrmse": fr.nrmse_held, "seconds": time.perf_counter() - tc})
     sig = [t for t in tested if t["significant"]]
     sig.sort(key=lambda t: -t["explained"])
     combined = None
     if len(sig) > 1:
         # forward step: a runner-up is reported only if it still adds on top of the best one
-        best_fr, best_keys = fits[sig[0]["id"]]
+        best_fr, best_keys, best_sc, best_b = fits[sig[0]["id"]]
         kept = [sig[0]]
         for t in sig[1:]:
             cand = CATALOG[t["id"]]
-            fr1, keys1 = fits[t["id"]]
+            fr1, keys1, sc1, b1 = fits[t["id"]]
             m = best_fr.model.copy()
             for k in keys1:
                 rank._set(m, k, rank._get(fr1.model, k))
             if cand.id == "contact_stiffness":
                 m.extras["side"] = fr1.model.get("side")
             m.added = list(best_fr.model.added) + [t["id"]]
-            frc = rank.fit(m, bkeys + extra_keys + best_keys + keys1, data, max_nfev=max_nfev)
+            frc = rank.fit(m, bkeys + extra_keys + best_keys + keys1, data, {**best_sc, **sc1}, max_nfev=max_nfev,
+                           bounds={**best_b, **b1})
             s2 = rank.score(best_fr, frc, len(keys1), noise_mse)
             t["on_top_of_best"] = s2
             if s2["significant"]:
                 kept.append(t)
-                fits[t["id"]] = (frc, keys1)
+                fits[t["id"]] = (frc, keys1, sc1, b1)
                 combined = frc
                 break
         sig = kept
     missing = []
     for t in sig:
-        fr, keys = fits[t["id"]]
+        fr, keys = fits[t["id"]][:2]
         cand = CATALOG[t["id"]]
         ev_kinds = SIGNATURES.get(t["id"], ())
         missing.append({
