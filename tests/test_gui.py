@@ -316,10 +316,28 @@ def test_shakerlab_gui_command_opens_and_quits(qapp, tmp_path):
         seen["speed"] = wins[0].connection.speed.value() if wins else None
         seen["simulated"] = wins[0].connection.simulated.isChecked() if wins else None
         for w in wins:
-            w.close()
-        qapp.quit()
+            w.close()  # closing the last window ends the event loop, as for the operator
 
     QtCore.QTimer.singleShot(300, look_and_quit)
     assert main(["gui", "--sim-speed", "0", "--output-dir", str(tmp_path / "runs")]) == 0
     assert len(seen["windows"]) == 1 and seen["speed"] == 0.0 and seen["simulated"] is True
     assert not (tmp_path / "runs").exists()  # nothing ran
+
+
+def test_plots_slow_down_while_the_acquisition_is_behind(qtbot, window, monkeypatch):
+    w = window
+    _start(qtbot, w)
+    qtbot.waitUntil(lambda: w.live.blocks > 5, timeout=15000)
+    monkeypatch.setattr(w.live, "lag", lambda speed: 1.0)   # as if the acquisition thread were starved
+    qtbot.waitUntil(lambda: w.throttled, timeout=2000)
+    t0, f0 = w.ticks, w.frames
+    qtbot.waitUntil(lambda: w.ticks >= t0 + 20, timeout=5000)
+    assert w.frames - f0 <= 5                                  # 1 redraw in 5 ticks
+    assert "behind real time" in w.log_view.toPlainText()
+    monkeypatch.setattr(w.live, "lag", lambda speed: 0.0)
+    qtbot.waitUntil(lambda: not w.throttled, timeout=2000)
+    t0, f0 = w.ticks, w.frames
+    qtbot.waitUntil(lambda: w.ticks >= t0 + 10, timeout=5000)
+    assert w.frames - f0 >= 9
+    w.abort()
+    qtbot.waitUntil(lambda: w.last_outcome is not None, timeout=10000)

@@ -103,3 +103,23 @@ hold_s = 0.0
     assert live.stages_done == [("linear", "complete"), ("nonlinear", "complete")]
     t, xb, xt = live.traces(2.0)
     assert t.size == 20000 and np.all(np.diff(t) > 0)
+
+
+def test_lag_grows_when_blocks_fall_behind_real_time():
+    import time
+
+    from rig.instruments import Block
+
+    def block(i0, n=500):
+        x = np.zeros(n)
+        return Block(index0=i0, fs=10000.0, x_base=x, x_tip=x, flags_base=np.zeros(n, np.uint8),
+                     flags_tip=np.zeros(n, np.uint8))
+
+    live = LiveData()
+    assert live.lag(1.0) == 0.0
+    live.on_block(block(0))
+    time.sleep(0.3)
+    live.on_block(block(500))          # 0.05 s of rig time in 0.3 s of wall time
+    assert live.lag(1.0) == pytest.approx(0.25, abs=0.05)
+    assert live.lag(2.0) == pytest.approx(0.55, abs=0.1)
+    assert live.lag(0.0) == 0.0         # lockstep: no real-time clock to fall behind

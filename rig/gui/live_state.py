@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -121,6 +122,7 @@ class LiveData:
             self.linear: LinearStep | None = None
             self.linear_error = ""
             self.blocks = 0
+            self._t0 = None                       # (wall clock, rig time) at the first block
             self.state = "idle"
             self.max_faults: set = set()
 
@@ -166,6 +168,8 @@ class LiveData:
                              float(np.mean(np.concatenate([b for _, b in self._rest_acc]))))
                 self._rest_acc = []
         self.buffer.on_block(block)
+        if self._t0 is None:
+            self._t0 = (time.monotonic(), block.run_time)
         self.blocks += 1
         self.drive = DriveState(run_time=block.run_time, amplitude_vpp=block.amplitude_vpp,
                                 frequency_hz=block.frequency_hz, output=block.output, current_a=block.current_a,
@@ -199,6 +203,14 @@ class LiveData:
             self.linear_error = ""
         except (ValueError, ZeroDivisionError, np.linalg.LinAlgError) as exc:
             self.linear_error = str(exc)
+
+    def lag(self, speed: float) -> float:
+        """How far [s of rig time] the newest block is behind a rig running at ``speed`` x real time
+        (0 for lockstep, ``speed`` <= 0): grows when the acquisition thread does not keep up."""
+        t0 = self._t0
+        if t0 is None or speed <= 0:
+            return 0.0
+        return max(0.0, (time.monotonic() - t0[0]) * speed - (self.drive.run_time - t0[1]))
 
     def traces(self, seconds: float):
         """(t [s], x_base, x_tip) of the newest ``seconds`` of rig time, relative to the rest readings."""

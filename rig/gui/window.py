@@ -33,6 +33,9 @@ from shakerlab.errors import UserFacingError
 
 FPS = 25
 TRACE_SECONDS = 5.0
+LAG_THROTTLE_S = 0.3   # acquisition this far behind real time: redraw at FPS / THROTTLE (acquisition first)
+LAG_RESUME_S = 0.1
+THROTTLE = 5
 LEVEL_COLORS = {"debug": "#888888", "info": "#202020", "warning": "#b06000", "error": "#c00000",
                 "critical": "#c00000"}
 
@@ -102,6 +105,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.last_view = None
         self.last_error = ""
         self.frames = 0                    # live redraws done (for bench/gui_fps.py)
+        self.ticks = 0                     # redraw timer ticks
+        self.throttled = False             # redrawing slower because the acquisition fell behind
+        self.throttled_ticks = 0
+        self._run_speed = 0.0              # real time factor of the running rig (0: lockstep)
         self.redraw_seconds = 0.0          # time spent in them
         self.redraw_times: list[float] = []  # the last 1000 redraw durations [s]
         self._build(config_path, protocol_path, simulated, speed)
@@ -377,6 +384,9 @@ class MainWindow(QtWidgets.QMainWindow):
             return False
         simulated = self.connection.simulated.isChecked()
         self._run_simulated = simulated
+        speed = self.connection.speed.value()
+        self._run_speed = (float(speed) if speed > 0 else 0.0) if simulated else 1.0
+        self.throttled = False
         path = self.new_run_path()
         self.run_path = path
         self.last_outcome = None
@@ -582,8 +592,21 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # -- live redraw (GUI thread, FPS per second) ---------------------------------------------------------
     def _redraw(self) -> None:
-        t_start = time.perf_counter()
+        self.ticks += 1
         live = self.live
+        if self.running():
+            lag = live.lag(self._run_speed)
+            if not self.throttled and lag > LAG_THROTTLE_S:
+                self.throttled = True
+                self.log("warning", f"acquisition {lag:.2f} s behind real time: plots redraw at {FPS // THROTTLE} "
+                                    "frames/s until it catches up")
+            elif self.throttled and lag < LAG_RESUME_S:
+                self.throttled = False
+                self.log("info", "acquisition caught up: plots back at full rate")
+            if self.throttled and self.ticks % THROTTLE:
+                self.throttled_ticks += 1
+                return
+        t_start = time.perf_counter()
         t, xb, xt = live.traces(TRACE_SECONDS)
         set_series(self.plots.c_base, t, xb)
         set_series(self.plots.c_tip, t, xt)
@@ -619,9 +642,11 @@ class MainWindow(QtWidgets.QMainWindow):
                 p.stage_label.setText(f"stage {stage} ({len(live.stages_done) + 1}/{self._n_stages}), {el:.1f} s")
             else:
                 p.stage_label.setText("rest between stages (output off)")
+            lag = live.lag(self._run_speed)
             p.drive_label.setText(f"run time {d.run_time:.1f} s; drive {d.amplitude_vpp:.3f} Vpp at "
                                   f"{d.frequency_hz:.3f} Hz" + (f"; amplifier {d.current_a:.3f} A"
-                                                                if d.current_a is not None else ""))
+                                                                if d.current_a is not None else "")
+                                  + (f"; acquisition {lag:.2f} s behind" if lag > LAG_RESUME_S else ""))
         c = self.connection
         c.light_output.set("warn" if running and d.output else "off", "generator output on" if d.output else "")
         if live.max_faults:
