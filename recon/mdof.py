@@ -121,7 +121,9 @@ def _plain_fn(y, dy, Fn, order, n_folds, corr_len):
 
 
 def reconstruct_chain(run: ChainRun, order: int = 5, n_folds: int = 5, refit_params: bool = True,
-                      validate_model: bool = True) -> ChainResult:
+                      polish: bool = True, validate_model: bool = True) -> ChainResult:
+    """Per-layer identification (linear step, agent model or the no-hysteresis fallback),
+    then (``polish``) an output-error refinement of the whole chain on the nonlinear stage."""
     from recon.pipeline import _corr_len
 
     t0 = time.perf_counter()
@@ -174,6 +176,24 @@ def reconstruct_chain(run: ChainRun, order: int = 5, n_folds: int = 5, refit_par
         layers.append(lay)
     timings = {"fit": time.perf_counter() - t0}
     model = chain_model(layers)
+    if polish:
+        tp = time.perf_counter()
+        ee = [L.to_dict() for L in layers]
+        model, pinfo = polish_chain(model, [nst])
+        # terms the output error leaves negligible (< PRUNE of the layer's elastic force) are
+        # dropped and the chain is polished once more
+        ys = [(_rel(XN, i, 0), _rel(XN, i, 1)) for i in range(n)]
+        dropped = prune(model, ys)
+        if any(dropped):
+            model, pinfo2 = polish_chain(model, [nst])
+            pinfo = {"first": pinfo, "after_pruning": pinfo2}
+        layers = layers_of(model, layers)
+        for L, d in zip(layers, dropped):
+            L.info["pruned_after_polish"] = d
+        for L, e in zip(layers, ee):
+            L.info["equation_error_estimate"] = e
+            L.info["output_error_polish"] = pinfo
+        timings["polish"] = time.perf_counter() - tp
     t1 = time.perf_counter()
     val = validate_chain(model, run) if validate_model else {}
     timings["validation"] = time.perf_counter() - t1
@@ -200,3 +220,94 @@ def validate_chain(model: ChainModel, run: ChainRun) -> dict:
         out[name] = [nrmse(X[i], st.x[i]) for i in range(st.x.shape[0])]
     main = names[0]
     return {"stage": main, "nrmse": float(np.max(out[main])), "per_mass": out}
+
+
+PRUNE = 2e-3
+
+
+def contributions(model: ChainModel, i: int, y, dy) -> dict:
+    """rms of each fn term of element i relative to the rms of its elastic force (k + alpha) y."""
+    ref = float(np.sqrt(np.mean(((model.k[i] + model.alpha[i]) * y) ** 2))) or 1.0
+    out = {}
+    for name, a in model.fn[i].items():
+        p, r = monomials.parse(name)
+        out[name] = float(np.sqrt(np.mean((a * phi(y, dy, p, r)) ** 2))) / ref
+    return out
+
+
+def prune(model: ChainModel, ys: list) -> list:
+    """Drop (in place) the fn terms whose contribution is below PRUNE; returns the names per layer."""
+    dropped = []
+    for i, (y, dy) in enumerate(ys):
+        small = [k for k, v in contributions(model, i, y, dy).items() if v < PRUNE]
+        for k in small:
+            del model.fn[i][k]
+        dropped.append(small)
+    return dropped
+
+
+def polish_chain(model: ChainModel, stages: list, max_nfev: int = 30, n_sub: int = 2):
+    """Output-error refinement of every chain parameter (masses included) on the recorded
+    displacements of ``stages`` (simulated from rest with the recorded forces); kept only
+    if it lowers the error. Returns (model, info)."""
+    from scipy.optimize import least_squares
+
+    keys = []
+    for i in range(model.n):
+        keys += [("m", i), ("c", i), ("k", i)]
+        if model.alpha[i] != 0.0:
+            keys += [("alpha", i), ("gamma", i), ("delta", i)]
+        keys += [("fn", i, name) for name in model.fn[i]]
+
+    def get(mod, key):
+        return mod.fn[key[1]][key[2]] if key[0] == "fn" else getattr(mod, key[0])[key[1]]
+
+    x0 = np.array([get(model, k) for k in keys], float)
+    scale = np.where(x0 != 0, np.abs(x0), 1.0)
+    for j, k in enumerate(keys):
+        if k[0] in ("gamma", "delta"):
+            scale[j] = max(abs(x0[j]), 0.1 * abs(model.gamma[k[1]] + model.delta[k[1]]))
+
+    def build(p):
+        x = x0 + p * scale
+        d = {a: list(getattr(model, a)) for a in ("m", "c", "k", "alpha", "gamma", "delta")}
+        fn = [dict(f) for f in model.fn]
+        for j, k in enumerate(keys):
+            if k[0] == "fn":
+                fn[k[1]][k[2]] = float(x[j])
+            else:
+                d[k[0]][k[1]] = float(x[j])
+        return ChainModel(fn=fn, provenance=dict(model.provenance), **d)
+
+    data = [(st, np.sqrt(np.mean((st.x - st.x.mean(axis=1, keepdims=True)) ** 2, axis=1))) for st in stages]
+    n_res = sum(st.x.size for st, _ in data)
+
+    def resid(p):
+        m = build(p)
+        if min(m.m) <= 0:
+            return np.full(n_res, 1e3)
+        out = []
+        for st, rms in data:
+            X, _, _ = m.simulate_recorded(st.t, st.f, n_sub)
+            if not np.all(np.isfinite(X)):
+                return np.full(n_res, 1e3)
+            out.append(((X - st.x) / (rms[:, None] * np.sqrt(st.t.size))).ravel())
+        return np.concatenate(out)
+
+    r0 = resid(np.zeros(len(keys)))
+    sol = least_squares(resid, np.zeros(len(keys)), method="trf", diff_step=1e-6, max_nfev=max_nfev,
+                        xtol=1e-10, ftol=1e-12)
+    c0, c1 = float(np.sqrt(r0 @ r0)), float(np.sqrt(sol.fun @ sol.fun))
+    info = {"applied": c1 < c0, "error_before": c0, "error_after": c1, "nfev": int(sol.nfev), "parameters": len(keys)}
+    return (build(sol.x) if c1 < c0 else model), info
+
+
+def layers_of(model: ChainModel, previous: list) -> list:
+    """Per-layer results (per unit mass) of an absolute-unit chain, keeping the decisions
+    and info of ``previous``."""
+    out = []
+    for i, L in enumerate(previous):
+        d = model.layer(i)
+        out.append(LayerResult(i, d["c_m"], d["k_m"], d["alpha_m"], d["gamma"], d["delta"], d["inv_m"], d["fn_m"],
+                               d["mass_ratios"], L.hysteresis, dict(L.info)))
+    return out

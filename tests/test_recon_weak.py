@@ -1,0 +1,81 @@
+"""Weak (integral) form: the integrated agent-model equation holds for the true system,
+the weak linear step recovers c and K, and the estimator runs end to end."""
+import numpy as np
+import pytest
+
+import recon.weak as W
+from recon.library import AgentLibrary
+from recon.pipeline import ReconSettings, reconstruct
+from recon.truth import sdof_run
+
+
+def _system(excitation, snr_db, power, width=1.0, per_segment=3):
+    run, truth = sdof_run(excitation, snr_db=snr_db, seed=0)
+    st = run.stage("nonlinear")
+    L, Ddd = W.sdof_layer(st)
+    if snr_db is None:                      # exact y, y' isolate the integration by parts
+        L.y, L.dy = st.settings["truth"]["y"], st.settings["truth"]["dy"]
+    h = L.kernel()
+    win = W.segment_windows(h, width=width, per_segment=per_segment)
+    n = L.y.size
+    rows, cols, vals = [], [], [[], [], [], []]
+    for k, (a, m, _, _) in enumerate(win):
+        ds = W.bump(m, L.dt, power)
+        rows.append(np.full(m, k)); cols.append(np.arange(a, a + m))
+        for d in range(4):
+            vals[d].append(ds[d] * L.dt)
+    from scipy import sparse
+
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    V = [sparse.csr_matrix((np.concatenate(v), (r, c)), shape=(len(win), n)) for v in vals]
+    tf = W.TestFunctions(V=V, sign=np.array([w[2] for w in win], float), segment=np.array([w[3] for w in win]),
+                         n_segments=len({w[3] for w in win}))
+    lib = AgentLibrary(5, "joint")
+    parts = W.weak_parts(L, tf, lib.terms)
+    theta, target = W.weak_theta(lib, parts, truth.c_m, truth.K_m, truth.input_gain)
+    return lib, theta, target, truth
+
+
+@pytest.mark.parametrize("excitation", ["base", "force"])
+def test_true_coefficients_satisfy_the_integrated_equation(excitation):
+    # noise-free data: the by-parts identities are exact up to the quadrature of psi''' D
+    lib, theta, target, truth = _system(excitation, None, power=12)
+    coef = lib.true_coefficients(truth.fn_m, truth.lam, truth.alpha_m)
+    rel = np.linalg.norm(target - theta @ coef) / np.linalg.norm(target)
+    assert rel < 1e-4, rel
+    # and the equation is sensitive to the parameters: lambda off by 1 % is visible
+    bad = lib.true_coefficients(truth.fn_m, 1.01 * truth.lam, truth.alpha_m)
+    assert np.linalg.norm(target - theta @ bad) / np.linalg.norm(target) > 20 * rel
+
+
+def test_quadrature_needs_a_smooth_bump():
+    # a bump that is only C^4 at the ends of its support leaves a visible residual (documented choice of P)
+    lib, theta, target, truth = _system("base", None, power=5)
+    coef = lib.true_coefficients(truth.fn_m, truth.lam, truth.alpha_m)
+    assert np.linalg.norm(target - theta @ coef) / np.linalg.norm(target) > 1e-2
+
+
+@pytest.mark.parametrize("excitation", ["base", "force"])
+def test_weak_linear_step(excitation):
+    run, truth = sdof_run(excitation, snr_db=60.0, seed=1)
+    st = run.stage("linear")
+    L, _ = W.sdof_layer(st)
+    lv = L.choice["noise_level"]
+    noise = {"y": float(np.sqrt(sum(v ** 2 for k, v in lv.items() if k != "force"))), "F": lv.get("force", 0.0)}
+    lf, _ = W.linear_weak(L.y_raw, L.D_raw, L.F, [], st.dt, W.linear_width(L.y_raw, st.dt), excitation != "base",
+                          noise)
+    assert abs(lf.K_m / truth.K_m - 1) < 0.01
+    assert abs(lf.c_m / truth.c_m - 1) < 0.1      # c is 0.05 % of the restoring force at 5 Hz
+    if excitation != "base":
+        assert abs(lf.inv_m / truth.inv_m - 1) < 0.01
+
+
+def test_weak_form_through_recon_settings():
+    run, truth = sdof_run("base", snr_db=80.0, seed=0)
+    res = reconstruct(run, ReconSettings(form="weak", polish=False, linear_correction=False), validate_model=False)
+    weak = res.differentiation["weak_form"]
+    assert weak["test_functions"] > 6 * 100 and weak["segments"] > 100
+    assert "weak form" in res.model.provenance["method"]
+    # the linear step and lambda are right; the sparsity pattern is not (documented gap)
+    assert abs(res.linear.K_m / truth.K_m - 1) < 0.01
+    assert res.model.lam > 0
