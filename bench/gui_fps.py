@@ -12,6 +12,7 @@ in percent of one core, samples lost.
 
     QT_QPA_PLATFORM=offscreen python bench/gui_fps.py                  # 20 s at 1x and 10 s at 4x
     QT_QPA_PLATFORM=offscreen python bench/gui_fps.py --seconds 60 --speeds 1
+    QT_QPA_PLATFORM=offscreen python bench/gui_fps.py --speeds 1 --sim-in-process   # both placements
 """
 from __future__ import annotations
 
@@ -86,18 +87,23 @@ class _PaintCounter:
         self.filter = Filter()
 
 
-def run_mode(app, speed: float, seconds: float, workdir: Path) -> dict:
+def run_mode(app, speed: float, seconds: float, workdir: Path, in_process: bool = False) -> dict:
     from PySide6 import QtCore
 
     from rig.gui.window import MainWindow
 
     parent, child = mp.Pipe()
-    proc = mp.get_context("spawn").Process(target=_serve, args=(speed, child), daemon=True)
-    proc.start()
-    addresses = parent.recv()
+    proc = None
+    if not in_process:
+        proc = mp.get_context("spawn").Process(target=_serve, args=(speed, child), daemon=True)
+        proc.start()
+        addresses = parent.recv()
     try:
-        cfg = _rig_toml(addresses, workdir / f"rig-{speed:g}.toml")
-        w = MainWindow(config_path=cfg, simulated=False, output_dir=workdir, auto_reconstruct=False)
+        if in_process:  # the window's own simulated rig (threads in this process), as `shakerlab gui`
+            w = MainWindow(simulated=True, speed=speed, seed=1, output_dir=workdir, auto_reconstruct=False)
+        else:
+            cfg = _rig_toml(addresses, workdir / f"rig-{speed:g}.toml")
+            w = MainWindow(config_path=cfg, simulated=False, output_dir=workdir, auto_reconstruct=False)
         w.resize(1400, 900)
         w.show()
         # the linear stage lasts longer (in rig time) than the measurement
@@ -148,6 +154,8 @@ def run_mode(app, speed: float, seconds: float, workdir: Path) -> dict:
         w.close()
         app.processEvents()
         return {
+            "sim": "in process" if in_process else "own process",
+            "throttled": w.throttled_ticks,
             "speed": speed, "seconds": wall, "rate": samples / wall,
             "fps": frames / wall, "paints": paints / wall,
             "redraw_mean": float(redraw.mean()) if redraw.size else float("nan"),
@@ -159,8 +167,9 @@ def run_mode(app, speed: float, seconds: float, workdir: Path) -> dict:
             "status": out.status if out is not None else "?",
         }
     finally:
-        parent.send("stop")
-        proc.join(10)
+        if proc is not None:
+            parent.send("stop")
+            proc.join(10)
 
 
 def main(argv=None) -> int:
@@ -168,6 +177,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=20.0, help="measured wall time per mode")
     ap.add_argument("--speeds", type=float, nargs="+", default=[1.0, 4.0],
                     help="simulated time per wall time (1 = 2 x 10 kHz real time)")
+    ap.add_argument("--sim-in-process", action="store_true",
+                    help="also measure with the simulated rig inside the window's process (as `shakerlab gui`)")
     args = ap.parse_args(argv)
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     from PySide6 import QtWidgets
@@ -178,15 +189,17 @@ def main(argv=None) -> int:
         for speed in args.speeds:
             secs = args.seconds if speed == 1 else max(5.0, args.seconds / 2)
             rows.append(run_mode(app, speed, secs, Path(d)))
+            if args.sim_in_process:
+                rows.append(run_mode(app, speed, secs, Path(d), in_process=True))
     print(f"\noperator window (offscreen, {os.cpu_count()} cores, target {1000 // 40} fps = 40 ms timer)")
-    head = ("speed", "samples/s/ch", "wall s", "frames/s", "paints/s", "redraw ms mean/p95/max",
-            "max stall ms", "GUI thread CPU %", "process CPU %", "lost", "run")
+    head = ("simulator", "speed", "samples/s/ch", "wall s", "frames/s", "paints/s", "redraw ms mean/p95/max",
+            "max stall ms", "GUI thread CPU %", "process CPU %", "throttled ticks", "lost", "run")
     print(" | ".join(head))
     print(" | ".join("---" for _ in head))
     for r in rows:
-        print(f"{r['speed']:g}x | {r['rate']:.0f} | {r['seconds']:.1f} | {r['fps']:.1f} | {r['paints']:.1f} | "
+        print(f"{r['sim']} | {r['speed']:g}x | {r['rate']:.0f} | {r['seconds']:.1f} | {r['fps']:.1f} | {r['paints']:.1f} | "
               f"{r['redraw_mean']:.1f} / {r['redraw_p95']:.1f} / {r['redraw_max']:.1f} | {r['stall_max']:.0f} | "
-              f"{r['gui_cpu']:.0f} | {r['cpu']:.0f} | {r['lost']} | {r['status']}")
+              f"{r['gui_cpu']:.0f} | {r['cpu']:.0f} | {r['throttled']} | {r['lost']} | {r['status']}")
     return 0
 
 
