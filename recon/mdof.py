@@ -121,7 +121,7 @@ def _plain_fn(y, dy, Fn, order, n_folds, corr_len):
 
 
 def reconstruct_chain(run: ChainRun, order: int = 5, n_folds: int = 5, refit_params: bool = True,
-                      polish: bool = True, validate_model: bool = True) -> ChainResult:
+                      polish: bool = True, validate_model: bool = True, polish_substeps: int = 2) -> ChainResult:
     """Per-layer identification (linear step, agent model or the no-hysteresis fallback),
     then (``polish``) an output-error refinement of the whole chain on the nonlinear stage."""
     from recon.pipeline import _corr_len
@@ -179,13 +179,13 @@ def reconstruct_chain(run: ChainRun, order: int = 5, n_folds: int = 5, refit_par
     if polish:
         tp = time.perf_counter()
         ee = [L.to_dict() for L in layers]
-        model, pinfo = polish_chain(model, [nst])
+        model, pinfo = polish_chain(model, [nst], n_sub=polish_substeps)
         # terms the output error leaves negligible (< PRUNE of the layer's elastic force) are
         # dropped and the chain is polished once more
         ys = [(_rel(XN, i, 0), _rel(XN, i, 1)) for i in range(n)]
         dropped = prune(model, ys)
         if any(dropped):
-            model, pinfo2 = polish_chain(model, [nst])
+            model, pinfo2 = polish_chain(model, [nst], n_sub=polish_substeps)
             pinfo = {"first": pinfo, "after_pruning": pinfo2}
         layers = layers_of(model, layers)
         for L, d in zip(layers, dropped):
