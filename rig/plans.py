@@ -102,14 +102,15 @@ def nonlinearity_reached(p: dict, first: analysis.Response, r: analysis.Response
     return reasons
 
 
-def predicted_limit(limits: dict, r: analysis.Response, scale: float) -> str | None:
-    """The limit the next level would approach (linear extrapolation of the response), or None."""
+def allowed_scale(limits: dict, r: analysis.Response) -> tuple[float, str]:
+    """How much the amplitude may still grow before the response (extrapolated linearly)
+    reaches ``soft_limit_fraction`` of a displacement limit; and which limit that is."""
     frac = limits["soft_limit_fraction"]
-    checks = (("max_base_displacement_m", r.peak_base), ("max_tip_displacement_m", r.peak_tip))
-    for key, peak in checks:
-        if peak * scale > frac * limits[key]:
-            return f"next level would reach {peak * scale * 1e3:.2f} mm > {frac:g} x {key} ({limits[key] * 1e3:g} mm)"
-    return None
+    best, which = float("inf"), ""
+    for key, peak in (("max_base_displacement_m", r.peak_base), ("max_tip_displacement_m", r.peak_tip)):
+        if peak > 0 and frac * limits[key] / peak < best:
+            best, which = frac * limits[key] / peak, key
+    return best, which
 
 
 def nonlinear_stage(p: dict, settle_s: float, ctx: PlanContext):
@@ -138,15 +139,20 @@ def nonlinear_stage(p: dict, settle_s: float, ctx: PlanContext):
         if reasons:
             stop_reason = "nonlinearity: " + "; ".join(reasons)
             break
-        nxt = vpp * p["step_factor"]
         if vpp >= vmax * (1 - 1e-9):
             stop_reason = f"amplitude limit {vmax:g} Vpp reached without clear nonlinearity"
             break
-        nxt = min(nxt, vmax)
-        lim = predicted_limit(ctx.limits, r, nxt / vpp)
-        if lim:
-            stop_reason = "limit: " + lim
-            break
+        nxt = min(vpp * p["step_factor"], vmax)
+        scale, key = allowed_scale(ctx.limits, r)
+        if nxt > vpp * scale:
+            # approach the limit: a last, smaller step if it is still worth one
+            if scale < 1.1:
+                frac = ctx.limits["soft_limit_fraction"]
+                stop_reason = (f"limit: the next level would exceed {frac:g} x {key} "
+                               f"({ctx.limits[key] * 1e3:g} mm, extrapolated from this level)")
+                break
+            nxt = vpp * scale
+            yield Log("info", f"next level {nxt:.3f} Vpp: limited to {ctx.limits['soft_limit_fraction']:g} x {key}")
         vpp = nxt
     yield Log("info" if stop_reason.startswith("nonlinearity") else "warning",
               f"nonlinear stage stops raising at {vpp:.3f} Vpp: {stop_reason}")

@@ -54,8 +54,8 @@ def small_protocol(**changes):
 
 
 def rig_config(tmp_path, sim, **limits):
-    # the shipped watchdog timeout (1 s): shorter ones trip spuriously when the test machine is
-    # heavily loaded (the simulated amplifier shares this process and its GIL)
+    # the shipped watchdog timeout (2 s): shorter ones tripped spuriously on the heavily loaded
+    # test machine (the simulated amplifier shares this process and its GIL)
     text = DEFAULT_RIG_PATH.read_text()
     for key, value in limits.items():
         import re
@@ -121,7 +121,7 @@ def test_protocol_records_every_stage(tmp_path, sim):
     assert list(info["stages"]) == ["linear", "resonance_search", "nonlinear", "validation"]
     assert set(info["instruments"]) == {"generator", "amplifier", "sensor_base", "sensor_tip"}
     assert "SIM" in info["instruments"]["sensor_tip"]["identity"].upper()
-    assert info["instruments"]["amplifier"]["settings"]["watchdog_timeout_s"] == 1.0
+    assert info["instruments"]["amplifier"]["settings"]["watchdog_timeout_s"] == 2.0
     assert "frequency_factor" in info["config"]["protocol_toml"]
     assert sim.addresses["generator"] in info["config"]["rig_toml"] or "[limits]" in info["config"]["rig_toml"]
     nl = info["stages"]["nonlinear"]["summary"]
@@ -227,7 +227,7 @@ def test_nonlinear_stage_stops_before_a_limit(tmp_path, sim):
     out = acquire(cfg, small_protocol(nonlinear__step_factor=3.0), tmp_path / "run.h5", lockstep=True)
     assert out.status == "complete", out.reason
     nl = read_info(out.path)["stages"]["nonlinear"]["summary"]
-    assert nl["stop_reason"].startswith("limit: next level would reach")
+    assert nl["stop_reason"].startswith("limit: the next level would exceed")
     assert "max_tip_displacement_m" in nl["stop_reason"]
 
 
@@ -242,7 +242,7 @@ def test_instrument_killed_mid_stage(tmp_path, sim, name):
     label = {"generator": "signal generator", "amplifier": "amplifier", "sensor_base": "laser sensor",
              "sensor_tip": "laser sensor"}[name]
     assert label in out.reason.lower()
-    deadline = time.monotonic() + 2.0  # the amplifier watchdog (1 s) covers a dead amplifier link
+    deadline = time.monotonic() + 3.0  # the amplifier watchdog (2 s) covers a dead amplifier link
     while sim.world.is_driven() and time.monotonic() < deadline:
         time.sleep(0.02)
     assert not sim.world.is_driven()
@@ -250,7 +250,8 @@ def test_instrument_killed_mid_stage(tmp_path, sim, name):
     assert info["status"] == "error" and info["clean_close"]
     assert info["stages"]["linear"]["status"] == "error"
     run = load_run(out.path)
-    assert run.stage("linear").t.size >= 0.4 * 10000  # the data up to the failure is kept
+    ramp_s = 0.4 / cfg.limits["ramp_rate_vpp_per_s"]  # killed once the linear stage reached 0.4 Vpp
+    assert run.stage("linear").t.size >= ramp_s * 10000  # the data up to the failure is kept
 
 
 def test_abort_during_a_trip_ramp_cuts_at_once(tmp_path, sim):

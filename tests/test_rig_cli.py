@@ -34,13 +34,16 @@ def test_acquire_on_the_embedded_simulated_rig(tmp_path, capsys):
     assert "file exists" in capsys.readouterr().err
 
 
-def _config_for(sim, tmp_path, watchdog=1.0):
+WATCHDOG_S = 2.0
+
+
+def _config_for(sim, tmp_path, watchdog=WATCHDOG_S):
     a = sim.addresses
     text = DEFAULT_RIG_PATH.read_text()
     for old, new in (('"socket://127.0.0.1:5025"', f'"{a["generator"]}"'), ('"127.0.0.1:5020"', f'"{a["amplifier"]}"'),
                      ('"socket://127.0.0.1:5030"', f'"{a["sensor_base"]}"'),
                      ('"socket://127.0.0.1:5031"', f'"{a["sensor_tip"]}"'),
-                     ("watchdog_timeout_s = 1.0", f"watchdog_timeout_s = {watchdog}")):
+                     ("watchdog_timeout_s = 2.0", f"watchdog_timeout_s = {watchdog}")):
         assert old in text
         text = text.replace(old, new)
     path = tmp_path / "rig.toml"
@@ -87,7 +90,7 @@ def test_sigkill_mid_stage_watchdog_mutes_and_file_opens(tmp_path, realtime_sim)
         time.sleep(0.01)
     muted_after = time.monotonic() - t_kill
     assert not sim.world.is_driven()
-    assert muted_after < 1.0 + 0.3  # watchdog timeout 1 s (+ polling)
+    assert muted_after < WATCHDOG_S + 0.3  # within the watchdog timeout (+ polling)
     from drivers.power_amplifier import PowerAmplifier
 
     with PowerAmplifier(sim.addresses["amplifier"]) as amp:

@@ -1,5 +1,6 @@
 """Rig config and protocol files: the shipped defaults load; bad files name the field."""
 import math
+import re
 
 import numpy as np
 import pytest
@@ -21,6 +22,11 @@ def test_defaults_load_and_agree():
 
 
 def _edit(src: str, old: str, new: str) -> str:
+    """Replace the first line setting ``old`` (a key, or ``table.key``-free literal text) with ``new``."""
+    key = old.split("=")[0].strip()
+    pattern = re.compile(rf"^{re.escape(key)} = [^\n#]*(#[^\n]*)?$", re.M) if "=" in old and "\n" not in old else None
+    if pattern is not None and pattern.search(src):
+        return pattern.sub(lambda m: new.rstrip("\n"), src, count=1)
     assert old in src, old
     return src.replace(old, new, 1)
 
@@ -28,7 +34,7 @@ def _edit(src: str, old: str, new: str) -> str:
 RIG_CASES = [
     ("max_generator_vpp = 4.0", "max_generator_vpp = -1.0", r"\[limits\] max_generator_vpp: expected a number > 0, got -1"),
     ("max_generator_vpp = 4.0", "max_generator_vpp = \"high\"", r"\[limits\] max_generator_vpp: expected a number"),
-    ("max_generator_vpp = 4.0\n", "", r"\[limits\] max_generator_vpp: missing"),
+    ("max_generator_vpp = 4.0", "", r"\[limits\] max_generator_vpp: missing"),
     ("block_s = 0.05", "block_s = 0.05\nblok = 1", r"\[acquisition\] unknown field 'blok'"),
     ("device_id = 1", "device_id = 1.5", r"\[amplifier\] device_id: expected an integer"),
     ("gain = 1.0", "gain = 3.0", r"\[amplifier\] gain: 3 exceeds \[limits\] max_amplifier_gain 2"),
@@ -49,17 +55,17 @@ def test_bad_rig_config(tmp_path, old, new, match):
 
 
 PROTOCOL_CASES = [
-    ("duration_s = 4.0\n\n[resonance_search]", "duration_s = 0\n\n[resonance_search]",
+    ("duration_s = 4.0", "duration_s = 0",
      r"\[linear\] duration_s: expected a number > 0, got 0"),
     ('method = "stepped"', 'method = "chirp"', r"\[resonance_search\] method: expected one of 'stepped'"),
     ("steps = 12", "steps = 2", r"\[resonance_search\] steps: expected an integer >= 3"),
     ("stop_hz = 30.0", "stop_hz = 3.0", r"\[resonance_search\] stop_hz \(3\) must exceed start_hz"),
-    ("max_vpp = 2.0", "max_vpp = 0.05", r"\[nonlinear\] max_vpp \(0.05\) is below start_vpp"),
+    ("max_vpp = 5.5", "max_vpp = 0.05", r"\[nonlinear\] max_vpp \(0.05\) is below start_vpp"),
     ("step_factor = 1.5", "step_factr = 1.5", r"\[nonlinear\] unknown field 'step_factr'"),
     ("enabled = true", "enabled = false", r"\[nonlinear\] frequency_hz: needed when"),
     ("amplitude_fraction = 1.0", "amplitude_fraction = 1.0\namplitude_vpp = 1.0",
      r"\[validation #1\] give exactly one of amplitude_vpp and amplitude_fraction"),
-    ("frequency_factor = 0.7 ", "frequency_factor = 0.7\nname = \"check\" ",
+    ("amplitude_fraction = 1.0", "amplitude_fraction = 1.0\nname = \"check\"",
      r"\[validation #1\] name: 'check' must start with 'validation'"),
     ("thd_threshold = 0.05", "thd_threshold = true", r"\[nonlinear\] thd_threshold: expected a number"),
 ]
@@ -79,8 +85,8 @@ def test_protocol_amplitude_over_rig_limit(tmp_path):
     from rig.protocol import DEFAULT_PROTOCOL_PATH
 
     path = tmp_path / "p.toml"
-    path.write_text(_edit(DEFAULT_PROTOCOL_PATH.read_text(), "max_vpp = 2.0", "max_vpp = 9.0"))
-    with pytest.raises(UserFacingError, match=r"\[nonlinear\] max_vpp = 9 V exceeds the rig's limit max_generator_vpp = 4 V"):
+    path.write_text(_edit(DEFAULT_PROTOCOL_PATH.read_text(), "max_vpp = 5.5", "max_vpp = 9.0"))
+    with pytest.raises(UserFacingError, match=r"\[nonlinear\] max_vpp = 9 V exceeds the rig's limit max_generator_vpp = 6 V"):
         load_protocol(path).check_against_limits(load_config().limits)
 
 
