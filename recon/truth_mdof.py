@@ -302,12 +302,15 @@ def mr_stage(name: str, signal: Multisine, fs: float, duration: float, snr_db, r
 
 
 def mr_run(snr_db=80.0, fs: float = 2000.0, duration: float = 10.0, seed: int = 0) -> Run:
-    """Linear (small, 5 Hz), nonlinear (ramped 9 Hz) and two validation stages at other
-    frequencies and amplitudes (7 Hz and a 6 + 13 Hz two-tone)."""
+    """Linear (small, 5 Hz), nonlinear (ramped 6 + 9 + 13 Hz three-tone, y up to 1.8 mm)
+    and two validation stages at other frequencies and amplitudes (7 Hz, y 0.4 mm, and a
+    6 + 13 Hz two-tone, y 1.2 mm). A single ramped tone was tried first: the model it gave
+    diverged on the two-tone stage."""
     rng = np.random.default_rng(seed)
     stages = {
         "linear": mr_stage("linear", Multisine([5.0], [2e-5]), fs, duration, snr_db, rng),
-        "nonlinear": mr_stage("nonlinear", Multisine([9.0], [1.5e-3], ramp=duration), fs, duration, snr_db, rng),
+        "nonlinear": mr_stage("nonlinear", Multisine([6.0, 9.0, 13.0], [6e-4, 6e-4, 3e-4], [0.0, 1.0, 2.0],
+                                                    ramp=duration), fs, duration, snr_db, rng),
         "validation": mr_stage("validation", Multisine([7.0], [1.0e-3]), fs, duration, snr_db, rng),
         "validation_2tone": mr_stage("validation_2tone", Multisine([6.0, 13.0], [6e-4, 3e-4], [0.0, 1.0]),
                                      fs, duration, snr_db, rng),
