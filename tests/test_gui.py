@@ -134,6 +134,7 @@ def test_closing_the_window_mid_run_aborts_safely(qtbot, window):
     assert w.sim is None  # the simulated rig was stopped with the window
     info = read_info(path)
     assert info["clean_close"] and info["status"] == "aborted"
+    assert info["stages"]["linear"]["n_samples"] > 1000
     assert any("window closed" in e["message"] for e in read_events(path))
 
 
@@ -341,3 +342,38 @@ def test_plots_slow_down_while_the_acquisition_is_behind(qtbot, window, monkeypa
     assert w.frames - f0 >= 9
     w.abort()
     qtbot.waitUntil(lambda: w.last_outcome is not None, timeout=10000)
+
+
+def test_sigterm_to_shakerlab_gui_mid_run_aborts_safely(tmp_path):
+    """`shakerlab gui --start` in its own process; SIGTERM mid-run ramps down, mutes, closes the file, exits."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "runs"
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+    proc = subprocess.Popen([sys.executable, "-m", "shakerlab.cli", "gui", "--start", "--output-dir", str(out)],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        path = None
+        while time.monotonic() < deadline:  # samples are being recorded (the writer holds the HDF5 lock,
+            files = list(out.glob("run-*.h5")) if out.exists() else []   # so watch the size, not the content)
+            if files:
+                path = files[0]
+                if path.stat().st_size > 150_000:
+                    break
+            time.sleep(0.1)
+        assert path is not None, proc.stdout.read() if proc.poll() is not None else "no run file"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    info = read_info(path)
+    assert info["clean_close"] and info["status"] == "aborted"
+    assert info["stages"]["linear"]["n_samples"] > 1000
+    assert any("window closed" in e["message"] for e in read_events(path))
+    assert any("ramping" in e["message"] and "to zero" in e["message"] for e in read_events(path))

@@ -9,6 +9,9 @@ See docs/gui.md.
 """
 from __future__ import annotations
 
+import signal
+import threading
+
 
 def run_gui(args) -> int:
     """Handler of ``shakerlab gui``: open the window, run the Qt event loop, stop safely."""
@@ -36,10 +39,32 @@ def run_gui(args) -> int:
     window.resize(1400, 900)
     window.show()
     app.aboutToQuit.connect(window.shutdown)
+    if args.start and not window.start_run():
+        print(f"shakerlab gui: the run did not start: {window.last_error}", file=sys.stderr)
+    previous = _close_on_signals(window)
     try:
         return int(app.exec())
     finally:
         window.shutdown()
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def _close_on_signals(window) -> dict:
+    """Ctrl-C / SIGTERM close the window like its close button (a run is aborted safely first);
+    a second one during that ramp-down cuts at once. The window's redraw timer lets Python run the
+    handler within a frame."""
+    from PySide6 import QtCore
+
+    def handler(signum, frame):  # noqa: ARG001 - signal handler signature
+        if window.running() and window._close_pending:
+            QtCore.QTimer.singleShot(0, window.abort)
+        else:
+            QtCore.QTimer.singleShot(0, window.close)
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
 
 
 def register_gui(subparsers) -> None:
@@ -53,7 +78,7 @@ def register_gui(subparsers) -> None:
         "`shakerlab acquire`, on a simulated rig started here (default without --config) or on the instruments "
         "of --config; live plots come from in-memory buffers; after a complete run the governing equation is "
         "reconstructed off the GUI thread. ABORT ramps the output to zero, a second press cuts at once; closing "
-        "the window mid-run aborts the same way. Needs a display (or QT_QPA_PLATFORM=offscreen).",
+        "the window mid-run (or Ctrl-C / SIGTERM) aborts the same way. Needs a display (or QT_QPA_PLATFORM=offscreen).",
     )
     g.add_argument("--config", type=Path, metavar="RIG.toml",
                    help="rig config (addresses, limits); given: the real instruments at its addresses")
@@ -67,4 +92,5 @@ def register_gui(subparsers) -> None:
                    help="simulated time per wall time (1 = real time, 0 = as fast as possible)")
     g.add_argument("--seed", type=int, default=0, help="the simulated rig's noise seed")
     g.add_argument("--open", type=Path, metavar="RUN.h5", help="open a recorded run file and show its result")
+    g.add_argument("--start", action="store_true", help="start the protocol at once (as if Start were pressed)")
     g.set_defaults(handler=run_gui)
