@@ -2,6 +2,7 @@
 
     python bench/diagnose.py            # 3 seeds per effect, strengths uniform in [0.5, 1.5]
     python bench/diagnose.py --quick    # 1 seed per effect, strength 1 (the "concealed" level)
+    python bench/diagnose.py --strength 0.1 0.3 --snr 50   # weaker effects, noisier sensors
 
 Each recording (recon.diagnosis.concealed: base excitation, 1 kHz, 3 x 4 s stages, 70 dB)
 has one catalog effect concealed; the diagnosis runs blind against the truth's model without
@@ -28,6 +29,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=3, help="recordings per effect (default 3)")
     ap.add_argument("--snr", type=float, default=70.0, help="SNR per channel [dB] (default 70)")
     ap.add_argument("--effects", nargs="*", default=None, help="subset of effects (default: all + clean)")
+    ap.add_argument("--strength", nargs=2, type=float, default=(0.5, 1.5), metavar=("LO", "HI"),
+                    help="effect strength drawn uniformly in [LO, HI] (1 = concealed level; default 0.5 1.5)")
     args = ap.parse_args(argv)
     n = 1 if args.quick else args.seeds
     rng = np.random.default_rng(2026)
@@ -41,7 +44,7 @@ def main(argv=None) -> int:
     for eff in effects:
         firsts, anys, wrong, nb, nr, na, ts = 0, 0, collections.Counter(), [], [], [], []
         for k in range(n):
-            s = 1.0 if args.quick else float(rng.uniform(0.5, 1.5))
+            s = 1.0 if args.quick else float(rng.uniform(*args.strength))
             run, _, _, base = concealed_run(None if eff == "clean" else eff, s, seed=1000 + k, snr_db=args.snr)
             t0 = time.perf_counter()
             d = diagnose(run, base)
