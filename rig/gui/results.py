@@ -17,7 +17,6 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 
 PARAM_ORDER = ("c_m", "k_m", "alpha_m", "gamma", "delta", "inv_m")
 
