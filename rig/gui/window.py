@@ -464,7 +464,11 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _pause_toggled(self, on: bool) -> None:
         runner = self._runner
-        if runner is None:
+        if runner is None:  # not started yet: nothing to pause
+            button = self.protocol_panel.pause_button
+            button.blockSignals(True)
+            button.setChecked(False)
+            button.blockSignals(False)
             return
         if on:
             runner.pause()
