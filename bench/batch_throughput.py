@@ -15,6 +15,12 @@ write-back so every pass does the full work) with:
 The Dask overhead is (dask-1 wall - loop wall): scheduling, pickling the rows,
 the cluster start-up and a worker's cold numba/JIT caches. The first pass of
 each mode runs the numba kernels from the on-disk cache.
+
+Dask's nanny starts every worker with OMP/OPENBLAS/MKL_NUM_THREADS=1. The loop
+runs with ``--blas-threads`` (default 1, the same) so that the comparison is
+of the scheduling, not of the BLAS threading: with OpenBLAS's default (one
+thread per CPU) the loop was 3.5 times slower on the shared 2-CPU machine
+(many small matrix products fighting over the CPUs).
 """
 from __future__ import annotations
 
@@ -35,8 +41,14 @@ def main(argv=None) -> int:
     ap.add_argument("--fs", type=float, default=1000.0)
     ap.add_argument("--duration", type=float, default=4.0)
     ap.add_argument("--resamples", type=int, default=200)
+    ap.add_argument("--blas-threads", type=int, default=1,
+                    help="BLAS/OpenMP threads in this process for the loop (default 1, as Dask's workers set)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
+    if "numpy" in sys.modules:
+        print("warning: numpy already imported, --blas-threads has no effect", file=sys.stderr)
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = str(a.blas_threads)
     from dask.distributed import Client, LocalCluster
 
     from recon.batch import BatchSettings, process_run, run_batch, run_loop, write_simulated_run
@@ -70,14 +82,14 @@ def main(argv=None) -> int:
     for r in rows:
         r["runs_per_min"] = 60.0 * a.runs / r["wall_s"]
         r["vs_loop"] = r["wall_s"] / loop_s
-    out = {"runs": a.runs, "fs": a.fs, "duration_s": a.duration, "resamples": a.resamples, "cpus": os.cpu_count(),
+    out = {"runs": a.runs, "blas_threads": a.blas_threads, "fs": a.fs, "duration_s": a.duration, "resamples": a.resamples, "cpus": os.cpu_count(),
            "load_average": os.getloadavg(), "cluster_start_stop_s": cluster_s,
            "dask_overhead_s": rows[1]["wall_s"] - loop_s, "rows": rows}
     if a.json:
         print(json.dumps(out, indent=2))
         return 0
     print(f"{a.runs} runs (2 stages + validation, {a.duration:g} s at {a.fs:g} Hz), reconstruction + intervals "
-          f"({a.resamples} members), {os.cpu_count()} CPUs, load average at the end "
+          f"({a.resamples} members), {os.cpu_count()} CPUs, loop with {a.blas_threads} BLAS thread(s), load average at the end "
           f"{', '.join(f'{v:.1f}' for v in os.getloadavg())}")
     print("| mode | workers | wall s | runs/min | wall / loop | runs ok | identical to loop |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
