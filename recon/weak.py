@@ -18,15 +18,17 @@ samples, so the differentiation bias of the pointwise form disappears, constant
 noise biases (e.g. E[n'^2]) integrate to zero against psi', and the remaining
 noise is averaged over the support.
 
-Test functions: psi(t) = (1 - x^2)^P, x in [-1, 1] over the support, P = 9. The
-rectangle rule on psi''' D is only accurate when psi is very smooth at the ends
-of its support (P = 5 left a 7 % residual on noise-free data with the true
-coefficients, P = 12 5e-6), and a larger P narrows the bump and raises its noise
-gain. In the nonlinear step a support lies inside one AB or CD segment (a
-contiguous run of h = +1 or h = -1), where s is constant: six supports of half
-the segment, spread from its start to its end. The delta step uses the h = 0
-segments (whole segment and its first/last two thirds). The linear step tiles
-the whole stage.
+Test functions: psi(t) = (1 - x^2)^P, x in [-1, 1] over the support, P = 3. Its
+derivatives are not the analytic ones: psi^(d) is the d-fold 6th-order central
+finite difference of the sampled, zero-padded psi, so summation by parts is exact
+on the samples (the rows are psi-weighted sums of finite-difference derivatives).
+With analytic derivatives the rectangle rule on psi''' D left a 7 % residual on
+noise-free data with the true coefficients at P = 5 (5e-6 at P = 12, but a large P
+narrows the bump and raises its noise gain); the discrete form leaves ~1e-10 at any P.
+In the nonlinear step a support lies inside one AB or CD segment (a contiguous run
+of h = +1 or h = -1), where s is constant: the whole segment and its first and last
+two thirds. The delta step uses the h = 0 segments the same way. The linear step
+tiles the whole stage.
 
 A layer is described generically (SDOF base/force and every layer of a chain):
 
@@ -53,12 +55,15 @@ from recon.linear import LinearFit, fit_linear
 from recon.optimizers import GroupedSparseSelector
 from shakerlab.errors import UserFacingError
 
-BUMP_POWER = 9
+BUMP_POWER = 3
+DISCRETE = True
+# 6th-order central first-derivative stencil (x[i-3] .. x[i+3])
+FD_STENCIL = np.array([-1.0 / 60, 3.0 / 20, -3.0 / 4, 0.0, 3.0 / 4, -3.0 / 20, 1.0 / 60])
 MIN_SEGMENT = 12          # samples: shorter AB/CD runs (noise flicker near zero) are skipped
 
 
 # ------------------------------------------------------------------ test functions
-def bump(n: int, dt: float, power: int = BUMP_POWER) -> list[np.ndarray]:
+def bump(n: int, dt: float, power: int = 9) -> list[np.ndarray]:
     """psi, psi', psi'', psi''' sampled on n points spanning the support (ends included)."""
     P = np.polynomial.polynomial
     c = P.polypow([1.0, 0.0, -1.0], power)
@@ -81,22 +86,44 @@ class TestFunctions:
     n_segments: int
 
     @classmethod
-    def build(cls, windows: list, n_samples: int, dt: float) -> "TestFunctions":
-        """``windows``: (start, length, sign, segment) tuples."""
+    def build(cls, windows: list, n_samples: int, dt: float, discrete: bool | None = None,
+              power: int | None = None) -> "TestFunctions":
+        """``windows``: (start, length, sign, segment) tuples.
+
+        ``discrete`` (default: module DISCRETE): psi^(d) is the d-fold central finite
+        difference (6th order) of the sampled psi, zero-padded. Summation by parts is then
+        exact on the samples: sum psi (S^d D) = (-1)^d sum (S^d psi) D, so the weak rows are
+        psi-weighted sums of finite-difference derivatives and carry no quadrature error."""
+        discrete = DISCRETE if discrete is None else discrete
+        power = BUMP_POWER if power is None else power
+        pad = 3 * (FD_STENCIL.size // 2) if discrete else 0
         rows, cols, vals = [], [], [[], [], [], []]
-        for k, (a, n, _, _) in enumerate(windows):
-            ds = bump(n, dt)
-            rows.append(np.full(n, k))
-            cols.append(np.arange(a, a + n))
+        kept = []
+        for a, n, sgn, seg in windows:
+            if a - pad < 0 or a + n + pad > n_samples:
+                continue
+            k = len(kept)
+            kept.append((a, n, sgn, seg))
+            if discrete:
+                psi = np.zeros(n + 2 * pad)
+                psi[pad:pad + n] = bump(n, dt, power)[0]
+                ds = [psi]
+                for _ in range(3):
+                    ds.append(np.convolve(ds[-1], FD_STENCIL[::-1] / dt, mode="same"))
+            else:
+                ds = bump(n, dt, power)
+            rows.append(np.full(n + 2 * pad, k))
+            cols.append(np.arange(a - pad, a + n + pad))
             for d in range(4):
                 vals[d].append(ds[d] * dt)
-        if not windows:
+        if not kept:
             raise UserFacingError("weak form: no segment long enough to hold a test function")
+        windows = kept
         r, c = np.concatenate(rows), np.concatenate(cols)
         V = [sparse.csr_matrix((np.concatenate(v), (r, c)), shape=(len(windows), n_samples)) for v in vals]
         seg = np.array([w[3] for w in windows])
         return cls(V=V, sign=np.array([w[2] for w in windows], float), segment=seg,
-                   n_segments=int(seg.max()) + 1)
+                   n_segments=int(np.unique(seg).size))
 
     def __len__(self) -> int:
         return self.sign.size
@@ -316,8 +343,8 @@ def weak_delta(params: HysteresisParams, L: WeakLayer, h: np.ndarray, c, K, g, D
                             gamma=params.lam - delta, info=info)
 
 
-SEGMENT_WIDTH = 0.5      # support of a nonlinear-step test function, fraction of its AB/CD segment
-PER_SEGMENT = 6
+SEGMENT_WIDTH = 1.0      # support of a nonlinear-step test function, fraction of its AB/CD segment
+PER_SEGMENT = 3
 
 
 @dataclass
