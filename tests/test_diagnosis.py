@@ -146,3 +146,21 @@ def test_force_excited_record_from_another_lab(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["missing_physics"] and out["missing_physics"][0]["id"] == "cubic_stiffness"
     assert out["fit_after"]["nrmse"]["validation"] < out["fit_before"]["nrmse"]["validation"]
+
+
+def test_linear_baseline_misses_hysteresis():
+    run, _, _, _ = concealed_run("hysteresis", 3.0, seed=2)
+    d = diagnose(run, "linear").to_dict()
+    assert "+ z" in d["baseline"] and "0 y'" in d["baseline"]     # no hysteresis in the baseline
+    assert d["missing_physics"][0]["id"] == "hysteresis"
+    assert d["fit_after"]["nrmse"]["validation"] < 0.2 * d["fit_before"]["nrmse"]["validation"]
+
+
+def test_run_without_validation_stage_holds_out_the_end_of_each_stage():
+    run, _, _, baseline = concealed_run("quadratic_damping", seed=6)
+    del run.stages["validation"]
+    d = diagnose(run, baseline, candidates=["quadratic_damping", "coulomb_friction", "cubic_stiffness"]).to_dict()
+    assert set(d["fit_before"]["nrmse"]) == {"linear", "nonlinear"}
+    assert [m["id"] for m in d["missing_physics"]][:1] == ["quadratic_damping"]
+    with pytest.raises(UserFacingError, match="unknown candidate 'friction'"):
+        diagnose(run, baseline, candidates=["friction"])
