@@ -51,7 +51,8 @@ def _coulomb(base, ctx):
 
 def _quad_damp(base, ctx):
     m = _am(base, {"c2": 0.0}, "quadratic_damping")
-    return [(m, ["x:c2"], {"x:c2": 0.01 * ctx["acc_rms"] / ctx["v_rms"] ** 2}, {})]
+    # dissipative by definition: c2 >= 0 (a negative c2 would feed energy in at high speed)
+    return [(m, ["x:c2"], {"x:c2": 0.01 * ctx["acc_rms"] / ctx["v_rms"] ** 2}, {"x:c2": (0.0, np.inf)})]
 
 
 def _contact(base, ctx):

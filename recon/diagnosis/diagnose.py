@@ -179,8 +179,9 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             i = int(np.argmin([r for _, r in stepped]))
             _, keys, sc, b = starts[i]
             m = stepped[i][0]
-            if keys[0] == "x:mu" or keys[0] == "x:kc":
-                m.extras[keys[0][2:]] = max(m.extras[keys[0][2:]], 0.0)
+            lo = b.get(keys[0], (-np.inf, np.inf))[0]
+            if keys[0].startswith("x:") and np.isfinite(lo):      # respect the term's physical bound
+                m.extras[keys[0][2:]] = max(m.extras[keys[0][2:]], lo)
         elif len(starts) > 1:           # screen the starts with only the new terms free
             screened = [rank.fit(m, keys[:cand.screen_keys], data, sc, max_nfev=5, bounds=b)
                         for m, keys, sc, b in starts]
