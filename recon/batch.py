@@ -231,7 +231,8 @@ def expand(patterns: list[str]) -> list[str]:
 
 
 def run_loop(paths: list[str], settings: BatchSettings, progress: TextProgress | None = None) -> list[dict]:
-    """The plain loop (no Dask): same rows, same order as ``paths``."""
+    """The plain loop (no Dask): same rows, same order as ``paths`` (duplicates once)."""
+    paths = list(dict.fromkeys(str(p) for p in paths))
     rows = []
     for p in paths:
         rows.append(process_run(str(p), settings.job()))
@@ -241,8 +242,10 @@ def run_loop(paths: list[str], settings: BatchSettings, progress: TextProgress |
 
 
 def run_batch(paths: list[str], settings: BatchSettings | None = None, progress: TextProgress | None = None) -> list[dict]:
-    """Process ``paths`` on Dask; rows come back in the order of ``paths``."""
+    """Process ``paths`` on Dask; rows come back in the order of ``paths`` (a path given twice is
+    processed once: two tasks must never write into the same file)."""
     s = settings or BatchSettings()
+    paths = list(dict.fromkeys(str(p) for p in paths))
     if s.workers < 1:
         raise UserFacingError(f"--workers must be at least 1, got {s.workers}")
     from dask.distributed import Client, LocalCluster, as_completed
