@@ -22,6 +22,14 @@ from recon.differentiation import choose_window, derivatives
 from recon.kernel import cluster
 
 N_SEGMENTS = 8
+UNITS = {
+    "time": "rms of the simulation residual / rms(y) (trend: change of that over the stage)",
+    "frequency": "rms of the simulation residual in the band / rms(y)",
+    "channel": "rms of the residual part explained by the channel / rms(y)",
+    "state": "mean unexplained restoring force / rms restoring force",
+    "correlation": "largest |normalised correlation| outside the 95 % band (the band is band_95)",
+    "diverged": "the simulation diverged",
+}
 QUADRANTS = {1: "AB (y>0, y'>0)", 2: "BC (y>0, y'<0)", 3: "CD (y<0, y'<0)", 4: "DA (y<0, y'>0)"}
 
 
@@ -284,5 +292,9 @@ def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
             break
     ctx["mode_scan"] = [{"frequency_hz": f, "explained_share": sh} for f, sh, _ in scan[:3]]
     ctx["mode_starts"] = picked + [(f, 0.0) for f in ctx["mode_freqs"]]
-    findings.sort(key=lambda f: -(f["size"] if math.isfinite(f["size"]) else 1e9))
+    for f in findings:
+        f.setdefault("size_unit", UNITS.get(f["kind"].split("_")[0], "relative"))
+    # located sizes first (largest first); the correlation tests (a correlation, another unit) last
+    findings.sort(key=lambda f: (f["kind"] == "correlation_tests",
+                                 -(f["size"] if math.isfinite(f["size"]) else 1e9)))
     return findings, ctx
