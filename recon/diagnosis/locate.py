@@ -64,7 +64,7 @@ def stage_derivatives(run, data) -> dict:
         y, dy, ddy = derivatives(st.y, st.dt, ch.window, ch.order, 2)
         h = ch.window // 2
         sl = slice(h, y.size - h)
-        out[d.name] = (st.t[sl], y[sl], dy[sl], ddy[sl], d.u[sl], float(np.median(np.diff(st.t))))
+        out[d.name] = (d.t[sl], y[sl], dy[sl], ddy[sl], d.u[sl], float(np.median(np.diff(st.t))))
     return out
 
 

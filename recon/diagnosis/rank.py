@@ -80,7 +80,9 @@ def prepare(run: Run, model: HystereticModel) -> list[StageData]:
                                estimate_spectrum(st.channels["x_base"], st.dt).noise_std)
         else:
             noise = estimate_spectrum(st.channels["x"], st.dt).noise_std
-        d = StageData(n, st.t, u, st.channels.get("x_base") if st.excitation == BASE else None, y,
+        # session time (drift): an imported stage keeps its original start in settings["source_t0"]
+        t_session = st.t + float(st.settings.get("source_t0", 0.0) or 0.0)
+        d = StageData(n, t_session, u, st.channels.get("x_base") if st.excitation == BASE else None, y,
                       fit, held, noise, float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0)
         start = model.stage_start(st, u)
         if any(start):
