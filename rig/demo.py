@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 PARAMS = ("c_m", "k_m", "alpha_m", "gamma", "delta")
+RECON_FORM = "weak"
 
 
 def compare(identified: dict, truth: dict) -> list[dict]:
@@ -139,10 +140,12 @@ def run_demo(outdir: Path, *, realtime: bool = False, protocol_path=None, seed: 
 
     print("\nreconstructing the governing equation from", path)
     t_rec = time.monotonic()
-    from recon.pipeline import reconstruct
+    from recon.pipeline import ReconSettings, reconstruct
 
     run = load_run(path)
-    result = reconstruct(run)
+    # The weak (integral) form: the rig's sensor noise makes the pointwise form's third derivative
+    # of the displacement unreliable; integrating against test functions avoids it.
+    result = reconstruct(run, ReconSettings(form=RECON_FORM))
     t_rec = time.monotonic() - t_rec
     d = result.to_dict()
     print()

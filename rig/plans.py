@@ -143,6 +143,9 @@ def nonlinear_stage(p: dict, settle_s: float, ctx: PlanContext):
             stop_reason = f"amplitude limit {vmax:g} Vpp reached without clear nonlinearity"
             break
         nxt = min(vpp * p["step_factor"], vmax)
+        if nxt < 1.1 * vpp:  # max_vpp is within 10 % of this level: this is the last level
+            stop_reason = f"amplitude limit {vmax:g} Vpp reached (within 10 %) without clear nonlinearity"
+            break
         scale, key = allowed_scale(ctx.limits, r)
         if nxt > vpp * scale:
             # approach the limit: a last, smaller step if it is still worth one
