@@ -35,6 +35,14 @@ def compare(identified: dict, truth: dict) -> list[dict]:
     return rows
 
 
+def _err_text(row: dict) -> str:
+    if row["true"] == 0:
+        return "not in the simulator" if row["identified"] != 0 else "-"
+    if row["identified"] == 0:
+        return "missed"
+    return f"{row['relative_error'] * 100:+.2f} %"
+
+
 def _json_default(o):
     if isinstance(o, np.generic):
         return o.item()
@@ -155,7 +163,7 @@ def run_demo(outdir: Path, *, realtime: bool = False, protocol_path=None, seed: 
     rows = compare(d["parameters"], truth)
     print("\nparameter      identified        true   error")
     for r in rows:
-        print(f"{r['name']:<14s} {r['identified']:>11.5g} {r['true']:>11.5g} {r['relative_error'] * 100:+7.2f} %")
+        print(f"{r['name']:<14s} {r['identified']:>11.5g} {r['true']:>11.5g} {_err_text(r)}")
     add_result(path, "reconstruction", {**d, "truth": truth, "comparison": rows}, text=str(result.model))
     info = read_info(path)
     figs = _plots(outdir, run, info, result)
@@ -187,6 +195,6 @@ def _report(outdir, outcome, info, result, d, rows, figs, t_rec) -> None:
               "## Identified vs true (the simulator's specimen)", "",
               "| parameter | identified | true | error |", "| --- | --- | --- | --- |"]
     for r in rows:
-        lines.append(f"| {r['name']} | {r['identified']:.5g} | {r['true']:.5g} | {r['relative_error'] * 100:+.2f} % |")
+        lines.append(f"| {r['name']} | {r['identified']:.5g} | {r['true']:.5g} | {_err_text(r)} |")
     lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs] + [""]
     (outdir / "report.md").write_text("\n".join(lines))
