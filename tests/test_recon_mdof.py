@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from recon.mdof import linear_layer, reconstruct_chain, _derivs
-from recon.truth_mdof import ChainRun, chain_run, five_layer_truth, two_layer_truth
+from recon.truth import Multisine
+from recon.truth_mdof import ChainRun, chain_run, chain_stage, five_layer_truth, two_layer_truth
 from shakerlab.errors import UserFacingError
 
 KEYS = ("c_m", "k_m", "alpha_m", "gamma", "delta", "inv_m")
@@ -58,8 +59,8 @@ def test_80db_validation_every_mass(chain_80db):
 
 def test_equation_error_alone_finds_the_non_hysteretic_layers():
     # without the polish the per-layer step already decides hysteresis / none correctly
-    run, truth = chain_run(two_layer_truth(), snr_db=80.0, seed=1, duration=5.0)
-    res = reconstruct_chain(run, polish=False)
+    run, truth = chain_run(two_layer_truth(), snr_db=80.0, seed=1, duration=4.0)
+    res = reconstruct_chain(run, polish=False, validate_model=False)
     assert [L.hysteresis for L in res.layers] == [True, False]
     assert "fallback" in res.layers[1].info
     assert abs(res.layers[1].k_m / truth.layer(1)["k_m"] - 1) < 0.01
@@ -67,8 +68,10 @@ def test_equation_error_alone_finds_the_non_hysteretic_layers():
 
 def test_linear_step_mass_ratios_noise_free():
     truth = five_layer_truth()
-    run, _ = chain_run(truth, snr_db=None, seed=0, duration=4.0)
-    X, F, _ = _derivs(run.stage("linear"), 2, False)
+    rng = np.random.default_rng(0)
+    fr = np.linspace(3.0, 45.0, 15)
+    sig = {i: Multisine(list(fr), [0.02] * fr.size, list(rng.uniform(0, 2 * np.pi, fr.size))) for i in (0, 4)}
+    X, F, _ = _derivs(chain_stage("linear", truth, sig, 2000.0, 2.0, None, rng), 2, False)
     c, K, g, ratios, cond = linear_layer(X, F, 3)
     tr = truth.layer(3)
     assert np.allclose(ratios, tr["mass_ratios"], rtol=2e-3)
