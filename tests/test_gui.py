@@ -96,8 +96,12 @@ def test_live_plots_grow_and_abort_ramps_down_mutes_and_closes_the_file(qtbot, w
     assert any("ramping" in m and "to zero" in m for m in messages)
     assert not any("cut at once" in m for m in messages)
     # the live amplitude of the linear stage matches the recorded stage's own analysis (fundamental)
+    # compared over the whole stage (read after the run, not the mid-run snapshot above, whose
+    # span depends on machine load and may hold only the start-up ringing)
     resp = read_info(out.path)["stages"]["linear"]["summary"]["response"]
-    assert np.median(amps) == pytest.approx(resp["relative_amplitude"], rel=0.2)  # the level dominates the stage
+    stage_amps = w.live.amplitude_series()["linear"][1]
+    assert stage_amps.size >= amps.size
+    assert np.median(stage_amps) == pytest.approx(resp["relative_amplitude"], rel=0.2)  # the level dominates
     assert w.protocol_panel.start_button.isEnabled() and w.protocol_panel.abort_button.text() == "ABORT"
 
 
