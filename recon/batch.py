@@ -42,6 +42,7 @@ class BatchSettings:
     recon: dict = field(default_factory=dict)        # recon.pipeline.ReconSettings fields
     uncertainty: bool = True
     uncertainty_settings: dict = field(default_factory=dict)   # recon.uncertainty.UncertaintySettings fields
+    term_models: int = 0                              # > 0: term-selection ensemble (recon.uncertainty.term_inclusion)
     diagnose: bool = False
     write_back: bool = True
     force: bool = False                               # reprocess even when the settings hash is stored
@@ -53,7 +54,8 @@ class BatchSettings:
     def job(self) -> dict:
         """What a worker needs (JSON-safe)."""
         return {"recon": dict(self.recon), "uncertainty": self.uncertainty,
-                "uncertainty_settings": dict(self.uncertainty_settings), "diagnose": self.diagnose,
+                "uncertainty_settings": dict(self.uncertainty_settings), "term_models": int(self.term_models),
+                "diagnose": self.diagnose,
                 "write_back": self.write_back, "force": self.force}
 
 
@@ -65,7 +67,9 @@ def settings_hash(job: dict) -> str:
 
     rs = ReconSettings(**job.get("recon", {})).to_dict()
     us = UncertaintySettings(**job.get("uncertainty_settings", {})).to_dict() if job.get("uncertainty") else None
-    text = json.dumps({"recon": rs, "uncertainty": us, "software": __version__}, sort_keys=True, default=str)
+    text = json.dumps({"recon": rs, "uncertainty": us, "software": __version__,
+                       **({"term_models": int(job["term_models"])} if job.get("term_models") else {})},
+                      sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -101,8 +105,16 @@ def reconstruct_payload(run, job: dict):
     from recon.commands import _clean
     from recon.pipeline import ReconSettings, reconstruct
 
-    result = reconstruct(run, ReconSettings(**job.get("recon", {})))
-    payload = result.to_dict()
+    settings = ReconSettings(**job.get("recon", {}))
+    if job.get("term_models"):
+        from recon.uncertainty import reconstruct_capturing, term_inclusion
+
+        result, problem = reconstruct_capturing(run, settings)
+        payload = result.to_dict()
+        payload["term_selection"] = term_inclusion(problem, n_models=int(job["term_models"]))
+    else:
+        result = reconstruct(run, settings)
+        payload = result.to_dict()
     if job.get("uncertainty"):
         from recon.uncertainty import UncertaintySettings, parameter_intervals
 

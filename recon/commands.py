@@ -126,6 +126,8 @@ def register_reprocessing(subparsers) -> None:
     p.add_argument("-o", "--output", metavar="DIR", required=True, help="report directory (created)")
     _common_recon_options(p)
     p.add_argument("--no-write-back", action="store_true", help="do not write the result into the run file")
+    p.add_argument("--term-models", metavar="N", type=int, default=20,
+                   help="term-selection ensemble size (row-subsampled reselections; 0 skips; default 20)")
     p.add_argument("--json", action="store_true", help="print the result JSON instead of a summary")
     p.set_defaults(handler=_report)
 
@@ -148,6 +150,8 @@ def register_reprocessing(subparsers) -> None:
     p.add_argument("--force", action="store_true", help="reprocess runs already processed with the same settings")
     p.add_argument("--no-write-back", action="store_true", help="do not write results into the run files")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--term-models", metavar="N", type=int, default=0,
+                   help="term-selection ensemble size per run (row-subsampled reselections; default 0: off)")
     _common_recon_options(p)
     p.set_defaults(handler=_reprocess)
 
@@ -170,6 +174,14 @@ def _recon_settings(args) -> dict:
     return {"library_order": args.library_order, "polish": not args.no_polish}
 
 
+def _term_models(args) -> int:
+    from shakerlab.errors import UserFacingError
+
+    if args.term_models < 0 or 0 < args.term_models < 5:
+        raise UserFacingError(f"--term-models must be 0 (off) or at least 5, got {args.term_models}")
+    return args.term_models
+
+
 def _report(args) -> int:
     import json
 
@@ -180,7 +192,8 @@ def _report(args) -> int:
     rs = _recon_settings(args)
     d = make_report(args.run, args.output, settings=ReconSettings(**rs), uncertainty=not args.no_uncertainty,
                     uncertainty_settings=UncertaintySettings(n_resamples=args.resamples),
-                    write_back=not args.no_write_back, progress=StepProgress(enabled=not args.json))
+                    write_back=not args.no_write_back, progress=StepProgress(enabled=not args.json),
+                    term_models=_term_models(args))
     if args.json:
         print(json.dumps(d))
         return 0
@@ -190,6 +203,11 @@ def _report(args) -> int:
           else "validation: simulation diverged")
     if "uncertainty" in d:
         print(*interval_lines(d), sep="\n")
+    ts = d.get("term_selection") or {}
+    if ts.get("available"):
+        print(f"term selection over {ts['n_models']} row subsamples: "
+              + ", ".join(f"{t} {f:.2f}" + ("*" if t in ts["selected"] else "") for t, f in ts["inclusion"].items())
+              + "  (* selected)")
     print(d["report"]["note"])
     print(f"report: {d['report']['html']}")
     return 0
@@ -208,7 +226,8 @@ def _reprocess(args) -> int:
     s = BatchSettings(recon=rs, uncertainty=not args.no_uncertainty,
                       uncertainty_settings={"n_resamples": args.resamples} if args.resamples != 200 else {},
                       diagnose=args.diagnose and diagnosis_available(), write_back=not args.no_write_back,
-                      force=args.force, workers=args.workers, scheduler=args.scheduler, processes=not args.threads)
+                      force=args.force, workers=args.workers, scheduler=args.scheduler, processes=not args.threads,
+                      term_models=_term_models(args))
     where = ("a plain loop" if args.serial else f"scheduler {args.scheduler}" if args.scheduler
              else f"a local Dask cluster ({args.workers} {'threads' if args.threads else 'processes'})")
     print(f"reprocessing {len(paths)} run(s) on {where}", file=sys.stderr)

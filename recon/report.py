@@ -313,6 +313,16 @@ def render_html(run, d: dict, figures: dict, info: dict) -> str:
                  f"selected (see docs/reprocessing.md).</p>")
     else:
         h.append("<p>No intervals (uncertainty skipped).</p>")
+    ts = d.get("term_selection") or {}
+    if ts.get("available"):
+        h.append(f"<h3>Stability of the term selection</h3><p>Fraction of {ts['n_models']} selections, each on a "
+                 f"random {100 * ts['keep_fraction']:.0f} % of the regression rows (in {ts['n_chunks']} contiguous "
+                 f"chunks), that kept each fn term. A selected term below ~0.8, or another term near 1, means "
+                 f"the choice of terms is uncertain and the intervals above (conditional on it) are too "
+                 f"optimistic.</p><table><tr><th>term</th><th>inclusion</th><th>selected</th></tr>")
+        for term, f in ts["inclusion"].items():
+            h.append(f"<tr><td>{html.escape(term)}</td><td>{f:.2f}</td><td>{'yes' if term in ts['selected'] else ''}</td></tr>")
+        h.append("</table>")
     sp = d["nonlinear_step"]["sparse_regression"]
     h.append(f"<p>Sparse regression: {sp['n_terms']} library terms kept (support from {html.escape(str(sp.get('support_from')))}), "
              f"threshold {sp['threshold']:.3g}; linear step condition number "
@@ -350,7 +360,7 @@ def _img(figures: dict, key: str) -> str:
 
 
 def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncertainty_settings=None,
-                write_back: bool = True, progress: StepProgress | None = None) -> dict:
+                write_back: bool = True, progress: StepProgress | None = None, term_models: int = 20) -> dict:
     """Reconstruct ``run_path`` and write the report into ``outdir``; returns the result JSON
     (with ``uncertainty`` and ``report``: the files written and where the result went)."""
     from recon.batch import RESULT_KIND, _stored, settings_hash
@@ -372,10 +382,23 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
     except OSError as exc:
         raise UserFacingError(f"-o {outdir}: cannot create the report directory ({exc})") from None
     t = time.perf_counter()
+    problem = None
     with progress.step(f"reconstructing {run_path.name}"):
-        result = reconstruct(run, settings)
+        if term_models > 0:
+            from recon.uncertainty import reconstruct_capturing
+
+            result, problem = reconstruct_capturing(run, settings)
+        else:
+            result = reconstruct(run, settings)
     timings["reconstruct"] = time.perf_counter() - t
     d = result.to_dict()
+    if term_models > 0:
+        from recon.uncertainty import term_inclusion
+
+        t = time.perf_counter()
+        with progress.step(f"term selection on {term_models} row subsamples"):
+            d["term_selection"] = term_inclusion(problem, n_models=term_models)
+        timings["term_selection"] = time.perf_counter() - t
     if uncertainty:
         from recon.uncertainty import UncertaintySettings, parameter_intervals
 
@@ -395,7 +418,8 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
         figures["residual"] = fig_residual(sims, outdir / "residual.png")
     timings["figures"] = time.perf_counter() - t
     job = {"recon": settings.to_dict(), "uncertainty": uncertainty,
-           "uncertainty_settings": (uncertainty_settings.to_dict() if uncertainty_settings else {})}
+           "uncertainty_settings": (uncertainty_settings.to_dict() if uncertainty_settings else {}),
+           "term_models": int(term_models)}
     digest = settings_hash(job)
     d["reprocess"] = {"settings_hash": digest, "settings": job, "software": f"shakerlab {__version__}"}
     written = None

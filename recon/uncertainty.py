@@ -317,3 +317,81 @@ def covers(unc: dict, truth: dict) -> dict:
         lohi = iv.get("fn_m", {}).get(term)
         out[f"fn_m[{term}]"] = bool(lohi is not None and lohi[0] <= v <= lohi[1])
     return out
+
+
+# ---------------------------------------------------------------------------
+# term selection: how stable is the choice of library terms?
+# ---------------------------------------------------------------------------
+
+def reconstruct_capturing(run: Run, settings=None):
+    """``recon.pipeline.reconstruct`` that also returns the sparse-selection problem it solved
+    (regression matrix, target, column groups, selector options, library) for
+    :func:`term_inclusion`. The pipeline's selector and extraction are wrapped for the
+    duration of the call (single-threaded use only)."""
+    import recon.pipeline as P
+
+    captured = []
+    orig_sel, orig_ext = P.GroupedSparseSelector, P.extract
+
+    class _Recording(orig_sel):
+        def fit(self, A, b):
+            fit = super().fit(A, b)
+            captured.append({"A": A, "b": b, "groups": self.groups, "core": self.core,
+                             "options": {"n_folds": self.n_folds, "grid": self.grid, "max_groups": self.max_groups,
+                                         "corr_len": self.corr_len}})
+            return fit
+
+    def _extract(lib, coef, stderr, support):
+        hp = orig_ext(lib, coef, stderr, support)
+        if captured and "lib" not in captured[-1]:
+            captured[-1]["lib"] = lib
+            captured[-1]["terms"] = sorted(hp.fn)
+        return hp
+
+    P.GroupedSparseSelector, P.extract = _Recording, _extract
+    try:
+        result = P.reconstruct(run, settings)
+    finally:
+        P.GroupedSparseSelector, P.extract = orig_sel, orig_ext
+    chosen = sorted(result.model.fn_m)
+    problems = [c for c in captured if "lib" in c]
+    problem = next((c for c in reversed(problems) if c["terms"] == chosen), problems[-1] if problems else None)
+    return result, problem
+
+
+def term_inclusion(problem: dict | None, n_models: int = 20, keep: float = 0.8, n_chunks: int = 40,
+                   seed: int = 0) -> dict:
+    """Inclusion frequency of every fn term over selections on subsampled rows (PySINDy's
+    library bagging): the rows of the agent-model regression are cut into ``n_chunks``
+    contiguous chunks, each member keeps a random ``keep`` fraction of them (without
+    replacement, so the selector's cross-validation sees no duplicated rows) and reruns the
+    pipeline's own term selection and extraction."""
+    if problem is None:
+        return {"available": False, "reason": "this reconstruction has no sparse selection to resample"}
+    from recon.hysteresis import extract
+    from recon.optimizers import GroupedSparseSelector
+
+    A, b = problem["A"], problem["b"]
+    n = A.shape[0]
+    chunk = np.arange(n) * n_chunks // n
+    rng = np.random.default_rng(seed)
+    counts: dict[str, int] = {}
+    failed = 0
+    for _ in range(n_models):
+        chosen = rng.choice(n_chunks, size=max(2, int(round(keep * n_chunks))), replace=False)
+        rows = np.isin(chunk, chosen)
+        try:
+            sp = GroupedSparseSelector(problem["groups"], problem["core"], **problem["options"]).fit(A[rows], b[rows])
+            terms = extract(problem["lib"], sp.coef, sp.stderr, sp.support).fn
+        except Exception:  # noqa: BLE001 - a degenerate subsample counts as a failed member
+            failed += 1
+            continue
+        for t in terms:
+            counts[t] = counts.get(t, 0) + 1
+    done = max(n_models - failed, 1)
+    freq = {t: c / done for t, c in sorted(counts.items(), key=lambda kv: -kv[1])}
+    for t in problem["terms"]:
+        freq.setdefault(t, 0.0)
+    return {"available": True, "method": "row-subsampled reselection of the library terms (bagging)",
+            "n_models": int(n_models), "failed_models": failed, "keep_fraction": keep, "n_chunks": n_chunks,
+            "selected": problem["terms"], "inclusion": freq}

@@ -29,6 +29,9 @@ def test_report_files_json_and_write_back(run_file, tmp_path, capsys):
     for k in ("excitation", "parameters", "validation", "settings", "equation", "uncertainty", "report"):
         assert k in d
     assert {"window", "order", "noise_level"} <= set(d["settings"]["differentiation"])
+    ts = d["term_selection"]                       # the bagged term selection (default 20 members)
+    assert ts["available"] and ts["n_models"] == 20 and ts["selected"] == sorted(truth.fn_m)
+    assert all(ts["inclusion"][t] >= 0.8 for t in truth.fn_m)
     assert set(d["parameters"]["fn_m"]) == set(truth.fn_m)
     iv = d["uncertainty"]["intervals"]
     for k in ("c_m", "k_m", "alpha_m", "gamma", "delta"):
@@ -58,28 +61,32 @@ def test_report_files_json_and_write_back(run_file, tmp_path, capsys):
         assert f["entry/stages/nonlinear/x_tip"].shape[0] == 4001
 
     # same settings again: nothing new written, said so
-    assert main(["report", str(path), "-o", str(tmp_path / "rep2"), "--resamples", "50"]) == 0
+    assert main(["report", str(path), "-o", str(tmp_path / "rep2"), "--resamples", "50"]) == 0   # same settings
     cap = capsys.readouterr()
     assert "nothing new written" in cap.out and "intervals" in cap.out and "report:" in cap.out
     assert "reconstructing run.h5 ... done" in cap.err          # progress on stderr
     assert list(read_results(path)) == ["reconstruction_000"]
     # other settings: a second group
-    assert main(["report", str(path), "-o", str(tmp_path / "rep3"), "--no-polish", "--no-uncertainty", "--json"]) == 0
+    assert main(["report", str(path), "-o", str(tmp_path / "rep3"), "--no-polish", "--no-uncertainty", "--term-models", "0",
+                 "--json"]) == 0
     d3 = json.loads(capsys.readouterr().out)
-    assert "uncertainty" not in d3 and d3["report"]["result_group"] == "reconstruction_001"
+    assert "uncertainty" not in d3 and "term_selection" not in d3
+    assert d3["report"]["result_group"] == "reconstruction_001"
 
 
 def test_report_refuses_and_notes(tmp_path, capsys):
     run, _ = sdof_run("base", snr_db=80.0, fs=1000.0, duration=4.0, seed=1)
     npz = tmp_path / "run.npz"
     save_npz(run, npz)
-    assert main(["report", str(npz), "-o", str(tmp_path / "r"), "--no-uncertainty", "--no-polish", "--json"]) == 0
+    assert main(["report", str(npz), "-o", str(tmp_path / "r"), "--no-uncertainty", "--no-polish", "--term-models", "0",
+                 "--json"]) == 0
     assert "only .h5 run files hold results" in json.loads(capsys.readouterr().out)["report"]["note"]
     unclean = tmp_path / "unclean.h5"
     write_simulated_run(unclean, fs=1000.0, duration=4.0, seed=1)
     with h5py.File(unclean, "a") as f:
         f.attrs["clean_close"] = False
-    assert main(["report", str(unclean), "-o", str(tmp_path / "u"), "--no-uncertainty", "--no-polish"]) == 0
+    assert main(["report", str(unclean), "-o", str(tmp_path / "u"), "--no-uncertainty", "--no-polish",
+                 "--term-models", "0"]) == 0
     assert "not closed cleanly" in capsys.readouterr().out
     with h5py.File(unclean, "r") as f:
         assert len(f["entry/results"]) == 0
@@ -90,6 +97,8 @@ def test_report_refuses_and_notes(tmp_path, capsys):
     assert "is not a directory" in capsys.readouterr().err
     assert main(["report", str(unclean), "-o", str(tmp_path / "y"), "--resamples", "3"]) == 2
     assert "--resamples must be at least 50" in capsys.readouterr().err
+    assert main(["report", str(unclean), "-o", str(tmp_path / "y"), "--term-models", "2"]) == 2
+    assert "--term-models must be 0 (off) or at least 5" in capsys.readouterr().err
 
 
 def test_reconstruct_uncertainty_flag(run_file, capsys):

@@ -4,7 +4,8 @@ import pytest
 
 from recon.pipeline import reconstruct
 from recon.truth import sdof_run
-from recon.uncertainty import UncertaintySettings, covers, fitted_stages, parameter_intervals
+from recon.uncertainty import (UncertaintySettings, covers, fitted_stages, parameter_intervals, reconstruct_capturing,
+                               term_inclusion)
 from shakerlab.errors import UserFacingError
 
 S = UncertaintySettings(n_resamples=100)
@@ -13,7 +14,8 @@ S = UncertaintySettings(n_resamples=100)
 @pytest.fixture(scope="module")
 def fitted():
     run, truth = sdof_run("base", snr_db=80.0, fs=1000.0, duration=4.0, seed=1)
-    return run, truth, reconstruct(run)
+    result, problem = reconstruct_capturing(run)
+    return run, truth, result, problem
 
 
 def _widths(unc):
@@ -24,7 +26,7 @@ def _widths(unc):
 
 
 def test_intervals_cover_truth_at_80_db(fitted):
-    run, truth, result = fitted
+    run, truth, result, _ = fitted
     unc = parameter_intervals(result.model, run, S)
     p = result.to_dict()["parameters"]
     assert unc["stages"] == fitted_stages(result.model)
@@ -62,10 +64,24 @@ def test_covers_and_bad_settings(fitted):
     unc = {"intervals": {"c_m": [1.0, 2.0], "k_m": [0.0, 1.0], "fn_m": {"y^3": [1.0, 3.0], "y^5": [-1.0, 1.0]}}}
     c = covers(unc, {"c_m": 1.5, "k_m": 2.0, "fn_m": {"y^3": 2.0, "y^2*dy": 1.0}})
     assert c == {"c_m": True, "k_m": False, "fn_m[y^3]": True, "fn_m[y^2*dy]": False, "fn_m[y^5]": True}
-    run, _, result = fitted
+    run, _, result, _ = fitted
     with pytest.raises(UserFacingError, match="level"):
         parameter_intervals(result.model, run, UncertaintySettings(level=1.5))
     with pytest.raises(UserFacingError, match="at least 50 resamples"):
         parameter_intervals(result.model, run, UncertaintySettings(n_resamples=10))
     with pytest.raises(UserFacingError, match="none of the fitting stages"):
         parameter_intervals(result.model, run, UncertaintySettings(stages=("sweep",)))
+
+
+def test_term_inclusion(fitted):
+    run, truth, result, problem = fitted
+    # the captured reconstruction is the plain one
+    assert result.to_dict()["parameters"] == reconstruct(run).to_dict()["parameters"]
+    ti = term_inclusion(problem, n_models=10)
+    assert ti["available"] and ti["selected"] == sorted(truth.fn_m) and ti["failed_models"] == 0
+    assert all(ti["inclusion"][t] >= 0.8 for t in truth.fn_m)
+    assert all(0.0 <= f <= 1.0 for f in ti["inclusion"].values())
+    # fewer rows per member: the selection gets less stable, never more
+    thin = term_inclusion(problem, n_models=10, keep=0.3)
+    assert min(thin["inclusion"][t] for t in truth.fn_m) <= min(ti["inclusion"][t] for t in truth.fn_m)
+    assert term_inclusion(None)["available"] is False
