@@ -180,8 +180,18 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             _, keys, sc, b = starts[i]
             m = stepped[i][0]
             lo = b.get(keys[0], (-np.inf, np.inf))[0]
-            if keys[0].startswith("x:") and np.isfinite(lo):      # respect the term's physical bound
-                m.extras[keys[0][2:]] = max(m.extras[keys[0][2:]], lo)
+            if keys[0].startswith("x:") and np.isfinite(lo) and m.extras[keys[0][2:]] < lo:
+                # the equation-error step points across the term's physical bound (input-estimation
+                # errors bias it): also start from two values inside the bound, refit with c and k,
+                # and keep the start that fits best
+                m.extras[keys[0][2:]] = lo
+                tries = [m]
+                for mult in (1.0, 5.0):
+                    mm = m.copy()
+                    mm.extras[keys[0][2:]] = lo + mult * sc[keys[0]]
+                    tries.append(mm)
+                screened = [rank.fit(mm, [keys[0], "c_m", "k_m"], data, sc, max_nfev=8, bounds=b) for mm in tries]
+                m = screened[int(np.argmin([f.cost_fit for f in screened]))].model
         elif len(starts) > 1:           # screen the starts with only the new terms free
             screened = [rank.fit(m, keys[:cand.screen_keys], data, sc, max_nfev=5, bounds=b)
                         for m, keys, sc, b in starts]
