@@ -247,7 +247,7 @@ def register_diagnosis(subparsers) -> None:
         help="locate where a model and a recording disagree, name the missing physics, show the fit improve",
         description="Compare a model's simulation with RUN, locate the mismatch (time, frequency, state plane, "
                     "channel), fit every candidate from the physics catalog as an augmented model and rank them "
-                    "on held-out data (validation stage, else the last 30 %% of each stage).",
+                    "on held-out data (validation stage, else the last 30 % of each stage).",
     )
     p.add_argument("run", metavar="RUN", help="run file (.h5 or .npz)")
     p.add_argument("--baseline", default="paper", metavar="paper|linear|MODEL.json",
