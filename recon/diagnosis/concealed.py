@@ -3,8 +3,8 @@
 The integrator is independent of :mod:`recon.diagnosis.augmented`: the input is
 an analytic multisine evaluated exactly at every RK4 stage on a fine internal
 step, the friction uses the simulated rig's smoothing (tanh(y'/1e-4 m/s)), the
-channel delay is a whole number of samples (as in the simulated rig) and the
-noise is white at a given SNR per channel. Stage times run on one session clock
+channel delay is a band-limited fractional shift (cubic spline; the simulated rig
+delays by whole samples at 10 kHz) and the noise is white at a given SNR per channel. Stage times run on one session clock
 (stage k starts where stage k-1 ended), so a stiffness drift accumulates over
 the session as on the rig.
 """
