@@ -323,6 +323,9 @@ def render_html(run, d: dict, figures: dict, info: dict) -> str:
         for term, f in ts["inclusion"].items():
             h.append(f"<tr><td>{html.escape(term)}</td><td>{f:.2f}</td><td>{'yes' if term in ts['selected'] else ''}</td></tr>")
         h.append("</table>")
+        if ts.get("note"):
+            h.append(f"<p>Note: {html.escape(ts['note'])}; final terms: "
+                     f"{html.escape(', '.join(ts.get('final_terms', [])))}.</p>")
     sp = d["nonlinear_step"]["sparse_regression"]
     h.append(f"<p>Sparse regression: {sp['n_terms']} library terms kept (support from {html.escape(str(sp.get('support_from')))}), "
              f"threshold {sp['threshold']:.3g}; linear step condition number "

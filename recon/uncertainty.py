@@ -356,6 +356,8 @@ def reconstruct_capturing(run: Run, settings=None):
     chosen = sorted(result.model.fn_m)
     problems = [c for c in captured if "lib" in c]
     problem = next((c for c in reversed(problems) if c["terms"] == chosen), problems[-1] if problems else None)
+    if problem is not None:
+        problem["final_terms"] = chosen
     return result, problem
 
 
@@ -392,6 +394,12 @@ def term_inclusion(problem: dict | None, n_models: int = 20, keep: float = 0.8, 
     freq = {t: c / done for t, c in sorted(counts.items(), key=lambda kv: -kv[1])}
     for t in problem["terms"]:
         freq.setdefault(t, 0.0)
-    return {"available": True, "method": "row-subsampled reselection of the library terms (bagging)",
-            "n_models": int(n_models), "failed_models": failed, "keep_fraction": keep, "n_chunks": n_chunks,
-            "selected": problem["terms"], "inclusion": freq}
+    out = {"available": True, "method": "row-subsampled reselection of the library terms (bagging)",
+           "n_models": int(n_models), "failed_models": failed, "keep_fraction": keep, "n_chunks": n_chunks,
+           "selected": problem["terms"], "inclusion": freq}
+    final = problem.get("final_terms")
+    if final is not None and final != problem["terms"]:
+        out["final_terms"] = final
+        out["note"] = ("the reconstruction revised the terms after the sparse selection (e.g. by output error); "
+                       "the inclusion frequencies are those of the sparse selection")
+    return out
