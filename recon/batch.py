@@ -267,7 +267,7 @@ def run_batch(paths: list[str], settings: BatchSettings | None = None, progress:
         if s.scheduler:
             try:
                 client = Client(s.scheduler, timeout=f"{s.connect_timeout}s")
-            except (OSError, TimeoutError) as exc:
+            except (OSError, TimeoutError, ValueError) as exc:
                 raise UserFacingError(f"--scheduler {s.scheduler}: cannot connect ({exc})") from None
         else:
             cluster = LocalCluster(n_workers=s.workers, threads_per_worker=1, processes=s.processes,
