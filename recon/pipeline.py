@@ -35,6 +35,9 @@ class ReconSettings:
     # library columns that absorb the linear step's c/K error (joint form): "auto" tries without
     # first and falls back to them when the result is not physically admissible
     linear_correction: bool | str = "auto"
+    # revise the fn terms by output error on held-out blocks of the nonlinear stage after the
+    # polish (recon/term_selection.py); needs polish
+    term_selection: bool = True
     linear_stage: str = "linear"
     nonlinear_stage: str = "nonlinear"
     n_folds: int = 5
@@ -169,15 +172,15 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
 
     s = settings or ReconSettings()
     if s.linear_correction != "auto":
-        return _reconstruct(run, s, validate_model)
+        return _select_terms(_reconstruct(run, s, validate_model), run, s, validate_model)
     first = _reconstruct(run, replace(s, linear_correction=False), validate_model)
     first.settings = s
     if admissible(first.model) and np.isfinite(first.validation.get("nrmse", 0.0)):
-        return first
+        return _select_terms(first, run, s, validate_model)
     try:
         second = _reconstruct(run, replace(s, linear_correction=True), validate_model)
     except UserFacingError:
-        return first
+        return _select_terms(first, run, s, validate_model)
     second.settings = s
 
     def fit_err(r):
@@ -187,7 +190,36 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
 
     best = min((first, second), key=fit_err)
     best.hysteresis_info["linear_correction_pass"] = best is second
-    return best
+    return _select_terms(best, run, s, validate_model)
+
+
+def _select_terms(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool) -> ReconResult:
+    """Term selection by output error (recon/term_selection.py) on the polished model, then a
+    polish of the selected structure on the whole (decimated) nonlinear stage and re-validation."""
+    if not (s.term_selection and s.polish) or not admissible(result.model):
+        return result
+    from recon.polish import polish
+    from recon.term_selection import select_terms, stage_data
+
+    tp = time.perf_counter()
+    stage = run.stage(s.nonlinear_stage)
+    data, q, _ = stage_data(result.model, stage)
+    model, info = select_terms(result.model, stage, data=(data, q))
+    if info["applied"]:
+        model, pinfo = polish(model, [data], max_nfev=30)
+        info["final_polish"] = pinfo
+        model.provenance = dict(result.model.provenance)
+        model.provenance["term_selection"] = info
+        if admissible(model):
+            result.model = model
+            t2 = time.perf_counter()
+            if validate_model:
+                result.validation = validate(model, run)
+            result.timings["validation"] = time.perf_counter() - t2
+    else:
+        result.model.provenance["term_selection"] = info
+    result.timings["term_selection"] = time.perf_counter() - tp
+    return result
 
 
 def _reconstruct(run: Run, s: ReconSettings, validate_model: bool = True) -> ReconResult:
