@@ -128,7 +128,7 @@ def main(argv=None) -> int:
             wrong_terms = sum(1 for r in rows if r.get("terms") != sorted(tp["fn_m"]))
             report[mode] = {"table": table, "wall_s": time.perf_counter() - t0, "wrong_terms": wrong_terms,
                             "errors": [r["error"] for r in rows if "error" in r],
-                            "median_interval_s": float(np.median([r.get("interval_seconds", np.nan) for r in rows])),
+                            "median_interval_s": float(np.nanmedian([r.get("interval_seconds", np.nan) for r in rows])),
                             "all_covered": float(np.mean([all(r["covered"].get(k, False) for k in true_keys)
                                                           for r in rows]))}
     if a.json:
