@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from recon.model import HystereticModel
-from recon.polish import NAMES, OutputError, polish
+from recon.polish import POLISH_FS, OutputError, decimate, polish
 from recon import monomials
 
 # low-order monomials offered for addition (present terms of any order may be dropped)
@@ -48,21 +48,20 @@ CANDIDATES = ("y^2", "y*dy", "dy^2", "y^3", "y^2*dy", "y*dy^2", "dy^3")
 class SelectionSettings:
     candidates: tuple = CANDIDATES
     block_s: float = 0.5          # length of the interleaved fit / held-out blocks
-    fs_target: float = 2000.0     # decimate the stage to about this rate for the search
+    fs_target: float = POLISH_FS  # decimate the stage to about this rate for the search
     max_steps: int = 8
     polish_nfev: int = 10
     fd_step: float = 1e-4         # finite-difference step of the Jacobian (in units of each scale)
 
 
-def stage_data(model: HystereticModel, stage, fs_target: float = 2000.0):
+def stage_data(model: HystereticModel, stage, fs_target: float = POLISH_FS):
     """(t, u, y, start) of ``stage`` decimated to about ``fs_target`` and the decimation factor."""
     u = model.stage_input(stage)
     y0, v0, z0 = model.stage_start(stage, u)
     a0 = model.input_gain * u[0] - z0 - model.c_m * v0 - model.k_m * y0 - float(
         model.fn(np.array([y0]), np.array([v0]))[0])
-    q = max(1, int(round(1.0 / (stage.dt * fs_target))))
-    t = stage.t - stage.t[0]
-    return (t[::q], u[::q], stage.y[::q], (y0, v0, a0)), q, u
+    item, q = decimate((stage.t - stage.t[0], u, stage.y, (y0, v0, a0)), fs_target)
+    return item, q, u
 
 
 def _blocks(n: int, block: int) -> np.ndarray:
