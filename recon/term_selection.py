@@ -122,30 +122,39 @@ def select_terms(model: HystereticModel, stage, settings: SelectionSettings | No
     ic_cur = ic(rss_cur, len(current.fn_m), n_eff)
     history.append({"terms": sorted(current.fn_m), "held_out_rms": float(np.sqrt(rss_cur)), "ic": float(ic_cur)})
     tried = set()
+    stale = True
     for _step in range(s.max_steps):
-        extra = {c: _term_scale(c, ysim, dysim, current) for c in s.candidates if c not in current.fn_m}
-        prob = OutputError(current, data, masks, extra_terms=extra)
-        e0 = prob.simulate(prob.build(np.zeros(len(prob.keys))))[0]
-        J = np.empty((n, len(prob.keys)))
-        for i in range(len(prob.keys)):
-            p = np.zeros(len(prob.keys))
-            p[i] = s.fd_step
-            ei = prob.simulate(prob.build(p))
-            J[:, i] = np.nan if ei is None else (ei[0] - e0) / s.fd_step
+        if stale:   # Jacobian around the current model (kept while trials are rejected)
+            extra = {c: _term_scale(c, ysim, dysim, current) for c in s.candidates if c not in current.fn_m}
+            prob = OutputError(current, data, masks, extra_terms=extra)
+            e0 = prob.simulate(prob.build(np.zeros(len(prob.keys))))[0]
+            J = np.empty((n, len(prob.keys)))
+            for i in range(len(prob.keys)):
+                p = np.zeros(len(prob.keys))
+                p[i] = s.fd_step
+                ei = prob.simulate(prob.build(p))
+                J[:, i] = np.nan if ei is None else (ei[0] - e0) / s.fd_step
+            stale = False
         base = [i for i, k in enumerate(prob.keys) if not k.startswith("fn:") or k[3:] in current.fn_m]
         actions = []
-        for i, k in enumerate(prob.keys):
-            if not k.startswith("fn:"):
-                continue
-            name = k[3:]
-            if name in current.fn_m:
-                cols = [j for j in base if j != i]
-                fixed = {i: -prob.x0[i] / prob.scale[i]}
-                label, kk = ("drop", name), len(current.fn_m) - 1
+        idx = {k[3:]: i for i, k in enumerate(prob.keys) if k.startswith("fn:")}
+        present = [t for t in idx if t in current.fn_m]
+        # single additions, single drops, and pairs of drops (two spurious terms often
+        # compensate each other, so that dropping either alone looks worse)
+        moves = [("add", (t,)) for t in idx if t not in current.fn_m]
+        moves += [("drop", (t,)) for t in present]
+        moves += [("drop", (a, b)) for i_a, a in enumerate(present) for b in present[i_a + 1:]]
+        for kind, terms in moves:
+            ii = [idx[t] for t in terms]
+            if kind == "drop":
+                cols = [j for j in base if j not in ii]
+                fixed = {i: -prob.x0[i] / prob.scale[i] for i in ii}
+                kk = len(current.fn_m) - len(terms)
             else:
-                cols = base + [i]
+                cols = base + ii
                 fixed = {}
-                label, kk = ("add", name), len(current.fn_m) + 1
+                kk = len(current.fn_m) + len(terms)
+            label = (kind, terms)
             if label in tried or not np.all(np.isfinite(J[:, cols])):
                 continue
             rhs = -e0.copy()
@@ -162,7 +171,7 @@ def select_terms(model: HystereticModel, stage, settings: SelectionSettings | No
             break
         actions.sort(key=lambda a: a[0])
         best_ic, label, p, rss_pred = actions[0]
-        rec = {"action": f"{label[0]} {label[1]}", "predicted_held_out_rms": float(np.sqrt(rss_pred)),
+        rec = {"action": f"{label[0]} {' + '.join(label[1])}", "predicted_held_out_rms": float(np.sqrt(rss_pred)),
                "predicted_ic": float(best_ic), "ic_before": float(ic_cur)}
         if not best_ic < ic_cur:
             rec["accepted"] = False
@@ -170,7 +179,7 @@ def select_terms(model: HystereticModel, stage, settings: SelectionSettings | No
             break
         tried.add(label)
         trial = prob.build(p)
-        keep = set(current.fn_m) | {label[1]} if label[0] == "add" else set(current.fn_m) - {label[1]}
+        keep = set(current.fn_m) | set(label[1]) if label[0] == "add" else set(current.fn_m) - set(label[1])
         trial.fn_m = {k: v for k, v in trial.fn_m.items() if k in keep}
         trial, _ = polish(trial, data, max_nfev=s.polish_nfev, masks=masks)
         e_t = OutputError(trial, data, masks).simulate(trial)
@@ -185,6 +194,7 @@ def select_terms(model: HystereticModel, stage, settings: SelectionSettings | No
         if ic_t < ic_cur:
             current, ic_cur, rss_cur = trial, ic_t, rss_t
             tried = set()
+            stale = True
             ysim, dysim, _ = current.simulate(d[0], d[1], initial=None)
     info = {"applied": sorted(current.fn_m) != sorted(model.fn_m), "terms_before": sorted(model.fn_m),
             "terms_after": sorted(current.fn_m), "n_eff": float(n_eff), "correlation_length": float(corr),
