@@ -1,9 +1,11 @@
 """Done means: protocol -> HDF5 -> reconstruction recovers the simulated specimen's parameters
-(within 5 % on the linear and Bouc-Wen parameters), on the real simulated rig (lockstep).
+(within 5 % on the linear and Bouc-Wen parameters and the fn terms, the weak nonlinear damping
+term y^2*dy found, no spurious terms), on the real simulated rig (lockstep).
 
-One acquisition and one reconstruction (module fixture) serve both tests. Known gap: the weak
-nonlinear damping term y^2*dy of the simulated specimen (about 0.3 m/s^2 against z ~ 4 m/s^2 at the
-largest level) is not selected by the reconstruction, so fn_m is checked only for y^2 and y^3."""
+One acquisition and one reconstruction (module fixture) serve the tests. Seed 1: there the
+equation-error structure alone (before recon/term_selection.py) missed y^2*dy and kept the
+spurious y*dy^2 and y*dy^4 (alpha +5.7 %, gamma -7.6 %). One seed only to keep the suite fast
+(~25 s idle, ~95 s at a load of 8 on 2 cores); seeds 0..5 are tabulated in docs/method.md."""
 import pytest
 
 from rig.protocol import load_protocol
@@ -14,12 +16,12 @@ pytestmark = pytest.mark.slow
 WEAK = "weak"
 
 
-@pytest.fixture(scope="module")
-def reconstructed(tmp_path_factory):
+@pytest.fixture(scope="module", params=[1])
+def reconstructed(request, tmp_path_factory):
     from recon.pipeline import ReconSettings, reconstruct
 
     path = tmp_path_factory.mktemp("e2e") / "run.h5"
-    with simulated_rig(speed=None, seed=0) as (sim, cfg):
+    with simulated_rig(speed=None, seed=request.param) as (sim, cfg):
         out = acquire(cfg, load_protocol(), path, lockstep=True)
         truth = sim.world.truth()
     assert out.status == "complete", out.reason
@@ -41,10 +43,6 @@ def test_protocol_to_reconstruction(reconstructed):
     assert {"linear", "resonance_search", "nonlinear", "validation"} <= set(run.stages)
     nl = run.stage("nonlinear")
     assert nl.settings["summary"]["levels"][-1]["relative_amplitude"] > 3e-3  # a few mm: the loop saturates
-    err = _errors(result, truth)
-    # met today: linear part, the hysteresis' total rate lambda = gamma + delta, the stiffness terms
-    for name in ("c_m", "k_m", "fn_m[y^2]", "fn_m[y^3]"):
-        assert abs(err[name]) < 0.05, (name, err)
     lam = result.model.gamma + result.model.delta
     assert lam == pytest.approx(truth["gamma"] + truth["delta"], rel=0.05)
     assert result.validation["nrmse"] < 0.05
@@ -56,3 +54,12 @@ def test_linear_and_bouc_wen_parameters_within_5_percent(reconstructed):
     bad = {k: round(v * 100, 2) for k, v in err.items()
            if k in ("c_m", "k_m", "alpha_m", "gamma", "delta") and abs(v) >= 0.05}
     assert not bad, f"parameters off by more than 5 % (percent): {bad}"
+
+
+def test_fn_structure_exact_and_terms_within_5_percent(reconstructed):
+    _, _, result, truth = reconstructed
+    got = result.model.fn_m
+    assert sorted(got) == sorted(truth["fn_m"]), (got, result.model.provenance.get("term_selection"))
+    err = _errors(result, truth)
+    bad = {k: round(v * 100, 2) for k, v in err.items() if k.startswith("fn_m") and abs(v) >= 0.05}
+    assert not bad, f"fn terms off by more than 5 % (percent): {bad}"
