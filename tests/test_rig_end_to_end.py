@@ -5,7 +5,7 @@ term y^2*dy found, no spurious terms), on the real simulated rig (lockstep).
 One acquisition and one reconstruction (module fixture) serve the tests. Seed 1: there the
 equation-error structure alone (before recon/term_selection.py) missed y^2*dy and kept the
 spurious y*dy^2 and y*dy^4 (alpha +5.7 %, gamma -7.6 %). One seed only to keep the suite fast
-(~25 s idle, ~95 s at a load of 8 on 2 cores); seeds 0..5 are tabulated in docs/method.md."""
+(measured ~95 s at a load average of ~8 on 2 shared cores); seeds 0..5 are in docs/method.md."""
 import pytest
 
 from rig.protocol import load_protocol
