@@ -126,8 +126,8 @@ def register_reprocessing(subparsers) -> None:
     p.add_argument("-o", "--output", metavar="DIR", required=True, help="report directory (created)")
     _common_recon_options(p)
     p.add_argument("--no-write-back", action="store_true", help="do not write the result into the run file")
-    p.add_argument("--term-models", metavar="N", type=int, default=20,
-                   help="term-selection ensemble size (row-subsampled reselections; 0 skips; default 20)")
+    p.add_argument("--term-models", metavar="N", type=int, default=0,
+                   help="term-selection ensemble size (row-subsampled reselections, ~1 s each; default 0: off)")
     p.add_argument("--json", action="store_true", help="print the result JSON instead of a summary")
     p.set_defaults(handler=_report)
 

@@ -363,7 +363,7 @@ def _img(figures: dict, key: str) -> str:
 
 
 def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncertainty_settings=None,
-                write_back: bool = True, progress: StepProgress | None = None, term_models: int = 20) -> dict:
+                write_back: bool = True, progress: StepProgress | None = None, term_models: int = 0) -> dict:
     """Reconstruct ``run_path`` and write the report into ``outdir``; returns the result JSON
     (with ``uncertainty`` and ``report``: the files written and where the result went)."""
     from recon.batch import RESULT_KIND, _stored, settings_hash

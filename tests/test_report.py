@@ -23,14 +23,14 @@ def run_file(tmp_path_factory):
 def test_report_files_json_and_write_back(run_file, tmp_path, capsys):
     path, truth = run_file
     out = tmp_path / "rep"
-    assert main(["report", str(path), "-o", str(out), "--json", "--resamples", "50"]) == 0
+    assert main(["report", str(path), "-o", str(out), "--json", "--resamples", "50", "--term-models", "5"]) == 0
     d = json.loads(capsys.readouterr().out)
     # the reconstruct JSON contract, extended
     for k in ("excitation", "parameters", "validation", "settings", "equation", "uncertainty", "report"):
         assert k in d
     assert {"window", "order", "noise_level"} <= set(d["settings"]["differentiation"])
-    ts = d["term_selection"]                       # the bagged term selection (default 20 members)
-    assert ts["available"] and ts["n_models"] == 20 and ts["selected"] == sorted(truth.fn_m)
+    ts = d["term_selection"]                       # the bagged term selection (5 members)
+    assert ts["available"] and ts["n_models"] == 5 and ts["selected"] == sorted(truth.fn_m)
     assert all(ts["inclusion"][t] >= 0.8 for t in truth.fn_m)
     assert set(d["parameters"]["fn_m"]) == set(truth.fn_m)
     iv = d["uncertainty"]["intervals"]
@@ -61,7 +61,7 @@ def test_report_files_json_and_write_back(run_file, tmp_path, capsys):
         assert f["entry/stages/nonlinear/x_tip"].shape[0] == 4001
 
     # same settings again: nothing new written, said so
-    assert main(["report", str(path), "-o", str(tmp_path / "rep2"), "--resamples", "50"]) == 0   # same settings
+    assert main(["report", str(path), "-o", str(tmp_path / "rep2"), "--resamples", "50", "--term-models", "5"]) == 0
     cap = capsys.readouterr()
     assert "nothing new written" in cap.out and "intervals" in cap.out and "report:" in cap.out
     assert "reconstructing run.h5 ... done" in cap.err          # progress on stderr
