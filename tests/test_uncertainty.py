@@ -77,11 +77,11 @@ def test_term_inclusion(fitted):
     run, truth, result, problem = fitted
     # the captured reconstruction is the plain one
     assert result.to_dict()["parameters"] == reconstruct(run).to_dict()["parameters"]
-    ti = term_inclusion(problem, n_models=10)
+    ti = term_inclusion(problem, n_models=6)
     assert ti["available"] and ti["selected"] == sorted(truth.fn_m) and ti["failed_models"] == 0
     assert all(ti["inclusion"][t] >= 0.8 for t in truth.fn_m)
     assert all(0.0 <= f <= 1.0 for f in ti["inclusion"].values())
     # fewer rows per member: the selection gets less stable, never more
-    thin = term_inclusion(problem, n_models=10, keep=0.3)
+    thin = term_inclusion(problem, n_models=6, keep=0.3)
     assert min(thin["inclusion"][t] for t in truth.fn_m) <= min(ti["inclusion"][t] for t in truth.fn_m)
     assert term_inclusion(None)["available"] is False
