@@ -144,9 +144,15 @@ def select_terms(model: HystereticModel, stage, settings: SelectionSettings | No
         moves = [("add", (t,)) for t in idx if t not in current.fn_m]
         moves += [("drop", (t,)) for t in present]
         moves += [("drop", (a, b)) for i_a, a in enumerate(present) for b in present[i_a + 1:]]
+        # swaps: a wrong term standing in for a missing one (50 dB ground truth: y^4*dy for y^2*dy)
+        moves += [("swap", (a, b)) for a in present for b in idx if b not in current.fn_m]
         for kind, terms in moves:
             ii = [idx[t] for t in terms]
-            if kind == "drop":
+            if kind == "swap":
+                cols = [j for j in base if j != ii[0]] + [ii[1]]
+                fixed = {ii[0]: -prob.x0[ii[0]] / prob.scale[ii[0]]}
+                kk = len(current.fn_m)
+            elif kind == "drop":
                 cols = [j for j in base if j not in ii]
                 fixed = {i: -prob.x0[i] / prob.scale[i] for i in ii}
                 kk = len(current.fn_m) - len(terms)
@@ -171,7 +177,8 @@ def select_terms(model: HystereticModel, stage, settings: SelectionSettings | No
             break
         actions.sort(key=lambda a: a[0])
         best_ic, label, p, rss_pred = actions[0]
-        rec = {"action": f"{label[0]} {' + '.join(label[1])}", "predicted_held_out_rms": float(np.sqrt(rss_pred)),
+        what = f"{label[1][0]} -> {label[1][1]}" if label[0] == "swap" else " + ".join(label[1])
+        rec = {"action": f"{label[0]} {what}", "predicted_held_out_rms": float(np.sqrt(rss_pred)),
                "predicted_ic": float(best_ic), "ic_before": float(ic_cur)}
         if not best_ic < ic_cur:
             rec["accepted"] = False
@@ -179,7 +186,12 @@ def select_terms(model: HystereticModel, stage, settings: SelectionSettings | No
             break
         tried.add(label)
         trial = prob.build(p)
-        keep = set(current.fn_m) | set(label[1]) if label[0] == "add" else set(current.fn_m) - set(label[1])
+        if label[0] == "add":
+            keep = set(current.fn_m) | set(label[1])
+        elif label[0] == "drop":
+            keep = set(current.fn_m) - set(label[1])
+        else:
+            keep = (set(current.fn_m) - {label[1][0]}) | {label[1][1]}
         trial.fn_m = {k: v for k, v in trial.fn_m.items() if k in keep}
         trial, _ = polish(trial, data, max_nfev=s.polish_nfev, masks=masks)
         e_t = OutputError(trial, data, masks).simulate(trial)
