@@ -54,6 +54,7 @@ def _reconstruct(args) -> int:
     from shakerlab.errors import UserFacingError
     from shakerlab.run_data import load_run
     from recon.pipeline import ReconSettings, reconstruct
+    from recon.validation import write_validation_plots
 
     if args.library_order < 2 or args.library_order > 8:
         raise UserFacingError(f"--library-order must be between 2 and 8, got {args.library_order}")
@@ -65,7 +66,7 @@ def _reconstruct(args) -> int:
 
         out["uncertainty"] = parameter_intervals(result.model, run)
     if args.plots:
-        out["plots"] = [str(p) for p in write_plots(result, run, Path(args.plots))]
+        out["plots"] = [str(p) for p in write_validation_plots(result, run, Path(args.plots))]
     if args.save_model:
         result.model.save(args.save_model)
     if args.json:
@@ -88,28 +89,6 @@ def _reconstruct(args) -> int:
     for p in out.get("plots", []):
         print(f"plot: {p}")
     return 0
-
-
-def write_plots(result, run, outdir):
-    from recon.validation import plot_overlay
-
-    paths = []
-    names = [n for n in run.stages if n.startswith("validation")] or [result.settings.nonlinear_stage]
-    for name in names:
-        st = run.stage(name)
-        u = result.model.stage_input(st)
-        ysim, _, zsim = result.model.simulate(st.t - st.t[0], u, initial=result.model.stage_start(st, u))
-        paths.append(plot_overlay(outdir / f"{name}.png", st.t, st.y, ysim, z_sim=zsim,
-                                  title=f"{name}: measured vs reconstructed (NRMSE {result.validation['per_stage'].get(name, float('nan')):.3g})"))
-    sig = result.signals
-    st = run.stage(result.settings.nonlinear_stage)
-    u = result.model.stage_input(st)
-    ysim, _, zsim = result.model.simulate(st.t - st.t[0], u, initial=result.model.stage_start(st, u))
-    half = (st.t.size - sig["t"].size) // 2
-    paths.append(plot_overlay(outdir / "nonlinear_loop.png", sig["t"], sig["y"], ysim[half:half + sig["t"].size],
-                              z_meas=sig["z"], z_sim=zsim[half:half + sig["t"].size],
-                              title="fitted stage: z from the measurement vs simulated"))
-    return paths
 
 
 # --- offline reprocessing: `report` and `reprocess` (recon/report.py, recon/batch.py) ---------------

@@ -15,7 +15,7 @@ from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import BASE, Run, Stage
 from recon.differentiation import choose_window, derivatives
-from recon.hysteresis import estimate_delta, extract, fn_values, refit
+from recon.hysteresis import estimate_delta, extract, refit
 from recon.kernel import cluster
 from recon.library import AgentLibrary
 from recon.linear import LinearFit, fit_linear
@@ -299,7 +299,6 @@ def _reconstruct(run: Run, s: ReconSettings, validate_model: bool = True) -> Rec
     t2 = time.perf_counter()
     val = validate(model, run) if validate_model else {"nrmse": float("nan"), "stage": None}
     timings["validation"] = time.perf_counter() - t2
-    z_meas = hp.alpha * y + Fn - fn_values(hp.fn, y, dy)
     return ReconResult(
         model=model, linear=lf, sparse=sp.summary(), library_names=lib.names,
         library_coef=[float(c) for c in sp.coef], hysteresis_info=hp.info,
@@ -307,5 +306,7 @@ def _reconstruct(run: Run, s: ReconSettings, validate_model: bool = True) -> Rec
                          "window": nl.choice["window"], "order": nl.choice["order"],
                          "noise_level": nl.choice["noise_level"]},
         validation=val, settings=s, timings=timings,
-        signals={"t": nl.t, "y": y, "z": z_meas},
+        # the smoothed measured motion of the fitted stage; quantities implied by a model
+        # (e.g. the hysteretic force) are derived from the final model, see recon.validation
+        signals={"t": nl.t, "y": y, "dy": dy, "ddy": ddy, "u": nl.u[0]},
     )

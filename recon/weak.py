@@ -519,8 +519,6 @@ def reconstruct_weak(run, s, validate_model: bool = True):
     t2 = time.perf_counter()
     val = validate(model, run) if validate_model else {"nrmse": float("nan"), "stage": None}
     timings["validation"] = time.perf_counter() - t2
-    Fn = g * L.F - Ddd - c_m * L.dy - K_m * L.y
-    z_meas = hp.alpha * L.y + Fn - fn_values(hp.fn, L.y, L.dy)
     choice = dict(L.choice)
     return ReconResult(
         model=model, linear=lf, sparse=fit.sparse, library_names=fit.library_names,
@@ -528,5 +526,5 @@ def reconstruct_weak(run, s, validate_model: bool = True):
         differentiation={"linear": Ll.choice, "nonlinear": choice, "window": choice["window"],
                          "order": choice["order"], "noise_level": choice["noise_level"],
                          "weak_form": model.provenance["weak_form"]},
-        validation=val, settings=s, timings=timings, signals={"t": st.t, "y": L.y, "z": z_meas},
+        validation=val, settings=s, timings=timings, signals={"t": st.t, "y": L.y, "dy": L.dy, "ddy": Ddd, "u": L.F},
     )

@@ -107,13 +107,10 @@ def _plots(outdir: Path, run, info: dict, result) -> list[str]:
         files.append("levels.png")
 
     if result is not None:
-        from recon.validation import plot_overlay
+        from recon.validation import write_validation_plots
 
-        vname = result.validation.get("stage") or "nonlinear"
-        st = run.stage(vname)
-        t, ysim = result.model.simulate_stage(st)
-        plot_overlay(outdir / "validation.png", t, st.y, ysim, title=f"{vname}: measured vs reconstructed model")
-        files.append("validation.png")
+        for path in write_validation_plots(result, run, outdir):
+            files.append(Path(path).name)
     return files
 
 
