@@ -151,3 +151,11 @@ def parse_bool(reply: str) -> bool:
     if text in ("0", "OFF"):
         return False
     raise ValueError(reply)
+
+
+def parse_float(instrument: str, command: str, reply: str) -> float:
+    """A numeric reply, or :class:`MalformedReply` naming the instrument and the command."""
+    try:
+        return float(reply)
+    except ValueError:
+        raise MalformedReply(instrument, command, f"expected a number, got {reply!r}") from None

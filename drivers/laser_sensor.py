@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.base import (InstrumentError, InstrumentFault, MalformedReply, Setting, int_range,
+from drivers.base import (InstrumentError, InstrumentFault, MalformedReply, Setting, int_range, parse_float,
                           one_of)
 from drivers.line_link import LineLink
 
@@ -97,11 +97,7 @@ class LaserSensor:
         return int(text)
 
     def _float_field(self, command: str) -> float:
-        text = self._field(command)
-        try:
-            return float(text)
-        except ValueError:
-            raise MalformedReply(self.name, command, f"expected a number, got {text!r}") from None
+        return parse_float(self.name, command, self._field(command))
 
     # ---- methods ---------------------------------------------------------------------------------
     def identify(self) -> str:

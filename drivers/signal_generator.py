@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import re
 
-from drivers.base import (InstrumentError, InstrumentFault, MalformedReply, Setting,
+from drivers.base import (InstrumentError, InstrumentFault, MalformedReply, Setting, parse_float,
                           SettingRangeError, boolean, in_range, int_range, parse_bool)
 from drivers.line_link import LineLink
 
@@ -81,11 +81,7 @@ class SignalGenerator:
         return low, high
 
     def _float(self, command: str) -> float:
-        reply = self._query(command)
-        try:
-            return float(reply)
-        except ValueError:
-            raise MalformedReply(self.name, command, f"expected a number, got {reply!r}") from None
+        return parse_float(self.name, command, self._query(command))
 
     # ---- methods -----------------------------------------------------------------------------------
     def identify(self) -> str:
