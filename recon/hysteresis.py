@@ -25,6 +25,7 @@ from scipy.optimize import minimize_scalar
 
 from recon import monomials
 from recon.library import AgentLibrary, dphi, phi
+from recon.optimizers import scaled_lstsq
 from shakerlab.errors import UserFacingError
 
 
@@ -147,12 +148,8 @@ def refit(params: HysteresisParams, y, dy, ddy, dddy, u, du, s, c_m, K_m, g, fit
         return np.column_stack(cols), T
 
     def solve(lam):
-        A, T = system(lam)
-        sc = np.sqrt(np.sum(A * A, axis=0))
-        sc[sc == 0] = 1.0
-        x, *_ = np.linalg.lstsq(A / sc, T, rcond=None)
-        r = T - (A / sc) @ x
-        return float(r @ r), x / sc
+        x, rss = scaled_lstsq(*system(lam))
+        return rss, x
 
     lam0 = params.lam
     lo, hi = sorted((0.2 * lam0, 5.0 * lam0))

@@ -21,6 +21,16 @@ import numpy as np
 from scipy import linalg
 
 
+def scaled_lstsq(A, b):
+    """Least squares of ``A x = b`` with the columns scaled to unit norm (zero columns left as
+    they are); returns ``(x, rss)`` in the original column units."""
+    sc = np.sqrt(np.sum(A * A, axis=0))
+    sc[sc == 0] = 1.0
+    x, *_ = np.linalg.lstsq(A / sc, b, rcond=None)
+    r = b - (A / sc) @ x
+    return x / sc, float(r @ r)
+
+
 def _solve(R, d, support):
     """Least squares on the compressed system R x = d restricted to ``support``."""
     idx = np.flatnonzero(support)

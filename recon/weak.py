@@ -52,7 +52,7 @@ from recon import monomials
 from recon.hysteresis import HysteresisParams, extract, fn_values
 from recon.library import AgentLibrary, phi
 from recon.linear import LinearFit, fit_linear
-from recon.optimizers import GroupedSparseSelector
+from recon.optimizers import GroupedSparseSelector, scaled_lstsq
 from shakerlab.errors import UserFacingError
 
 BUMP_POWER = 3
@@ -282,11 +282,8 @@ def weak_refit(params: HysteresisParams, parts: WeakParts, c, K, g, fit_g: bool,
 
     def solve(lam):
         A, b = system(lam)
-        sc = np.sqrt(np.sum(A * A, axis=0))
-        sc[sc == 0] = 1.0
-        x, *_ = np.linalg.lstsq(A / sc, b, rcond=None)
-        r = b - (A / sc) @ x
-        return float(r @ r) / float(b @ b), x / sc
+        x, rss = scaled_lstsq(A, b)
+        return rss / float(b @ b), x
 
     lam0 = params.lam
     lo, hi = sorted((0.2 * lam0, 5.0 * lam0))
