@@ -245,33 +245,8 @@ def test_opening_a_missing_file_names_it(qtbot, window, tmp_path):
     assert w.results.equation.toPlainText() == ""
 
 
-RECON_PROTOCOL = """
-[run]
-settle_s = 0.3
-[linear]
-frequency_hz = 8.0
-amplitude_vpp = 0.4
-duration_s = 1.0
-[resonance_search]
-start_hz = 8.0
-stop_hz = 25.0
-steps = 7
-refine_steps = 3
-amplitude_vpp = 0.05
-settle_s = 0.6
-measure_s = 0.3
-[nonlinear]
-start_vpp = 0.1
-step_factor = 1.5
-max_vpp = 1.0
-dwell_s = 0.8
-analysis_s = 0.4
-hold_s = 0.5
-[[validation]]
-frequency_factor = 0.8
-amplitude_fraction = 0.8
-duration_s = 1.0
-"""
+# the short protocol the rig tests run (test_rig_cli imports it the same way)
+from test_rig_acquisition import SMALL_PROTOCOL as RECON_PROTOCOL  # noqa: E402
 
 
 @pytest.mark.slow
