@@ -3,6 +3,7 @@ MR-damper examples at SNR 80/60/40/30 dB, pointwise vs weak form.
 
     python bench/recon_accuracy.py            # full table (several minutes on 2 busy cores)
     python bench/recon_accuracy.py --quick    # 80 and 40 dB, shorter chain records
+    python bench/recon_accuracy.py --systems SDOF --snr 40 --seeds 8   # the 40 dB aim over 8 noise seeds
 
 Columns: max and median relative parameter error [%] (every per-unit-mass parameter and
 fn coefficient of the truth; for chains every layer, mass ratios excluded), spurious and
@@ -89,6 +90,28 @@ def run_case(system, snr, form, quick, seed=0):
     return out
 
 
+def aggregate(rows: list):
+    """One table row from the per-seed results: worst max error, median of the per-seed
+    maxima (one seed: its median error), summed spurious/missed terms, worst NRMSE, mean time."""
+    if any(r is None for r in rows):
+        return None
+    fails = [r for r in rows if "fail" in r]
+    if len(fails) == len(rows):
+        return fails[0]
+    ok = [r for r in rows if "fail" not in r]
+    good = sum(1 for r in ok if r.get("max") is not None and r["max"] <= 5.0 and r["spur"] == 0 and r["miss"] == 0)
+    out = {"time": float(np.mean([r["time"] for r in rows])), "nrmse": max(r["nrmse"] for r in ok),
+           "spur": None if ok[0]["spur"] is None else sum(r["spur"] for r in ok),
+           "miss": None if ok[0]["miss"] is None else sum(r["miss"] for r in ok),
+           "good": f"{good}/{len(rows)}" if ok[0].get("max") is not None else "n/a"}
+    if ok[0].get("max") is not None:
+        out["max"] = max(r["max"] for r in ok)
+        out["median"] = ok[0]["median"] if len(rows) == 1 else float(np.median([r["max"] for r in ok]))
+    if fails:
+        out["good"] += f" ({len(fails)} failed)"
+    return out
+
+
 def fmt(v, spec):
     return "n/a" if v is None else format(v, spec)
 
@@ -98,23 +121,28 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="80 and 40 dB only, 5 s chain records")
     ap.add_argument("--systems", default="SDOF,two-layer,five-layer,MR isolator")
     ap.add_argument("--snr", default=None, help="comma-separated SNRs in dB (default 80,60,40,30)")
+    ap.add_argument("--seeds", type=int, default=1, help="noise seeds per row (0..N-1): the row reports the worst "
+                                                          "seed, the median of the per-seed maxima, and how many seeds "
+                                                          "are within 5 %% with the exact pattern")
     a = ap.parse_args(argv)
     snrs = [float(s) for s in a.snr.split(",")] if a.snr else ([80.0, 40.0] if a.quick else [80.0, 60.0, 40.0, 30.0])
     warnings.filterwarnings("ignore")
-    print("| system | SNR dB | form | max err % | median err % | spurious | missed | validation NRMSE | fit time s |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| system | SNR dB | form | max err % | median err % | spurious | missed | seeds exact and <= 5 % "
+          "| validation NRMSE | fit time s |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for system in a.systems.split(","):
         for snr in snrs:
             for form in ("pointwise", "weak"):
-                r = run_case(system, snr, form, a.quick)
+                r = aggregate([run_case(system, snr, form, a.quick, seed) for seed in range(a.seeds)])
                 if r is None:
-                    print(f"| {system} | {snr:g} | {form} | not implemented for chains | | | | | |", flush=True)
+                    print(f"| {system} | {snr:g} | {form} | not implemented for chains | | | | | | |", flush=True)
                 elif "fail" in r:
-                    print(f"| {system} | {snr:g} | {form} | failed: {r['fail']} | | | | | {r['time']:.1f} |", flush=True)
+                    print(f"| {system} | {snr:g} | {form} | failed: {r['fail']} | | | | | | {r['time']:.1f} |",
+                          flush=True)
                 else:
                     print(f"| {system} | {snr:g} | {form} | {fmt(r.get('max'), '.3g')} | {fmt(r.get('median'), '.3g')} | "
-                          f"{fmt(r['spur'], 'd')} | {fmt(r['miss'], 'd')} | {r['nrmse']:.3g} | {r['time']:.1f} |",
-                          flush=True)
+                          f"{fmt(r['spur'], 'd')} | {fmt(r['miss'], 'd')} | {r['good']} | {r['nrmse']:.3g} | "
+                          f"{r['time']:.1f} |", flush=True)
 
 
 if __name__ == "__main__":

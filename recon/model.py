@@ -182,14 +182,21 @@ class HystereticModel:
         y = stage.y
         ch = choose_window({"y": y}, stage.dt, deriv=2, for_regression=False)
         n = min(y.size, 4 * ch.window)
-        d = derivatives(y[:n], stage.dt, min(ch.window, n - (1 - n % 2)), ch.order, 2)
+        w = min(ch.window, n - (1 - n % 2))
+        d = derivatives(y[:n], stage.dt, w, ch.order, 2)
         y0, v0, a0 = d[0][0], d[1][0], d[2][0]
         # recorded from rest: y0 within the noise and y'0 small against the stage's rms
-        # velocity (a zero crossing mid-motion has y'0 near its peak). Then start from rest
+        # velocity (a zero crossing mid-motion has y'0 near its peak) or within the noise of
+        # the edge estimate (the polynomial fit evaluated at the window's first sample: at
+        # 40 dB its y' noise alone exceeds 5 % of the rms velocity). Then start from rest
         # exactly: an edge estimate of y'' (hence z0) is noisy.
         sigma = ch.noise_level["y"]
+        # y'(0) of the least-squares polynomial over the first w samples: weights P[1]/((w-1) dt)
+        # (scipy's savgol_coeffs(pos=0) loses accuracy for long windows, hence the own fit)
+        P = np.linalg.pinv(np.vander(np.arange(w) / (w - 1), ch.order + 1, increasing=True))
+        sig_v = sigma * float(np.linalg.norm(P[1])) / ((w - 1) * stage.dt)
         v_rms = float(np.sqrt(np.mean(derivatives(y, stage.dt, ch.window, ch.order, 1)[1] ** 2)))
-        if abs(y0) < 5 * sigma and abs(v0) < 0.05 * v_rms:
+        if abs(y0) < 5 * sigma and (abs(v0) < 0.05 * v_rms or abs(v0) < 4 * sig_v):
             return 0.0, 0.0, 0.0
         z0 = self.input_gain * u[0] - a0 - self.c_m * v0 - self.k_m * y0 - float(self.fn(np.array([y0]), np.array([v0]))[0])
         return float(y0), float(v0), float(z0)

@@ -30,6 +30,12 @@ of h = +1 or h = -1), where s is constant: the whole segment and its first and l
 two thirds. The delta step uses the h = 0 segments the same way. The linear step
 tiles the whole stage.
 
+In the SDOF estimator (:func:`reconstruct_weak`) this segment regression gives the
+pilot: the fn pattern and lambda. The structured refit and delta are then taken from the
+weak form along the hysteresis path (recon/weak_path.py), whose half-period test functions
+need only psi'' and no sign of z. At 40 dB the segment refit ran to alpha +240 % (seed 0);
+the path form gives 1-3 % with the right pattern.
+
 A layer is described generically (SDOF base/force and every layer of a chain):
 
     Fn = g F - D'' - c y' - K y,      D = y + R
@@ -431,6 +437,16 @@ def linear_width(x: np.ndarray, dt: float) -> int:
 
 
 # ------------------------------------------------------------------ SDOF estimator
+def smoothed_noise(L: WeakLayer) -> float:
+    """Noise std of the Savitzky-Golay smoothed y of a layer (the assumed white noise of the
+    displacement channels times the filter's noise gain)."""
+    from scipy.signal import savgol_coeffs
+
+    c0 = savgol_coeffs(L.choice["window"], L.choice["order"])
+    ny = np.sqrt(sum(v ** 2 for k, v in L.choice["noise_level"].items() if k != "force"))
+    return float(ny * np.sqrt(c0 @ c0))
+
+
 def sdof_layer(stage, window=None, order=None) -> tuple[WeakLayer, np.ndarray]:
     """The WeakLayer of an SDOF stage and the Savitzky-Golay D''."""
     from recon.differentiation import choose_window, derivatives, estimate_spectrum
@@ -488,6 +504,21 @@ def reconstruct_weak(run, s, validate_model: bool = True):
     # off, against 6 % and 4 % when kept), so ReconSettings.refit_linear is not used here
     fit = fit_layer(L, lib, lf.c_m, lf.K_m, g, False, Ddd, s.n_folds, s.refit, False, s.nonlinear_stage)
     hp, c_m, K_m, g = fit.params, fit.c_m, fit.K_m, fit.g
+    segment_estimate = {"c_m": c_m, "k_m": K_m - hp.alpha, "alpha_m": hp.alpha, "gamma": hp.gamma,
+                        "delta": hp.delta, "fn_m": dict(hp.fn)}
+    path_info = None
+    if s.refit:
+        # the hysteresis integrated along the path on half-period supports: only psi'' and
+        # no sign of z, so it holds at SNRs where the segment rows are noise (recon/weak_path.py)
+        from recon.weak_path import fit_path, path_width
+
+        lam0 = hp.lam if np.isfinite(hp.lam) and hp.lam > 0 else 1.0 / max(np.std(L.y), 1e-12)
+        pf = fit_path(L, c_m, K_m, g, lam0, [monomials.parse(k) for k in hp.fn], s.library_order,
+                      smoothed_noise(L), path_width(L.y, L.dt))
+        path_info = pf.info()
+        hp = HysteresisParams(lam=pf.gamma + pf.delta, alpha=pf.alpha, fn=pf.fn, delta=pf.delta, gamma=pf.gamma,
+                              info={**hp.info, "path_form": path_info, "segment_form_estimate": segment_estimate})
+        c_m, K_m = pf.c, pf.K
     timings["nonlinear"] = time.perf_counter() - t1
     model = HystereticModel(
         excitation=exc, c_m=c_m, k_m=K_m - hp.alpha, alpha_m=hp.alpha, gamma=hp.gamma, delta=hp.delta,
@@ -496,7 +527,8 @@ def reconstruct_weak(run, s, validate_model: bool = True):
                     "software": f"shakerlab {__version__}", "settings": s.to_dict(),
                     "threshold": fit.sparse["threshold"], "source": run.source,
                     "weak_form": {"test_functions": fit.n_rows, "segments": fit.n_segments,
-                                  "bump_power": BUMP_POWER, "linear_support_samples": width},
+                                  "bump_power": BUMP_POWER, "linear_support_samples": width,
+                                  "path_form": path_info},
                     "differentiation": {"linear": Ll.choice, "nonlinear": L.choice}},
     )
     equation_error_model = model
