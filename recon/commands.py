@@ -18,6 +18,9 @@ def register(subparsers) -> None:
                    help="highest monomial degree of fn (default 5)")
     p.add_argument("--save-model", metavar="PATH", help="write the identified model as JSON to PATH")
     p.add_argument("--no-polish", action="store_true", help="skip the output-error polish (equation-error estimate only)")
+    p.add_argument("--form", choices=("joint", "weak", "ab"), default="joint",
+                   help="nonlinear step: pointwise agent model on AB and CD (joint, default), the weak form "
+                        "(needs no third derivative; holds to 40 dB SNR, see docs/method.md) or the paper's AB-only form")
     p.add_argument("--uncertainty", action="store_true",
                    help="add 95%% intervals of every parameter (key 'uncertainty'; see docs/reprocessing.md)")
     p.set_defaults(handler=_reconstruct)
@@ -59,7 +62,8 @@ def _reconstruct(args) -> int:
     if args.library_order < 2 or args.library_order > 8:
         raise UserFacingError(f"--library-order must be between 2 and 8, got {args.library_order}")
     run = load_run(args.run)
-    result = reconstruct(run, ReconSettings(library_order=args.library_order, polish=not args.no_polish))
+    result = reconstruct(run, ReconSettings(library_order=args.library_order, polish=not args.no_polish,
+                                            form=getattr(args, "form", "joint")))
     out = result.to_dict()
     if getattr(args, "uncertainty", False):
         from recon.uncertainty import parameter_intervals

@@ -49,3 +49,18 @@ def test_reconstruct_bad_input(tmp_path, capsys):
     bad.write_bytes(b"not a zip")
     assert main(["reconstruct", str(bad), "--json"]) == 2
     assert "not a readable .npz" in capsys.readouterr().err
+
+
+def test_reconstruct_weak_form_at_40db(tmp_path, capsys):
+    # --form weak: the form that holds at 40 dB (docs/method.md); the JSON says which form ran
+    path = tmp_path / "run40.npz"
+    run, truth = sdof_run("base", snr_db=40.0, seed=1)
+    save_npz(run, path)
+    assert main(["reconstruct", str(path), "--json", "--form", "weak"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["settings"]["form"] == "weak"
+    assert set(d["parameters"]["fn_m"]) == set(truth.fn_m)
+    assert abs(d["parameters"]["alpha_m"] / truth.alpha_m - 1) < 0.05
+    with pytest.raises(SystemExit) as exc:           # argparse names the allowed forms
+        main(["reconstruct", str(path), "--form", "nonsense"])
+    assert exc.value.code == 2 and "invalid choice" in capsys.readouterr().err
