@@ -33,19 +33,15 @@ made by resampling what is random in those rows:
    ``d = -(J^T J)^-1 J^T r*``, the exact least-squares refit of the
    linearised model;
 5. the differentiation filter also attenuates the input's signal, not only its
-   noise (a Savitzky-Golay second derivative loses ~0.08 % at a 12.5 Hz
-   resonance with a 109-sample window at 2 kHz), and the output-error estimate
-   inherits that as a bias (ground truth, 60 dB: fn_m[y^3] -0.096 % mean error,
-   0.45 of its spread; the same fit on the noise-free signal filtered the same
-   way: -0.084 %). The filter's frequency response is known, so the input with
-   the passband loss undone (:meth:`_InputNoise.unfiltered`) gives that bias by
-   the same linearised refit, and the members are centred on the corrected
-   estimate (``input_filter_correction`` in the result: corrected minus reported);
+   noise; that deterministic loss is undone where the input is made
+   (:meth:`recon.model.HystereticModel.stage_input`, via
+   :func:`recon.differentiation.undo_passband_loss`), so the estimate the
+   ensemble is centred on carries no filter bias;
 6. the interval is the percentile interval (2.5 % and 97.5 % for 95 %) of
    every parameter over the members.
 
 Cost: ``2 p + 1`` simulations for the Jacobian plus one per member and stage
-(default 200 members) plus two per base-excited stage for the filter correction: a few seconds on a 2 x 20 000-sample run, less than
+(default 200 members): a few seconds on a 2 x 20 000-sample run, less than
 the output-error polish itself, so it runs by default (``--no-uncertainty``
 skips it; ``input_noise=False`` gives the output-noise-only ensemble, which
 needs no extra simulation and is far too narrow when the input is noisy).
@@ -146,7 +142,8 @@ def _simulate(m: HystereticModel, t, u, start):
 
 
 class _InputNoise:
-    """Draws of the noise the stage's input u carries (white channel noise through the same filter)."""
+    """Draws of the noise the stage's input u carries: white channel noise through the same
+    filter as the signal (Savitzky-Golay second derivative and the passband-loss correction)."""
 
     def __init__(self, sigma: float, n: int, dt: float, window: int | None, order: int | None, info: dict):
         self.sigma, self.n, self.dt, self.window, self.order, self.info = sigma, n, dt, window, order, info
@@ -155,47 +152,10 @@ class _InputNoise:
         e = rng.normal(0.0, self.sigma, self.n)
         if self.window is None:
             return e
-        from recon.differentiation import derivatives
+        from recon.differentiation import derivatives, undo_passband_loss
 
-        return -derivatives(e, self.dt, self.window, self.order, 2)[2]
-
-    def gain(self, f: np.ndarray) -> np.ndarray:
-        """The differentiation filter's gain relative to an exact second derivative at the
-        frequencies ``f`` [Hz] (1 for a force input, which is not filtered)."""
-        if self.window is None:
-            return np.ones_like(f, dtype=float)
-        from scipy.signal import savgol_coeffs
-
-        h = savgol_coeffs(self.window, self.order, deriv=2)   # per sample^2; symmetric: real response
-        h = h - h.mean()           # the exact coefficients sum to 0; rounding would leak into 1/w^2
-        k = np.arange(self.window) - self.window // 2
-        w = 2 * np.pi * np.asarray(f, float) * self.dt        # rad per sample
-        g = np.cos(np.outer(w, k)) @ h
-        out = np.ones_like(w)
-        nz = w > 0
-        out[nz] = g[nz] / -(w[nz] ** 2)
-        return out
-
-    def unfiltered(self, u: np.ndarray) -> np.ndarray:
-        """``u`` with the filter's attenuation g undone to first order in its passband:
-        u + (1 - g) u, whose error relative to u / g is (1 - g)^2 (< 1e-6 where g > 0.999). The record is extended by point
-        reflection at both ends before the FFT, so that its ends do not wrap onto it."""
-        if self.window is None:
-            return u
-        n = u.size
-        ext = np.concatenate([2 * u[0] - u[:0:-1], u, 2 * u[-1] - u[-2::-1]])
-        # remove the straight line through the ends (1 - g vanishes on it) so the wrap is continuous
-        ext = ext - (ext[0] + (ext[-1] - ext[0]) * np.arange(ext.size) / (ext.size - 1))
-        f = np.fft.rfftfreq(ext.size, self.dt)
-        loss = 1.0 - self.gain(f)
-        # correct the passband only: where the loss is <= 1 % (the factor there amplifies the
-        # noise by <= 1 %); rolled off smoothly to 0 at a 10 % loss and above (the filter's
-        # transition band, where u is mostly noise and undoing the loss would amplify it)
-        edge = np.flatnonzero(loss > 0.1)
-        cut = f[edge[0]] if edge.size else np.inf
-        x = np.clip((loss - 0.01) / 0.09, 0.0, 1.0)
-        taper = np.where(f < cut, 0.5 * (1 + np.cos(np.pi * x)), 0.0)
-        return u + np.fft.irfft(np.fft.rfft(ext) * loss * taper, ext.size)[n - 1:2 * n - 1]
+        return undo_passband_loss(-derivatives(e, self.dt, self.window, self.order, 2)[2], self.dt, self.window,
+                                  self.order)
 
 
 def input_noise_model(stage) -> _InputNoise:
@@ -304,8 +264,7 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
     rng = np.random.default_rng(s.seed)
     signs = rng.choice((-1.0, 1.0), size=(nb, s.n_resamples))
     members = x0[:, None] - (contrib @ signs) * scale[:, None]     # p x B
-    filtered = any(nm.window is not None for nm in noise)
-    if s.input_noise or filtered:
+    if s.input_noise:
         m0 = _build(model, keys, x0)
         base = [_simulate(m0, t, u, start)[0] for t, u, _, start in data]
     if s.input_noise:
@@ -317,21 +276,6 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
             dr = np.concatenate(dr)
             if np.all(np.isfinite(dr)):
                 members[:, b] -= (A @ dr) * scale
-    # The differentiation filter also attenuates the input's SIGNAL (a deterministic error,
-    # not noise: e.g. -0.08 % at a 12.5 Hz resonance with a 109-sample window at 2 kHz), and the
-    # output-error estimate inherits it as a bias. The linearised refit with the filter's gain
-    # undone (its frequency response is known exactly) gives that bias; the ensemble is
-    # centred on the corrected estimate.
-    filter_shift = np.zeros(p)
-    if filtered:
-        dr = []
-        for (t, u, _, start), ys0, wi, nm in zip(data, base, w, noise):
-            ys1 = _simulate(m0, t, nm.unfiltered(u), start)[0]
-            dr.append((ys1 - ys0) * wi)
-        dr = np.concatenate(dr)
-        if np.all(np.isfinite(dr)):
-            filter_shift = -(A @ dr) * scale
-            members += filter_shift[:, None]
     a = 100 * (1 - s.level) / 2
     lo, hi = np.percentile(members, [a, 100 - a], axis=1)
     sd = members.std(axis=1, ddof=1)
@@ -354,15 +298,12 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
         "intervals": shaped(np.stack([lo, hi], axis=1)),
         "std": shaped(sd),
         "estimate": shaped(x0),
-        "input_filter_correction": shaped(filter_shift),
         "at_optimum": at_optimum,
         "jacobian_condition": cond,
         "residual_nrmse": float(np.sqrt(r0 @ r0 / len(data))),
         "settings": s.to_dict(),
         "input_noise": {n: nm.info for n, nm in zip(names, noise)} if s.input_noise else None,
-        "n_simulations": 1 + 2 * p + (len(names) if s.input_noise or filtered else 0)
-                         + (len(names) * s.n_resamples if s.input_noise else 0)
-                         + sum(nm.window is not None for nm in noise),
+        "n_simulations": 1 + 2 * p + (len(names) * (1 + s.n_resamples) if s.input_noise else 0),
     }
 
 
