@@ -122,6 +122,11 @@ class ReconResult:
     settings: ReconSettings
     timings: dict = field(default_factory=dict)
     signals: dict = field(default_factory=dict, repr=False)
+    # the agent-model regression the sparse selector solved (pointwise forms): regression
+    # matrix "A", target "b", column "groups" and "core", selector "options", library "lib",
+    # the "terms" it selected; None for the weak form. recon.uncertainty.term_inclusion
+    # resamples it.
+    selection_problem: dict | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         params = self.model.to_dict()["parameters"]
@@ -256,8 +261,12 @@ def _reconstruct(run: Run, s: ReconSettings, validate_model: bool = True) -> Rec
         raise UserFacingError(f"stage {s.nonlinear_stage!r}: only {theta.shape[0]} samples in the AB/CD clusters for "
                               f"{theta.shape[1]} library columns; record longer or lower --library-order")
     groups, core = lib.groups()
-    sp = GroupedSparseSelector(groups, core, n_folds=s.n_folds, corr_len=_corr_len(nl.choice)).fit(theta, target)
+    selector = GroupedSparseSelector(groups, core, n_folds=s.n_folds, corr_len=_corr_len(nl.choice))
+    sp = selector.fit(theta, target)
     hp = extract(lib, sp.coef, sp.stderr, sp.support)
+    problem = {"A": theta, "b": target, "groups": groups, "core": core, "lib": lib, "terms": sorted(hp.fn),
+               "options": {"n_folds": selector.n_folds, "grid": selector.grid, "max_groups": selector.max_groups,
+                           "corr_len": selector.corr_len}}
     c_m, K_m = lf.c_m, lf.K_m
     if s.refit:
         mask = lib.rows(h)
@@ -305,7 +314,7 @@ def _reconstruct(run: Run, s: ReconSettings, validate_model: bool = True) -> Rec
         differentiation={"linear": lin.choice, "nonlinear": nl.choice,
                          "window": nl.choice["window"], "order": nl.choice["order"],
                          "noise_level": nl.choice["noise_level"]},
-        validation=val, settings=s, timings=timings,
+        validation=val, settings=s, timings=timings, selection_problem=problem,
         # the smoothed measured motion of the fitted stage; quantities implied by a model
         # (e.g. the hysteretic force) are derived from the final model, see recon.validation
         signals={"t": nl.t, "y": y, "dy": dy, "ddy": ddy, "u": nl.u[0]},

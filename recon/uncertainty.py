@@ -333,40 +333,15 @@ def covers(unc: dict, truth: dict) -> dict:
 # ---------------------------------------------------------------------------
 
 def reconstruct_capturing(run: Run, settings=None):
-    """``recon.pipeline.reconstruct`` that also returns the sparse-selection problem it solved
-    (regression matrix, target, column groups, selector options, library) for
-    :func:`term_inclusion`. The pipeline's selector and extraction are wrapped for the
-    duration of the call (single-threaded use only)."""
-    import recon.pipeline as P
+    """``recon.pipeline.reconstruct`` and the sparse-selection problem it solved (regression
+    matrix, target, column groups, selector options, library; ``ReconResult.selection_problem``)
+    for :func:`term_inclusion`, with the terms the reconstruction finally kept."""
+    from recon.pipeline import reconstruct
 
-    captured = []
-    orig_sel, orig_ext = P.GroupedSparseSelector, P.extract
-
-    class _Recording(orig_sel):
-        def fit(self, A, b):
-            fit = super().fit(A, b)
-            captured.append({"A": A, "b": b, "groups": self.groups, "core": self.core,
-                             "options": {"n_folds": self.n_folds, "grid": self.grid, "max_groups": self.max_groups,
-                                         "corr_len": self.corr_len}})
-            return fit
-
-    def _extract(lib, coef, stderr, support):
-        hp = orig_ext(lib, coef, stderr, support)
-        if captured and "lib" not in captured[-1]:
-            captured[-1]["lib"] = lib
-            captured[-1]["terms"] = sorted(hp.fn)
-        return hp
-
-    P.GroupedSparseSelector, P.extract = _Recording, _extract
-    try:
-        result = P.reconstruct(run, settings)
-    finally:
-        P.GroupedSparseSelector, P.extract = orig_sel, orig_ext
-    chosen = sorted(result.model.fn_m)
-    problems = [c for c in captured if "lib" in c]
-    problem = next((c for c in reversed(problems) if c["terms"] == chosen), problems[-1] if problems else None)
+    result = reconstruct(run, settings)
+    problem = result.selection_problem
     if problem is not None:
-        problem["final_terms"] = chosen
+        problem = dict(problem, final_terms=sorted(result.model.fn_m))
     return result, problem
 
 
