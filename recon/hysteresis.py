@@ -147,9 +147,21 @@ def refit(params: HysteresisParams, y, dy, ddy, dddy, u, du, s, c_m, K_m, g, fit
             T = T + g * gu
         return np.column_stack(cols), T
 
+    return project_lambda(params, system, c_m, K_m, g, fit_linear, fit_g, alpha_sign=1.0, relative=False)
+
+
+def project_lambda(params: HysteresisParams, system, c_m, K_m, g, fit_linear: bool, fit_g: bool,
+                   alpha_sign: float, relative: bool, form: str | None = None):
+    """Variable projection on lambda for the structured refits (pointwise and weak).
+
+    ``system(lam)`` returns (A, b) of a problem linear in [a_j (pattern order),
+    alpha_sign*lambda*alpha, (c, K if fit_linear), (g if fit_g)]; lambda is searched over
+    [0.2, 5] x its start, minimising the residual (``relative``: divided by |b|^2, for rows
+    whose right side depends on lambda). Returns (params, c, K, g)."""
     def solve(lam):
-        x, rss = scaled_lstsq(*system(lam))
-        return rss, x
+        A, b = system(lam)
+        x, rss = scaled_lstsq(A, b)
+        return (rss / float(b @ b) if relative else rss), x
 
     lam0 = params.lam
     lo, hi = sorted((0.2 * lam0, 5.0 * lam0))
@@ -157,9 +169,9 @@ def refit(params: HysteresisParams, y, dy, ddy, dddy, u, du, s, c_m, K_m, g, fit
                           options={"xatol": 1e-9 * abs(lam0)})
     lam = float(res.x)
     _, x = solve(lam)
-    nf = len(terms)
+    nf = len(params.fn)
     fn = {k: float(v) for k, v in zip(params.fn, x[:nf])}
-    alpha = float(x[nf] / lam)
+    alpha = float(alpha_sign * x[nf] / lam)
     i = nf + 1
     if fit_linear:
         c_m, K_m = float(x[i]), float(x[i + 1])
@@ -169,6 +181,8 @@ def refit(params: HysteresisParams, y, dy, ddy, dddy, u, du, s, c_m, K_m, g, fit
     info = dict(params.info)
     info["before_refit"] = {"lambda": params.lam, "alpha_m": params.alpha, "fn_m": dict(params.fn)}
     info["refit"] = {"linear_terms_refit": bool(fit_linear), "lambda_bounds": [lo, hi]}
+    if form:
+        info["refit"]["form"] = form
     return HysteresisParams(lam=lam, alpha=alpha, fn=fn, info=info), c_m, K_m, g
 
 

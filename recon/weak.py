@@ -52,13 +52,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import sparse
-from scipy.optimize import minimize_scalar
 
 from recon import monomials
-from recon.hysteresis import HysteresisParams, extract, fn_values
+from recon.hysteresis import HysteresisParams, extract, fn_values, project_lambda
 from recon.library import AgentLibrary, phi
 from recon.linear import LinearFit, fit_linear
-from recon.optimizers import GroupedSparseSelector, scaled_lstsq
+from recon.optimizers import GroupedSparseSelector
 from shakerlab.errors import UserFacingError
 
 BUMP_POWER = 3
@@ -286,30 +285,8 @@ def weak_refit(params: HysteresisParams, parts: WeakParts, c, K, g, fit_g: bool,
             rhs = rhs + g * (Tg + lam * Pg)
         return np.column_stack(cols), rhs
 
-    def solve(lam):
-        A, b = system(lam)
-        x, rss = scaled_lstsq(A, b)
-        return rss / float(b @ b), x
-
-    lam0 = params.lam
-    lo, hi = sorted((0.2 * lam0, 5.0 * lam0))
-    res = minimize_scalar(lambda L: solve(L)[0], bounds=(lo, hi), method="bounded",
-                          options={"xatol": 1e-9 * abs(lam0)})
-    lam = float(res.x)
-    _, x = solve(lam)
-    nf = len(terms)
-    fn = {k: float(v) for k, v in zip(params.fn, x[:nf])}
-    alpha = float(-x[nf] / lam)
-    i = nf + 1
-    if fit_linear_terms:
-        c, K = float(x[i]), float(x[i + 1])
-        i += 2
-    if fit_g:
-        g = float(x[i])
-    info = dict(params.info)
-    info["before_refit"] = {"lambda": params.lam, "alpha_m": params.alpha, "fn_m": dict(params.fn)}
-    info["refit"] = {"linear_terms_refit": bool(fit_linear_terms), "lambda_bounds": [lo, hi], "form": "weak"}
-    return HysteresisParams(lam=lam, alpha=alpha, fn=fn, info=info), c, K, g
+    return project_lambda(params, system, c, K, g, fit_linear_terms, fit_g, alpha_sign=-1.0, relative=True,
+                          form="weak")
 
 
 def weak_delta(params: HysteresisParams, L: WeakLayer, h: np.ndarray, c, K, g, Ddd: np.ndarray) -> HysteresisParams:
