@@ -3,6 +3,9 @@
 The integrator here is deliberately independent of :mod:`recon.simulate`: the
 input is an analytic multisine evaluated exactly at every RK4 stage, on a fine
 internal step (``fine`` steps per sample), and the result is sampled at ``fs``.
+It also carries the optional extra effects that recon/diagnosis/concealed.py
+hides in its recordings (friction, quadratic damping, a contact spring, a
+stiffness drift, a second mode), all zero for the plain model.
 Used by the tests and the benches to prove accuracy against known parameters.
 """
 from __future__ import annotations
@@ -13,57 +16,94 @@ import numpy as np
 from numba import njit
 
 from shakerlab.run_data import BASE, FORCE, Run, Stage
-from recon import monomials
 from recon.model import HystereticModel
 
 
-@njit(cache=True)
-def _truth_rk4(n, dt, fine, amp, omega, phase, ramp, base, g, c, k, alpha, gamma, delta, coef, p, r):
-    ys = np.zeros(n)
-    vs = np.zeros(n)
-    zs = np.zeros(n)
-    state = np.zeros(3)
-    h = dt / fine
-    k1 = np.zeros(3)
-    k2 = np.zeros(3)
-    k3 = np.zeros(3)
-    k4 = np.zeros(3)
-    tmp = np.zeros(3)
+# the extra effects of :func:`integrate` (zero: the plain model), in the order of its P vector
+EFFECT_PARAMS = ("mu", "c2", "kc", "gap", "drift", "w2", "zeta2")
 
-    def f(t, s, out):
+
+@njit(cache=True)
+def integrate(n, dt, fine, t0, amp, omega, phase, ramp, base, P, coef, p, r):
+    """RK4 with ``fine`` internal steps per sample, the multisine input evaluated exactly at
+    every stage; returns (y, y', z, q) at the n samples (from rest at t0).
+
+    P = (g, c, k, alpha, gamma, delta, mu, c2, kc, gap, drift, w2, zeta2): the model per unit
+    mass and optional extra effects (zero: absent): Coulomb friction mu tanh(y'/1e-4 m/s),
+    quadratic damping c2 y'|y'|, a contact spring kc (y - gap) for y > gap, a stiffness drift
+    k (1 + drift t) on the session clock t, and a second mode q (w2, zeta2) driven by g u."""
+    g, c, k, alpha, gamma, delta, mu, c2, kc, gap, drift, w2, zeta2 = (P[0], P[1], P[2], P[3], P[4], P[5], P[6],
+                                                                       P[7], P[8], P[9], P[10], P[11], P[12])
+    ns = 5 if w2 > 0.0 else 3          # the second mode's states only when it is there
+
+    def rhs(tt, x, out):
+        # state derivative; x = (y, y', z, q, q')
+        tl = tt - t0
+        env = tl / ramp if ramp > 0 else 1.0
         u = 0.0
-        env = t / ramp if ramp > 0 else 1.0
-        for i in range(amp.size):
-            u += env * amp[i] * np.sin(omega[i] * t + phase[i])
+        for j in range(amp.size):
+            u += env * amp[j] * np.sin(omega[j] * tl + phase[j])
             if base and ramp > 0:
                 # x = (t/T) A sin(w t + ph):  -x'' = (t/T) A w^2 sin(.) - 2 (A w / T) cos(.)
-                u -= 2.0 * amp[i] / (omega[i] * ramp) * np.cos(omega[i] * t + phase[i])
-        y = s[0]
-        v = s[1]
-        z = s[2]
+                u -= 2.0 * amp[j] / (omega[j] * ramp) * np.cos(omega[j] * tl + phase[j])
+        y = x[0]
+        v = x[1]
+        z = x[2]
         fn = 0.0
         for j in range(coef.size):
             fn += coef[j] * y ** p[j] * v ** r[j]
+        force = c * v + k * (1.0 + drift * tt) * y + fn + z
+        if mu != 0.0:
+            force += mu * np.tanh(v / 1e-4)
+        if c2 != 0.0:
+            force += c2 * v * abs(v)
+        if kc > 0.0 and y > gap:
+            force += kc * (y - gap)
         out[0] = v
-        out[1] = g * u - c * v - k * y - fn - z
+        out[1] = g * u - force
         out[2] = alpha * v - gamma * abs(v) * z - delta * v * abs(z)
+        if ns == 5:
+            out[3] = x[4]
+            out[4] = g * u - 2.0 * zeta2 * w2 * x[4] - w2 * w2 * x[3]
 
-    t = 0.0
+    res = np.zeros((4, n))
+    s = np.zeros(5)
+    tmp = np.zeros(5)
+    h = dt / fine
+    k1 = np.zeros(5)
+    k2 = np.zeros(5)
+    k3 = np.zeros(5)
+    k4 = np.zeros(5)
     for i in range(n - 1):
-        for _ in range(fine):
-            f(t, state, k1)
-            tmp[:] = state + 0.5 * h * k1
-            f(t + 0.5 * h, tmp, k2)
-            tmp[:] = state + 0.5 * h * k2
-            f(t + 0.5 * h, tmp, k3)
-            tmp[:] = state + h * k3
-            f(t + h, tmp, k4)
-            state[:] = state + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-            t += h
-        ys[i + 1] = state[0]
-        vs[i + 1] = state[1]
-        zs[i + 1] = state[2]
-    return ys, vs, zs
+        for f in range(fine):
+            ta = t0 + i * dt + f * h
+            rhs(ta, s, k1)
+            for q in range(ns):
+                tmp[q] = s[q] + 0.5 * h * k1[q]
+            rhs(ta + 0.5 * h, tmp, k2)
+            for q in range(ns):
+                tmp[q] = s[q] + 0.5 * h * k2[q]
+            rhs(ta + 0.5 * h, tmp, k3)
+            for q in range(ns):
+                tmp[q] = s[q] + h * k3[q]
+            rhs(ta + h, tmp, k4)
+            for q in range(ns):
+                s[q] += h / 6.0 * (k1[q] + 2.0 * k2[q] + 2.0 * k3[q] + k4[q])
+        res[0, i + 1] = s[0]
+        res[1, i + 1] = s[1]
+        res[2, i + 1] = s[2]
+        res[3, i + 1] = s[3]
+    return res
+
+
+def model_params(model, extras: dict | None = None) -> np.ndarray:
+    """The P vector of :func:`integrate` for ``model`` and optional extra effects."""
+    extras = extras or {}
+    unknown = set(extras) - set(EFFECT_PARAMS) - {"delay", "tip_scale", "phi2"}
+    if unknown:
+        raise ValueError(f"unknown effect parameters {sorted(unknown)}")
+    return np.array([model.input_gain, model.c_m, model.k_m, model.alpha_m, model.gamma, model.delta,
+                     *[float(extras.get(k, 0.0)) for k in EFFECT_PARAMS]], float)
 
 
 @dataclass
@@ -119,8 +159,8 @@ def simulate_truth(model: HystereticModel, signal: Multisine, fs: float, duratio
     base = model.excitation == BASE
     amp = a * w * w if base else a     # u = -x_base'' or the force
     coef, p, r = model.fn_arrays()
-    y, dy, z = _truth_rk4(n, 1.0 / fs, fine, amp, w, ph, float(signal.ramp), base, model.input_gain,
-                          model.c_m, model.k_m, model.alpha_m, model.gamma, model.delta, coef, p, r)
+    y, dy, z, _ = integrate(n, 1.0 / fs, fine, 0.0, amp, w, ph, float(signal.ramp), base, model_params(model),
+                            coef, p, r)
     u = -signal.second_derivative(t) if base else signal.value(t)
     return t, y, dy, z, u
 

@@ -1,8 +1,9 @@
 """Ground-truth recordings with one extra effect concealed in them (tests and bench).
 
-The integrator is independent of :mod:`recon.diagnosis.augmented`: the input is
-an analytic multisine evaluated exactly at every RK4 stage on a fine internal
-step, the friction uses the simulated rig's smoothing (tanh(y'/1e-4 m/s)), the
+The integrator (recon.truth.integrate, shared with the plain ground truth) is
+independent of :mod:`recon.diagnosis.augmented`: the input is an analytic
+multisine evaluated exactly at every RK4 stage on a fine internal step, the
+friction uses the simulated rig's smoothing (tanh(y'/1e-4 m/s)), the
 channel delay is a band-limited fractional shift (cubic spline; the simulated rig
 delays by whole samples at 10 kHz) and the noise is white at a given SNR per channel. Stage times run on one session clock
 (stage k starts where stage k-1 ended), so a stiffness drift accumulates over
@@ -13,62 +14,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 from scipy.interpolate import CubicSpline
 
 from shakerlab.run_data import BASE, FORCE, Run, Stage
 from recon.model import HystereticModel
-from recon.truth import Multisine
+from recon.truth import Multisine, integrate, model_params
 
 # effect id -> the truth's extra parameters at unit strength (scaled by ``strength``)
 EFFECTS = ("coulomb_friction", "quadratic_damping", "contact_stiffness", "channel_delay", "sensor_scale",
            "parameter_drift", "higher_mode", "cubic_stiffness", "quadratic_stiffness", "hysteresis")
-
-
-@njit(cache=True)
-def _truth(n, dt, fine, t0, amp, omega, phase, ramp, base, P, coef, p, r):
-    # P: g, c, k, alpha, gamma, delta, mu, c2, kc, gap, drift, w2, zeta2
-    out = np.zeros((4, n))
-    s = np.zeros(5)
-    h = dt / fine
-    ks = np.zeros((4, 5))
-    for i in range(n - 1):
-        for f in range(fine):
-            ta = t0 + i * dt + f * h
-            for st in range(4):
-                cst = 0.0 if st == 0 else (0.5 if st < 3 else 1.0)
-                tt = ta + cst * h
-                x = s.copy()
-                if st > 0:
-                    x = s + cst * h * ks[st - 1]
-                tl = tt - t0
-                env = tl / ramp if ramp > 0 else 1.0
-                u = 0.0
-                for j in range(amp.size):
-                    u += env * amp[j] * math.sin(omega[j] * tl + phase[j])
-                    if base and ramp > 0:
-                        u -= 2.0 * amp[j] / (omega[j] * ramp) * math.cos(omega[j] * tl + phase[j])
-                y = x[0]
-                v = x[1]
-                z = x[2]
-                fn = 0.0
-                for j in range(coef.size):
-                    fn += coef[j] * y ** p[j] * v ** r[j]
-                force = P[1] * v + P[2] * (1.0 + P[10] * tt) * y + fn + z
-                force += P[6] * math.tanh(v / 1e-4) + P[7] * v * abs(v)
-                if P[8] > 0.0 and y > P[9]:
-                    force += P[8] * (y - P[9])
-                ks[st, 0] = v
-                ks[st, 1] = P[0] * u - force
-                ks[st, 2] = P[3] * v - P[4] * abs(v) * z - P[5] * v * abs(z)
-                ks[st, 3] = x[4]
-                ks[st, 4] = P[0] * u - 2.0 * P[12] * P[11] * x[4] - P[11] * P[11] * x[3] if P[11] > 0 else 0.0
-            s = s + h / 6.0 * (ks[0] + 2.0 * ks[1] + 2.0 * ks[2] + ks[3])
-        out[0, i + 1] = s[0]
-        out[1, i + 1] = s[1]
-        out[2, i + 1] = s[2]
-        out[3, i + 1] = s[3]
-    return out
 
 
 def base_truth(excitation: str = BASE) -> HystereticModel:
@@ -149,16 +103,14 @@ def concealed_run(effect: str | None = None, strength: float = 1.0, excitation: 
     sigs = stage_signals(excitation, duration, rng)
     n = int(round(duration * fs)) + 1
     coef, p, r = truth.fn_arrays()
-    P = np.array([truth.input_gain, truth.c_m, truth.k_m, truth.alpha_m, truth.gamma, truth.delta,
-                  extras.get("mu", 0.0), extras.get("c2", 0.0), extras.get("kc", 0.0), extras.get("gap", 0.0),
-                  extras.get("drift", 0.0), extras.get("w2", 0.0), extras.get("zeta2", 0.0)], float)
+    P = model_params(truth, extras)
     stages = {}
     t0 = 0.0
     for name, sig in sigs.items():
         a, w, ph = sig.arrays()
         base = excitation == BASE
         amp = a * w * w if base else a
-        out = _truth(n, 1.0 / fs, fine, t0, amp, w, ph, float(sig.ramp), base, P, coef, p, r)
+        out = integrate(n, 1.0 / fs, fine, t0, amp, w, ph, float(sig.ramp), base, P, coef, p, r)
         tl = np.arange(n) / fs
         y = out[0] + extras.get("phi2", 0.0) * out[3]
         x_in = sig.value(tl)
