@@ -509,6 +509,9 @@ def reconstruct_weak(run, s, validate_model: bool = True):
                     "differentiation": {"linear": Ll.choice, "nonlinear": L.choice}},
     )
     equation_error_model = model
+    from recon.pipeline import admissible
+
+    hp.info["equation_error_admissible"] = admissible(model)
     polish_info = {"applied": False}
     if s.polish:
         from recon.polish import polish
