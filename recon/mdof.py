@@ -120,10 +120,42 @@ def _plain_fn(y, dy, Fn, order, n_folds, corr_len):
     return {monomials.name(*terms[k]): float(sp.coef[k]) for k in np.flatnonzero(sp.support)}, sp
 
 
+def _path_layer(nst: ChainStage, ch, i: int, ratios: list, g: float, y, dy, c, K, hp, order: int):
+    """The weak path form (recon/weak_path.py) on layer i of a chain: D = x_i + sum_{j<i} r_j x_j,
+    F = U_i = sum_{j<=i} f_j, y = x_i - x_(i+1); y, y' smoothed (trimmed like ``y``, ``dy``).
+    Returns (HysteresisParams, c, K)."""
+    from scipy.signal import savgol_coeffs
+
+    from recon.hysteresis import HysteresisParams
+    from recon.weak import WeakLayer
+    from recon.weak_path import fit_path, path_width
+
+    n = nst.x.shape[0]
+    half = ch.window // 2
+    sl = slice(half, nst.t.size - half)
+    x = [xx[sl] for xx in nst.x]
+    D = x[i] + sum(r * x[j] for j, r in enumerate(ratios))
+    U = sum(nst.f[j][sl] for j in range(i + 1))
+    y_raw = x[i] - x[i + 1] if i < n - 1 else x[i]
+    L = WeakLayer(dt=nst.dt, y_raw=y_raw, D_raw=D, y=y, dy=dy, Rdd=np.zeros_like(y), F=U, choice={})
+    c0 = savgol_coeffs(ch.window, ch.order)
+    names = [f"x{i + 1}"] + ([f"x{i + 2}"] if i < n - 1 else [])
+    noise_y = float(np.sqrt(sum(ch.noise_level[k] ** 2 for k in names)) * np.sqrt(c0 @ c0))
+    pf = fit_path(L, c, K, g, hp.lam, [monomials.parse(k) for k in hp.fn], order, noise_y, path_width(y, nst.dt))
+    info = dict(hp.info, path_form=pf.info())
+    return (HysteresisParams(lam=pf.gamma + pf.delta, alpha=pf.alpha, fn=pf.fn, delta=pf.delta, gamma=pf.gamma,
+                             info=info), pf.c, pf.K)
+
+
 def reconstruct_chain(run: ChainRun, order: int = 5, n_folds: int = 5, refit_params: bool = True,
-                      polish: bool = True, validate_model: bool = True, polish_substeps: int = 2) -> ChainResult:
+                      polish: bool = True, validate_model: bool = True, polish_substeps: int = 2,
+                      path_form: bool = True) -> ChainResult:
     """Per-layer identification (linear step, agent model or the no-hysteresis fallback),
-    then (``polish``) an output-error refinement of the whole chain on the nonlinear stage."""
+    then (``polish``) an output-error refinement of the whole chain on the nonlinear stage.
+
+    ``path_form``: in a layer found hysteretic, the structured refit and delta come from the
+    weak form along the hysteresis path (recon/weak_path.py; pattern revised stepwise) instead
+    of the pointwise refit and the h = 0 step."""
     from recon.pipeline import _corr_len
 
     t0 = time.perf_counter()
@@ -155,14 +187,18 @@ def reconstruct_chain(run: ChainRun, order: int = 5, n_folds: int = 5, refit_par
             info["lambda_equation_error"] = hp.lam
             info["lambda_se"] = float(lam_se)
             hyst = hp.lam > 5 * lam_se and hp.alpha > 0
-            if hyst and refit_params:
+            if hyst and path_form:
+                hp, c, K = _path_layer(nst, ch, i, ratios, g, y, dy, c, K, hp, order)
+                info["path_form"] = hp.info["path_form"]
+                hyst = hp.lam > 0 and hp.alpha > 0
+            elif hyst and refit_params:
                 mask = lib.rows(h)
                 hp, c, K, _ = refit(hp, y[mask], dy[mask], ddy[mask], dddy[mask], w[0][mask], w[1][mask],
                                     h[mask].astype(float), c, K, 1.0, fit_g=False, fit_linear=True)
                 Fn = w[0] - ddy - c * dy - K * y
                 dFn = w[1] - dddy - c * ddy - K * dy
                 hyst = hp.lam > 0 and hp.alpha > 0
-            if hyst:
+            if hyst and not path_form:
                 hp = estimate_delta(hp, y, dy, ddy, Fn, dFn, h)
         except UserFacingError as exc:
             info["agent_model"] = str(exc)

@@ -86,3 +86,18 @@ def test_bad_input_is_named():
     lin.f[:] = 0.0
     with pytest.raises(UserFacingError, match="layer 1"):
         reconstruct_chain(run)
+
+
+def test_five_layer_chain_at_60db():
+    # the weak path form in the hysteretic layers (the default) keeps the pattern of every layer
+    # at 60 dB; the pointwise refit loses y^3 of layer 3 there (bench/recon_accuracy.py, seeds 0-2)
+    truth = five_layer_truth()
+    run, _ = chain_run(truth, snr_db=60.0, seed=0, duration=5.0)
+    res = reconstruct_chain(run, polish_substeps=1)
+    for i, L in enumerate(res.layers):
+        assert set(L.fn_m) == set(truth.layer(i)["fn_m"]), (i, sorted(L.fn_m))
+        assert L.hysteresis == truth.layer(i)["hysteresis"], i
+        assert ("path_form" in L.info) == L.hysteresis
+    err = [abs(getattr(L, k) / truth.layer(i)[k] - 1) for i, L in enumerate(res.layers)
+           for k in ("k_m", "alpha_m", "gamma", "delta", "inv_m") if truth.layer(i)[k]]
+    assert max(err) < 0.01, err
