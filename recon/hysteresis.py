@@ -186,6 +186,21 @@ def project_lambda(params: HysteresisParams, system, c_m, K_m, g, fit_linear: bo
     return HysteresisParams(lam=lam, alpha=alpha, fn=fn, info=info), c_m, K_m, g
 
 
+# an fn term whose rms force is below this fraction of the elastic force K y is negligible:
+# the output-error fits drop it (SDOF pipeline and chains)
+NEGLIGIBLE = 2e-3
+
+
+def term_contributions(fn: dict, K: float, y, dy) -> dict:
+    """rms of each fn term over (y, y') relative to the rms of the elastic force K y."""
+    ref = float(np.sqrt(np.mean((K * y) ** 2))) or 1.0
+    out = {}
+    for name, a in fn.items():
+        p, r = monomials.parse(name)
+        out[name] = float(np.sqrt(np.mean((a * phi(y, dy, p, r)) ** 2))) / ref
+    return out
+
+
 def fn_values(fn: dict, y, dy):
     out = np.zeros_like(y)
     for k, a in fn.items():

@@ -31,7 +31,7 @@ import numpy as np
 
 from recon import monomials
 from recon.differentiation import choose_window, derivatives
-from recon.hysteresis import estimate_delta, extract, refit
+from recon.hysteresis import NEGLIGIBLE, estimate_delta, extract, refit, term_contributions
 from recon.kernel import cluster
 from recon.library import AgentLibrary, phi
 from recon.optimizers import GroupedSparseSelector
@@ -258,17 +258,12 @@ def validate_chain(model: ChainModel, run: ChainRun) -> dict:
     return {"stage": main, "nrmse": float(np.max(out[main])), "per_mass": out}
 
 
-PRUNE = 2e-3
+PRUNE = NEGLIGIBLE
 
 
 def contributions(model: ChainModel, i: int, y, dy) -> dict:
     """rms of each fn term of element i relative to the rms of its elastic force (k + alpha) y."""
-    ref = float(np.sqrt(np.mean(((model.k[i] + model.alpha[i]) * y) ** 2))) or 1.0
-    out = {}
-    for name, a in model.fn[i].items():
-        p, r = monomials.parse(name)
-        out[name] = float(np.sqrt(np.mean((a * phi(y, dy, p, r)) ** 2))) / ref
-    return out
+    return term_contributions(model.fn[i], model.k[i] + model.alpha[i], y, dy)
 
 
 def prune(model: ChainModel, ys: list) -> list:

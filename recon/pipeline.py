@@ -188,7 +188,7 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
                          validate_model)
     first.settings = s
     if _trusted(first):
-        return _select_terms(first, run, s, validate_model)
+        return _prune(_select_terms(first, run, s, validate_model), run, s, validate_model)
     candidates = [first]
     passes = []
     if s.linear_correction == "auto":
@@ -213,7 +213,43 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
     best.hysteresis_info["passes_compared"] = ["first"] + [r.hysteresis_info["pass"] for r in candidates[1:]]
     best.hysteresis_info.setdefault("pass", "first")
     best.hysteresis_info["linear_correction_pass"] = best.hysteresis_info["pass"] == "linear_correction"
-    return _select_terms(best, run, s, validate_model)
+    return _prune(_select_terms(best, run, s, validate_model), run, s, validate_model)
+
+
+def _prune(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool) -> ReconResult:
+    """Drop the fn terms the output error left negligible (rms below NEGLIGIBLE of the elastic
+    force on the nonlinear stage, as in chains) and polish once more. At 60 dB the term
+    selection kept a y^4*dy of 0.04 % in 13 of 50 noise seeds (its held-out gain was within
+    the information criterion's margin)."""
+    if not s.polish or not admissible(result.model) or not result.model.fn_m:
+        return result
+    from recon.hysteresis import NEGLIGIBLE, term_contributions
+    from recon.polish import polish
+    from recon.term_selection import stage_data
+
+    m = result.model
+    y, dy = result.signals.get("y"), result.signals.get("dy")
+    if y is None or dy is None:
+        return result
+    share = term_contributions(m.fn_m, m.K_m, y, dy)
+    small = sorted(k for k, v in share.items() if v < NEGLIGIBLE)
+    if not small:
+        return result
+    trial = HystereticModel.from_dict(m.to_dict())
+    trial.provenance = dict(m.provenance)
+    for k in small:
+        del trial.fn_m[k]
+    data, _, _ = stage_data(trial, run.stage(s.nonlinear_stage))
+    trial, pinfo = polish(trial, [data], max_nfev=30)
+    if not admissible(trial):
+        return result
+    trial.provenance = dict(m.provenance)
+    trial.provenance["pruned"] = {"terms": small, "share_of_elastic_force": {k: share[k] for k in small},
+                                  "threshold": NEGLIGIBLE, "polish": pinfo}
+    result.model = trial
+    if validate_model:
+        result.validation = validate(trial, run)
+    return result
 
 
 def _trusted(r: ReconResult) -> bool:
