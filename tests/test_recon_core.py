@@ -106,3 +106,15 @@ def test_missing_stage_named():
     del run.stages["nonlinear"]
     with pytest.raises(UserFacingError, match="no stage 'nonlinear'"):
         reconstruct(run)
+
+
+def test_negligible_terms_are_pruned_after_the_output_error_fit():
+    # 60 dB, noise seed 1004: the term selection keeps a spurious y^4*dy worth 0.04 % of the
+    # elastic force; the pipeline drops it (< 0.2 %) and polishes again
+    run, truth = sdof_run("base", snr_db=60.0, seed=1004)
+    m = reconstruct(run).model
+    assert set(m.fn_m) == set(truth.fn_m)
+    pruned = m.provenance.get("pruned")
+    assert pruned and pruned["terms"] == ["y^4*dy"] and pruned["share_of_elastic_force"]["y^4*dy"] < 2e-3
+    for k in ("c_m", "k_m", "alpha_m", "gamma", "delta"):
+        assert abs(getattr(m, k) / getattr(truth, k) - 1) < 0.01, k
