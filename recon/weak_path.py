@@ -67,11 +67,11 @@ from shakerlab.errors import UserFacingError
 
 GATE_SIGMAS = 4.0      # reversals smaller than this many noise std of the smoothed y are not reversals
 ROW_PERIODS = 0.5      # test-function support in periods of the dominant frequency
-ROW_OVERLAP = 4.0
+ROW_OVERLAP = 4.0      # tiled supports advance by a quarter of their width
 # evidence a term needs (BIC units, Kass & Raftery's scale): it enters only with strong
 # evidence (> 6), and leaves when the evidence for it is not worth a mention (< 2)
 ENTER_BIC = 6.0
-LEAVE_BIC = 2.0      # tiled supports advance by a quarter of their width
+LEAVE_BIC = 2.0
 
 
 @njit(cache=True)
@@ -324,9 +324,10 @@ def stepwise(prob: PathProblem, support: np.ndarray, gamma: float, delta: float,
 
     Each step scores every single addition and drop by the linearised fit (Z and its
     derivatives in gamma, delta among the columns, so the hysteresis can adapt), takes
-    the best by BIC = n_eff ln(RSS) + k ln(n_eff) (n_eff = rows / (overlap x correlation length of
-    the residual)), refits (gamma, delta) by variable projection and keeps the change only
-    if the exact BIC drops by ENTER_BIC (an addition) or rises by less than LEAVE_BIC (a drop). Returns (support, gamma, delta, history)."""
+    the best by BIC = n_eff ln(RSS) + k ln(n_eff) (n_eff = rows / (overlap x correlation
+    length of the residual)), refits (gamma, delta) by variable projection and keeps the
+    change only if the exact BIC drops by ENTER_BIC (an addition) or rises by less than
+    LEAVE_BIC (a drop). Returns (support, gamma, delta, history)."""
     lead = prob.n_lead + 2
     x, rss, A0 = prob.solve(gamma, delta, support)
     # each sample lies in ROW_OVERLAP rows, and the noise in the rows is filtered on top
