@@ -56,10 +56,7 @@ def one(mode: str, seed: int, snr: float, fs: float, duration: float, resamples:
                       for k, v in tp.items()}
             start = HystereticModel.from_dict({"excitation": "base", "parameters": jitter})
             st = run.stage("nonlinear")        # the stage the pipeline's polish fits, from its recorded start
-            u = start.stage_input(st)
-            y0, v0, z0 = start.stage_start(st, u)
-            a0 = u[0] - z0 - start.c_m * v0 - start.k_m * y0 - float(start.fn(np.array([y0]), np.array([v0]))[0])
-            model, _ = polish(start, [(st.t - st.t[0], u, st.y, (y0, v0, a0))])
+            model, _ = polish(start, [start.fit_item(st)])
         t1 = time.perf_counter()
         unc = parameter_intervals(model, run, UncertaintySettings(n_resamples=resamples, seed=seed))
     except Exception as exc:  # noqa: BLE001 - a failed repetition counts as not covered
@@ -141,7 +138,7 @@ def main(argv=None) -> int:
               f"{r['median_interval_s']:.1f} s, repetitions with wrong terms {r['wrong_terms']}, "
               f"all parameters covered in {100 * r['all_covered']:.0f} %"
               + (f", failed repetitions {len(r['errors'])}" if r["errors"] else ""))
-        print(f"| parameter | coverage | median half-width % | mean error % (bias) | rms error % |")
+        print("| parameter | coverage | median half-width % | mean error % (bias) | rms error % |")
         print("| --- | --- | --- | --- | --- |")
         for row in r["table"]:
             print(f"| {row['parameter']} | {100 * row['coverage']:.0f} % | {row['median_half_width_pct']:.3g} | "

@@ -201,8 +201,22 @@ class HystereticModel:
         v_rms = float(np.sqrt(np.mean(derivatives(y, stage.dt, ch.window, ch.order, 1)[1] ** 2)))
         if abs(y0) < 5 * sigma and (abs(v0) < 0.05 * v_rms or abs(v0) < 4 * sig_v):
             return 0.0, 0.0, 0.0
-        z0 = self.input_gain * u[0] - a0 - self.c_m * v0 - self.k_m * y0 - float(self.fn(np.array([y0]), np.array([v0]))[0])
+        z0 = self.balance(u[0], y0, v0, a0)
         return float(y0), float(v0), float(z0)
+
+    def balance(self, u0: float, y0: float, v0: float, x: float) -> float:
+        """g u - x - c y' - k y - fn(y, y') at one instant: the equation of motion gives z from
+        y'' (x = y'') or y'' from z (x = z)."""
+        return self.input_gain * u0 - x - self.c_m * v0 - self.k_m * y0 - float(
+            self.fn(np.array([y0]), np.array([v0]))[0])
+
+    def fit_item(self, stage: Stage, u=None) -> tuple:
+        """``stage`` as the output-error fits take it: (t from 0, u, y, (y0, y0', y0'')). The
+        start carries y'' rather than z, so that every trial parameter set gets its own z0
+        from :meth:`balance`."""
+        u = self.stage_input(stage) if u is None else u
+        y0, v0, z0 = self.stage_start(stage, u)
+        return stage.t - stage.t[0], u, stage.y, (y0, v0, self.balance(u[0], y0, v0, z0))
 
     def simulate_stage(self, stage: Stage):
         """(t, y_sim) for the stage's recorded input, started from the stage's initial state."""

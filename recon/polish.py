@@ -73,9 +73,7 @@ class OutputError:
             init = None
             if len(d) > 3 and d[3] is not None:
                 y0, v0, a0 = d[3]
-                z0 = m.input_gain * u[0] - a0 - m.c_m * v0 - m.k_m * y0 - float(
-                    m.fn(np.array([y0]), np.array([v0]))[0])
-                init = (y0, v0, z0)
+                init = (y0, v0, m.balance(u[0], y0, v0, a0))
             ys, _, _ = m.simulate(t, u, initial=init)
             if not np.all(np.isfinite(ys)):
                 return None

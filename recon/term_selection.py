@@ -57,10 +57,7 @@ class SelectionSettings:
 def stage_data(model: HystereticModel, stage, fs_target: float = POLISH_FS):
     """(t, u, y, start) of ``stage`` decimated to about ``fs_target`` and the decimation factor."""
     u = model.stage_input(stage)
-    y0, v0, z0 = model.stage_start(stage, u)
-    a0 = model.input_gain * u[0] - z0 - model.c_m * v0 - model.k_m * y0 - float(
-        model.fn(np.array([y0]), np.array([v0]))[0])
-    item, q = decimate((stage.t - stage.t[0], u, stage.y, (y0, v0, a0)), fs_target)
+    item, q = decimate(model.fit_item(stage, u), fs_target)
     return item, q, u
 
 

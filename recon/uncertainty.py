@@ -125,10 +125,7 @@ def _start(model: HystereticModel, stage, u):
     (as the output-error polish does), else None (from rest)."""
     if not hasattr(model, "stage_start"):
         return None
-    y0, v0, z0 = model.stage_start(stage, u)
-    a0 = model.input_gain * u[0] - z0 - model.c_m * v0 - model.k_m * y0 - float(
-        model.fn(np.array([y0]), np.array([v0]))[0])
-    return y0, v0, a0
+    return model.fit_item(stage, u)[3]
 
 
 def _simulate(m: HystereticModel, t, u, start):
@@ -137,8 +134,7 @@ def _simulate(m: HystereticModel, t, u, start):
     if start is None:
         return m.simulate(t, u)
     y0, v0, a0 = start
-    z0 = m.input_gain * u[0] - a0 - m.c_m * v0 - m.k_m * y0 - float(m.fn(np.array([y0]), np.array([v0]))[0])
-    return m.simulate(t, u, initial=(y0, v0, z0))
+    return m.simulate(t, u, initial=(y0, v0, m.balance(u[0], y0, v0, a0)))
 
 
 class _InputNoise:
