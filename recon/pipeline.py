@@ -286,6 +286,28 @@ def _select_terms(result: ReconResult, run: Run, s: ReconSettings, validate_mode
     return result
 
 
+def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info: dict, timings: dict,
+                        validate_model: bool):
+    """The common end of every form: mark whether the equation-error estimate is admissible
+    (``info``), polish it by output error on the nonlinear stage (``s.polish``), record both in
+    the provenance and validate. Returns (model, validation)."""
+    info["equation_error_admissible"] = admissible(model)
+    equation_error_model = model
+    polish_info = {"applied": False}
+    if s.polish:
+        from recon.polish import polish
+
+        tp = time.perf_counter()
+        model, polish_info = polish(model, [model.fit_item(run.stage(s.nonlinear_stage))])
+        timings["polish"] = time.perf_counter() - tp
+    model.provenance["equation_error_estimate"] = equation_error_model.to_dict()["parameters"]
+    model.provenance["output_error_polish"] = polish_info
+    t2 = time.perf_counter()
+    val = validate(model, run) if validate_model else {"nrmse": float("nan"), "stage": None}
+    timings["validation"] = time.perf_counter() - t2
+    return model, val
+
+
 def _reconstruct(run: Run, s: ReconSettings, validate_model: bool = True) -> ReconResult:
     if s.form == "weak":
         from recon.weak import reconstruct_weak
@@ -346,20 +368,7 @@ def _reconstruct(run: Run, s: ReconSettings, validate_model: bool = True) -> Rec
                     "settings": s.to_dict(), "threshold": sp.threshold, "source": run.source,
                     "differentiation": {"linear": lin.choice, "nonlinear": nl.choice}},
     )
-    equation_error_model = model
-    hp.info["equation_error_admissible"] = admissible(model)
-    polish_info = {"applied": False}
-    if s.polish:
-        from recon.polish import polish
-
-        tp = time.perf_counter()
-        model, polish_info = polish(model, [model.fit_item(run.stage(s.nonlinear_stage))])
-        timings["polish"] = time.perf_counter() - tp
-    model.provenance["equation_error_estimate"] = equation_error_model.to_dict()["parameters"]
-    model.provenance["output_error_polish"] = polish_info
-    t2 = time.perf_counter()
-    val = validate(model, run) if validate_model else {"nrmse": float("nan"), "stage": None}
-    timings["validation"] = time.perf_counter() - t2
+    model, val = polish_and_validate(model, run, s, hp.info, timings, validate_model)
     return ReconResult(
         model=model, linear=lf, sparse=sp.summary(), library_names=lib.names,
         library_coef=[float(c) for c in sp.coef], hysteresis_info=hp.info,

@@ -455,7 +455,7 @@ def reconstruct_weak(run, s, validate_model: bool = True):
     from recon.differentiation import estimate_spectrum
     from recon.linear import count_lines
     from recon.model import HystereticModel
-    from recon.pipeline import ReconResult, validate
+    from recon.pipeline import ReconResult, polish_and_validate
 
     exc = run.excitation
     timings = {}
@@ -508,22 +508,7 @@ def reconstruct_weak(run, s, validate_model: bool = True):
                                   "path_form": path_info},
                     "differentiation": {"linear": Ll.choice, "nonlinear": L.choice}},
     )
-    equation_error_model = model
-    from recon.pipeline import admissible
-
-    hp.info["equation_error_admissible"] = admissible(model)
-    polish_info = {"applied": False}
-    if s.polish:
-        from recon.polish import polish
-
-        tp = time.perf_counter()
-        model, polish_info = polish(model, [model.fit_item(st)])
-        timings["polish"] = time.perf_counter() - tp
-    model.provenance["equation_error_estimate"] = equation_error_model.to_dict()["parameters"]
-    model.provenance["output_error_polish"] = polish_info
-    t2 = time.perf_counter()
-    val = validate(model, run) if validate_model else {"nrmse": float("nan"), "stage": None}
-    timings["validation"] = time.perf_counter() - t2
+    model, val = polish_and_validate(model, run, s, hp.info, timings, validate_model)
     choice = dict(L.choice)
     return ReconResult(
         model=model, linear=lf, sparse=fit.sparse, library_names=fit.library_names,
