@@ -361,12 +361,13 @@ def fit_layer(L: WeakLayer, lib: AgentLibrary, c, K, g, fit_g: bool, Ddd: np.nda
                         library_coef=[float(v) for v in sp.coef], n_rows=len(tf), n_segments=tf.n_segments)
 
 
-def linear_weak(y_raw, D_raw, F, extra: list, dt: float, width: int, fit_g: bool, noise: dict,
-                stage_name: str = "linear", input_lines=None):
-    """Weak linear step: int psi'' D = -sum_j r_j int psi'' X_j + g int psi F + c int psi' y - K int psi y.
+def linear_weak(y_raw, D_raw, F, dt: float, width: int, fit_g: bool, noise: dict, stage_name: str = "linear",
+                input_lines=None) -> LinearFit:
+    """Weak linear step: int psi'' D = g int psi F + c int psi' y - K int psi y, test functions
+    tiled over the stage, solved by :func:`recon.linear.fit_linear` (conditioning, refusal of a
+    rank-deficient excitation, noise-aware rank decision) on the integrated columns."""
+    from shakerlab.run_data import BASE, FORCE
 
-    ``extra``: displacement channels X_j whose accelerations enter with unknown ratios r_j
-    (the other masses of a chain); returns (LinearFit, ratios)."""
     n = y_raw.size
     tf = TestFunctions.build(tiled_windows(n, width), n, dt)
     V0, V1, V2, _ = tf.V
@@ -376,31 +377,8 @@ def linear_weak(y_raw, D_raw, F, extra: list, dt: float, width: int, fit_g: bool
     w = np.sqrt(np.sum(V0.multiply(V0), axis=1)).A.ravel().mean()
     w1 = np.sqrt(np.sum(V1.multiply(V1), axis=1)).A.ravel().mean()
     cn = {"y": noise.get("y", 0.0) * w, "dy": noise.get("y", 0.0) * w1, "u": noise.get("F", 0.0) * w}
-    if not extra:
-        from shakerlab.run_data import BASE, FORCE
-
-        exc = FORCE if fit_g else BASE
-        lf = fit_linear(Y0, Y1, b, V0 @ F if fit_g else np.zeros_like(b), exc, cn, stage_name, input_lines)
-        return lf, []
-    cols = [-(V2 @ x) for x in extra] + [-Y1, -Y0, V0 @ F]
-    A = np.column_stack(cols)
-    norms = np.sqrt(np.sum(A * A, axis=0))
-    if np.any(norms == 0):
-        raise UserFacingError(f"stage {stage_name!r}: the weak linear regression has an all-zero column")
-    An = A / norms
-    sv = np.linalg.svd(An, compute_uv=False)
-    cond = float(sv[0] / sv[-1])
-    if cond > 1e8:
-        raise UserFacingError(f"stage {stage_name!r}: the linear-step excitation is rank-deficient (condition "
-                              f"number {cond:.3g}); excite with a broadband force (multisine or sweep)")
-    x, *_ = np.linalg.lstsq(An, b, rcond=None)
-    x = x / norms
-    res = b - A @ x
-    r2 = 1.0 - float(res @ res) / float(np.sum((b - b.mean()) ** 2))
-    ne = len(extra)
-    lf = LinearFit(c_m=float(x[ne]), K_m=float(x[ne + 1]), inv_m=float(x[ne + 2]), condition_number=cond,
-                   singular_values=[float(v) for v in sv], noise_floor=0.0, r2=r2)
-    return lf, [float(v) for v in x[:ne]]
+    exc = FORCE if fit_g else BASE
+    return fit_linear(Y0, Y1, b, V0 @ F if fit_g else np.zeros_like(b), exc, cn, stage_name, input_lines)
 
 
 def linear_width(x: np.ndarray, dt: float) -> int:
@@ -468,7 +446,7 @@ def reconstruct_weak(run, s, validate_model: bool = True):
     if exc != BASE:
         lines = count_lines(estimate_spectrum(lst.channels["force"], lst.dt).freqs, 1.0 / (lst.t[-1] - lst.t[0]))
     width = linear_width(Ll.y_raw, lst.dt)
-    lf, _ = linear_weak(Ll.y_raw, Ll.D_raw, Ll.F, [], lst.dt, width, exc != BASE, noise, s.linear_stage, lines)
+    lf = linear_weak(Ll.y_raw, Ll.D_raw, Ll.F, lst.dt, width, exc != BASE, noise, s.linear_stage, lines)
     timings["linear"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()

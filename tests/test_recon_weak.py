@@ -48,8 +48,7 @@ def test_weak_linear_step(excitation):
     L, _ = W.sdof_layer(st)
     lv = L.choice["noise_level"]
     noise = {"y": float(np.sqrt(sum(v ** 2 for k, v in lv.items() if k != "force"))), "F": lv.get("force", 0.0)}
-    lf, _ = W.linear_weak(L.y_raw, L.D_raw, L.F, [], st.dt, W.linear_width(L.y_raw, st.dt), excitation != "base",
-                          noise)
+    lf = W.linear_weak(L.y_raw, L.D_raw, L.F, st.dt, W.linear_width(L.y_raw, st.dt), excitation != "base", noise)
     assert abs(lf.K_m / truth.K_m - 1) < 0.01
     assert abs(lf.c_m / truth.c_m - 1) < 0.1      # c is 0.05 % of the restoring force at 5 Hz
     if excitation != "base":
