@@ -150,13 +150,9 @@ class PeriodicRecord:
                 if self.kept.any() else 0.0}
 
 
-def periodic_record(u, y, fs: float, period: int | None = None, skip_periods: int = 1,
-                    upsample: int = 8, snr_db: float = SNR_DB_DEFAULT) -> PeriodicRecord:
-    """Average the periods of a periodic record and build band-limited derivatives.
-
-    ``skip_periods`` leading periods are dropped (start-up transient); at least
-    two periods must remain so that the noise can be estimated.
-    """
+def _record(u, y):
+    """``u``, ``y`` as float arrays after the checks every single-level record needs: 1-D, equal
+    length, finite."""
     u = np.asarray(u, dtype=float)
     y = np.asarray(y, dtype=float)
     if u.shape != y.shape or u.ndim != 1:
@@ -164,6 +160,17 @@ def periodic_record(u, y, fs: float, period: int | None = None, skip_periods: in
                               f"length, got {u.shape} and {y.shape}")
     if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
         raise UserFacingError("single-level identification: the record has non-finite samples")
+    return u, y
+
+
+def periodic_record(u, y, fs: float, period: int | None = None, skip_periods: int = 1,
+                    upsample: int = 8, snr_db: float = SNR_DB_DEFAULT) -> PeriodicRecord:
+    """Average the periods of a periodic record and build band-limited derivatives.
+
+    ``skip_periods`` leading periods are dropped (start-up transient); at least
+    two periods must remain so that the noise can be estimated.
+    """
+    u, y = _record(u, y)
     period = detect_period(u) if period is None else int(period)
     if period < 16 or u.size % period:
         raise UserFacingError(f"single-level identification: record of {u.size} samples is not a whole number "
@@ -266,13 +273,7 @@ def transient_record(u, y, fs: float, upsample: int = 8) -> TransientRecord:
     """Band-limited derivative signals of a record that starts from rest (see TransientRecord)."""
     from recon.differentiation import choose_window, derivatives
 
-    u = np.asarray(u, dtype=float)
-    y = np.asarray(y, dtype=float)
-    if u.shape != y.shape or u.ndim != 1:
-        raise UserFacingError(f"single-level identification: input and output must be 1-D records of equal "
-                              f"length, got {u.shape} and {y.shape}")
-    if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
-        raise UserFacingError("single-level identification: the record has non-finite samples")
+    u, y = _record(u, y)
     if y.size < 512:
         raise UserFacingError(f"single-level identification: {y.size} samples is too short a record")
     dt = 1.0 / fs
