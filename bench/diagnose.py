@@ -47,31 +47,50 @@ def main(argv=None) -> int:
           f"{'NRMSE base':>10s} {'refit':>8s} {'after':>8s} {'t [s]':>6s}")
     total = collections.Counter()
     for eff in effects:
-        firsts, anys, wrong, nb, nr, na, ts = 0, 0, collections.Counter(), [], [], [], []
+        t = Tally(eff)
         for k in range(n):
             s = 1.0 if args.quick else float(rng.uniform(*args.strength))
             run, _, _, base = concealed_run(None if eff == "clean" else eff, s, seed=1000 + k, snr_db=args.snr)
-            t0 = time.perf_counter()
-            d = diagnose(run, base)
-            ts.append(time.perf_counter() - t0)
-            ids = [m["id"] for m in d.missing]
-            anys += bool(ids)
-            if ids and ids[0] == eff:
-                firsts += 1
-            elif ids:
-                wrong[ids[0]] += 1
-            nb.append(d.fit_before["nrmse"]["validation"])
-            nr.append(d.null.nrmse["validation"])
-            na.append(d.best_fit.nrmse["validation"])
-        w = ", ".join(f"{i}x{c}" for i, c in wrong.most_common(1)) or "-"
-        first = "-" if eff == "clean" else f"{firsts / n:.2f}"
-        print(f"{eff:21s} {n:2d} {first:>6s} {anys / n:5.2f} {w:>20s} "
-              f"{np.median(nb):10.4f} {np.median(nr):8.4f} {np.median(na):8.4f} {np.median(ts):6.1f}", flush=True)
+            t.diagnose(run, base)
+        print(f"{t.row()} {np.median(t.nb):10.4f} {np.median(t.nr):8.4f} {np.median(t.na):8.4f} "
+              f"{np.median(t.ts):6.1f}", flush=True)
         total["runs"] += n
-        total["time"] += sum(ts)
+        total["time"] += sum(t.ts)
     print(f"{total['runs']} diagnoses, {total['time'] / max(total['runs'], 1):.1f} s each on average "
           "('any' on the clean row is the false-alarm rate)")
     return 0
+
+
+class Tally:
+    """Diagnoses of recordings with one effect concealed: how often it is named first / anything
+    is named, the most common wrong first id, held-out NRMSE (baseline, null refit, after), time."""
+
+    def __init__(self, effect: str):
+        self.effect = effect
+        self.firsts = self.anys = 0
+        self.wrong = collections.Counter()
+        self.nb, self.nr, self.na, self.ts = [], [], [], []
+
+    def diagnose(self, run, baseline):
+        t0 = time.perf_counter()
+        d = diagnose(run, baseline)
+        self.ts.append(time.perf_counter() - t0)
+        ids = [m["id"] for m in d.missing]
+        self.anys += bool(ids)
+        if ids and ids[0] == self.effect:
+            self.firsts += 1
+        elif ids:
+            self.wrong[ids[0]] += 1
+        self.nb.append(d.fit_before["nrmse"]["validation"])
+        self.nr.append(d.null.nrmse["validation"])
+        self.na.append(d.best_fit.nrmse["validation"])
+
+    def row(self) -> str:
+        """effect, n, first, any, wrong first (the leading columns of both tables)."""
+        n = len(self.ts)
+        w = ", ".join(f"{i}x{c}" for i, c in self.wrong.most_common(1)) or "-"
+        first = "-" if self.effect == "clean" else f"{self.firsts / n:.2f}"
+        return f"{self.effect:21s} {n:2d} {first:>6s} {self.anys / n:5.2f} {w:>20s}"
 
 
 # the simulated rig's effects (sim_backend [effects] keys) at their "concealed" level, scaled by the strength
@@ -99,27 +118,12 @@ def rig_table(args) -> int:
     print(f"{'rig effect':21s} {'n':>2s} {'first':>6s} {'any':>5s} {'wrong first':>20s} "
           f"{'NRMSE base':>10s} {'after':>8s} {'t [s]':>6s}")
     for eff in (args.effects or list(RIG_EFFECTS)):
-        firsts = anys = 0
-        wrong = collections.Counter()
-        nb, na, ts = [], [], []
+        t = Tally(eff)
         for k in range(n):
             s = 1.0 if args.quick else float(rng.uniform(*args.strength))
             run, model = mod.rig_run(RIG_EFFECTS[eff](s), seed=100 + k)
-            t0 = time.perf_counter()
-            d = diagnose(run, model)
-            ts.append(time.perf_counter() - t0)
-            ids = [m["id"] for m in d.missing]
-            anys += bool(ids)
-            if ids and ids[0] == eff:
-                firsts += 1
-            elif ids:
-                wrong[ids[0]] += 1
-            nb.append(d.fit_before["nrmse"]["validation"])
-            na.append(d.best_fit.nrmse["validation"])
-        w = ", ".join(f"{i}x{c}" for i, c in wrong.most_common(1)) or "-"
-        first = "-" if eff == "clean" else f"{firsts / n:.2f}"
-        print(f"{eff:21s} {n:2d} {first:>6s} {anys / n:5.2f} {w:>20s} {np.median(nb):10.4f} {np.median(na):8.4f} "
-              f"{np.median(ts):6.1f}", flush=True)
+            t.diagnose(run, model)
+        print(f"{t.row()} {np.median(t.nb):10.4f} {np.median(t.na):8.4f} {np.median(t.ts):6.1f}", flush=True)
     return 0
 
 
