@@ -124,10 +124,8 @@ def _path_layer(nst: ChainStage, ch, i: int, ratios: list, g: float, y, dy, c, K
     """The weak path form (recon/weak_path.py) on layer i of a chain: D = x_i + sum_{j<i} r_j x_j,
     F = U_i = sum_{j<=i} f_j, y = x_i - x_(i+1); y, y' smoothed (trimmed like ``y``, ``dy``).
     Returns (HysteresisParams, c, K)."""
-    from scipy.signal import savgol_coeffs
-
     from recon.hysteresis import HysteresisParams
-    from recon.weak import WeakLayer
+    from recon.weak import WeakLayer, smoothed_noise
     from recon.weak_path import fit_path, path_width
 
     n = nst.x.shape[0]
@@ -137,11 +135,11 @@ def _path_layer(nst: ChainStage, ch, i: int, ratios: list, g: float, y, dy, c, K
     D = x[i] + sum(r * x[j] for j, r in enumerate(ratios))
     U = sum(nst.f[j][sl] for j in range(i + 1))
     y_raw = x[i] - x[i + 1] if i < n - 1 else x[i]
-    L = WeakLayer(dt=nst.dt, y_raw=y_raw, D_raw=D, y=y, dy=dy, Rdd=np.zeros_like(y), F=U, choice={})
-    c0 = savgol_coeffs(ch.window, ch.order)
     names = [f"x{i + 1}"] + ([f"x{i + 2}"] if i < n - 1 else [])
-    noise_y = float(np.sqrt(sum(ch.noise_level[k] ** 2 for k in names)) * np.sqrt(c0 @ c0))
-    pf = fit_path(L, c, K, g, hp.lam, [monomials.parse(k) for k in hp.fn], order, noise_y, path_width(y, nst.dt))
+    choice = {"window": ch.window, "order": ch.order, "noise_level": {k: ch.noise_level[k] for k in names}}
+    L = WeakLayer(dt=nst.dt, y_raw=y_raw, D_raw=D, y=y, dy=dy, Rdd=np.zeros_like(y), F=U, choice=choice)
+    pf = fit_path(L, c, K, g, hp.lam, [monomials.parse(k) for k in hp.fn], order, smoothed_noise(L),
+                  path_width(y, nst.dt))
     info = dict(hp.info, path_form=pf.info())
     return (HysteresisParams(lam=pf.gamma + pf.delta, alpha=pf.alpha, fn=pf.fn, delta=pf.delta, gamma=pf.gamma,
                              info=info), pf.c, pf.K)
