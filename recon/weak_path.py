@@ -149,37 +149,25 @@ def path_width(y: np.ndarray, dt: float, periods: float = ROW_PERIODS) -> int:
 
 @dataclass
 class PathRows:
-    """The integrated equation: b = int psi Q; Y = int psi y; Phi[:, j] = int psi phi_j;
-    one = int psi (offset column); V0 maps a sampled signal to its rows."""
+    """The integrated equation of a layer; V0 maps a sampled signal to its rows (int psi . dt)."""
 
-    b: np.ndarray
-    b0: np.ndarray         # int psi (g F - D''): b without the linear terms
+    b0: np.ndarray         # int psi (g F - D'')
     Yraw: np.ndarray       # int psi y (raw samples)
     dYraw: np.ndarray      # int psi y' (raw samples, by parts)
     V0: object
-    y: np.ndarray          # smoothed y, y' on the rows' sample grid (for the fn columns)
-    dy: np.ndarray
     path: np.ndarray       # gated path that zeta is integrated along
     Ysm: np.ndarray        # int psi y (smoothed)
-    one: np.ndarray
-    width: int
+    one: np.ndarray        # int psi (the offset column)
     first_row: int         # rows before this one start before the state is forgotten
 
 
-def path_rows(L, c: float, K: float, g: float, width: int, noise_y: float) -> PathRows:
+def path_rows(L, g: float, width: int, noise_y: float) -> PathRows:
     """Rows of the integrated equation of motion for the WeakLayer ``L`` (recon/weak.py)."""
     from recon.weak import TestFunctions, tiled_windows
 
-    dt = L.dt
-    y_raw, D_raw, F = L.y_raw, L.D_raw, L.F
-    ysm, dysm = L.y, L.dy
-    n = y_raw.size
-    tf = TestFunctions.build(tiled_windows(n, width), n, dt)
-    V0, V1, V2, _ = tf.V
-    b0 = g * (V0 @ F) - V2 @ D_raw
-    Yraw, dYraw = V0 @ y_raw, -(V1 @ y_raw)
-    b = b0 - c * dYraw - K * Yraw
-    path = gated_path(np.ascontiguousarray(ysm), GATE_SIGMAS * noise_y)
+    n = L.y_raw.size
+    V0, V1, V2, _ = TestFunctions.build(tiled_windows(n, width), n, L.dt).V
+    path = gated_path(np.ascontiguousarray(L.y), GATE_SIGMAS * noise_y)
     # the state from zeta(0) = 0 is forgotten after the path has reversed twice
     dpath = np.diff(path)
     turns = np.flatnonzero(np.diff(np.sign(dpath[dpath != 0])) != 0)
@@ -187,9 +175,9 @@ def path_rows(L, c: float, K: float, g: float, width: int, noise_y: float) -> Pa
     start = int(idx[turns[1] + 1]) if turns.size >= 2 else 0
     first_col = np.array([V0.indices[V0.indptr[k]] if V0.indptr[k + 1] > V0.indptr[k] else 0
                           for k in range(V0.shape[0])])
-    first_row = int(np.searchsorted(first_col, start))
-    return PathRows(b=b, b0=b0, Yraw=Yraw, dYraw=dYraw, V0=V0, y=ysm, dy=dysm, path=path, Ysm=V0 @ ysm,
-                    one=np.asarray(V0.sum(axis=1)).ravel(), width=width, first_row=first_row)
+    return PathRows(b0=g * (V0 @ L.F) - V2 @ L.D_raw, Yraw=V0 @ L.y_raw, dYraw=-(V1 @ L.y_raw), V0=V0, path=path,
+                    Ysm=V0 @ L.y, one=np.asarray(V0.sum(axis=1)).ravel(),
+                    first_row=int(np.searchsorted(first_col, start)))
 
 
 @dataclass
@@ -376,10 +364,11 @@ def fit_path(L, c: float, K: float, g: float, lam0: float, terms: list, library_
     ``terms``: the starting fn pattern (from the agent-model regression); with ``select``
     the pattern is revised stepwise over all monomials of degree 2..``library_order``
     (:func:`stepwise`). ``free``: which of c, K are fitted here (the others stay as given)."""
-    rows = path_rows(L, c, K, g, width, noise_y)
+    rows = path_rows(L, g, width, noise_y)
     cand = monomials.up_to(library_order) if select else [tuple(t) for t in terms]
     names = [monomials.name(p, r) for p, r in cand]
-    Phi = np.column_stack([rows.V0 @ phi(rows.y, rows.dy, p, r) for p, r in cand]) if cand else np.zeros((rows.b.size, 0))
+    Phi = (np.column_stack([rows.V0 @ phi(L.y, L.dy, p, r) for p, r in cand]) if cand
+           else np.zeros((rows.b0.size, 0)))
     prob = PathProblem(rows, Phi, names, c, K, free)
     if prob.b.size < 4 * (Phi.shape[1] + prob.n_lead):
         raise UserFacingError(f"weak path form: only {prob.b.size} rows for {Phi.shape[1] + prob.n_lead} columns; "
