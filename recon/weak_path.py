@@ -358,7 +358,7 @@ def stepwise(prob: PathProblem, support: np.ndarray, gamma: float, delta: float,
 
 
 def fit_path(L, c: float, K: float, g: float, lam0: float, terms: list, library_order: int,
-             noise_y: float, width: int, select: bool = True, free=("c", "K"), delta_frac: float | None = None) -> PathFit:
+             noise_y: float, width: int, select: bool = True, free=("c", "K")) -> PathFit:
     """Bouc-Wen (alpha, gamma, delta), fn, c, K and a constant force from the integrated equation.
 
     ``terms``: the starting fn pattern (from the agent-model regression); with ``select``
@@ -375,8 +375,7 @@ def fit_path(L, c: float, K: float, g: float, lam0: float, terms: list, library_
                               "record a longer nonlinear stage")
     want = {monomials.name(*t) for t in terms}
     support = np.array([n in want for n in names], bool)
-    starts = (0.2, 0.5, 0.8) if delta_frac is None else (delta_frac, 0.2, 0.5, 0.8)
-    gamma, delta = prob.fit_hysteresis(lam0, support, starts=starts)
+    gamma, delta = prob.fit_hysteresis(lam0, support)
     history = None
     if select and cand:
         support, gamma, delta, history = stepwise(prob, support, gamma, delta)
