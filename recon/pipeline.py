@@ -47,6 +47,15 @@ class ReconSettings:
     window: int | None = None       # Savitzky-Golay window for the nonlinear stage (None: chosen from the data)
     sg_order: int | None = None
 
+    FORMS = ("joint", "ab", "weak")
+
+    def __post_init__(self):
+        if self.form not in self.FORMS:
+            raise UserFacingError(f"ReconSettings.form must be one of {self.FORMS}, got {self.form!r}")
+        if self.fallback_form is not None and self.fallback_form not in self.FORMS:
+            raise UserFacingError(f"ReconSettings.fallback_form must be None or one of {self.FORMS}, "
+                                  f"got {self.fallback_form!r}")
+
     def to_dict(self):
         return asdict(self)
 

@@ -118,3 +118,10 @@ def test_negligible_terms_are_pruned_after_the_output_error_fit():
     assert pruned and pruned["terms"] == ["y^4*dy"] and pruned["share_of_elastic_force"]["y^4*dy"] < 2e-3
     for k in ("c_m", "k_m", "alpha_m", "gamma", "delta"):
         assert abs(getattr(m, k) / getattr(truth, k) - 1) < 0.01, k
+
+
+def test_unknown_form_is_named():
+    with pytest.raises(UserFacingError, match="ReconSettings.form"):
+        ReconSettings(form="nonsense")
+    with pytest.raises(UserFacingError, match="ReconSettings.fallback_form"):
+        ReconSettings(fallback_form="pointwise")      # would otherwise be skipped silently on a bad pass
