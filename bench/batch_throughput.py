@@ -3,12 +3,12 @@
     python bench/batch_throughput.py                  # 8 runs of 2 x 4 s at 1 kHz
     python bench/batch_throughput.py --runs 4 --duration 10 --fs 2000 --json
 
-Writes ``--runs`` simulated run files (recon.truth ground truth) into a
+Writes ``--runs`` simulated run files (recon.testing.truth ground truth) into a
 temporary directory, then reprocesses them (reconstruction + intervals, no
 write-back so every pass does the full work) with:
 
-- ``loop``: recon.batch.run_loop in this process (no Dask);
-- ``dask N``: recon.batch.run_batch on a fresh LocalCluster of N worker
+- ``loop``: workflows.batch.run_loop in this process (no Dask);
+- ``dask N``: workflows.batch.run_batch on a fresh LocalCluster of N worker
   processes (one thread each); the wall time includes starting and stopping
   the cluster, which is also timed on its own (``cluster start+stop``).
 
@@ -51,7 +51,7 @@ def main(argv=None) -> int:
         os.environ[var] = str(a.blas_threads)
     from dask.distributed import Client, LocalCluster
 
-    from recon.batch import BatchSettings, process_run, run_batch, run_loop, write_simulated_run
+    from workflows.batch import BatchSettings, process_run, run_batch, run_loop, write_simulated_run
 
     tmp = Path(tempfile.mkdtemp(prefix="shakerlab-batch-"))
     paths = []

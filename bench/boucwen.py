@@ -74,7 +74,7 @@ def load_test(path: Path, name: str):
 
 def simulate_test(params, u, name: str) -> np.ndarray:
     """Simulation (not prediction) from the test input only, as the benchmark prescribes."""
-    from recon.newmark import simulate_chain
+    from recon.simulation.newmark import simulate_chain
 
     if name == "multisine":  # one steady-state period: simulate one warm-up period first
         return simulate_chain(params, u, FS, periodic=True, n_warmup_periods=1)
@@ -86,8 +86,8 @@ def erms(a, b) -> float:
 
 
 def run(data: str | None = None) -> dict:
-    from recon.newmark import NewmarkParameters
-    from recon.single_level import identify
+    from recon.simulation.newmark import NewmarkParameters
+    from recon.benchmark.single_level import identify
 
     path = data_dir(data)
     u, y = load_training(path)
@@ -97,7 +97,7 @@ def run(data: str | None = None) -> dict:
 
     agent_oe = None
     if result.agent is not None and result.agent.error is None:
-        from recon.output_error import refine
+        from recon.output_error.newmark_refine import refine
 
         # the path the paper's method alone would take: agent-model estimate (with the fn terms it
         # kept) straight into output-error, skipping the hysteresis-aware step
@@ -157,8 +157,8 @@ def run(data: str | None = None) -> dict:
 def monte_carlo(n_runs: int, data: str | None = None, seed: int = 0) -> dict:
     """Spread of the estimator: the training input through the chain with the TRUE parameters, plus
     fresh white noise of the level estimated from the real record, identified n_runs times."""
-    from recon.newmark import NewmarkParameters, simulate_chain
-    from recon.single_level import identify, periodic_record
+    from recon.simulation.newmark import NewmarkParameters, simulate_chain
+    from recon.benchmark.single_level import identify, periodic_record
 
     u, y = load_training(data_dir(data))
     noise = periodic_record(u, y, FS).noise_rms

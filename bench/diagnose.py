@@ -5,7 +5,7 @@
     python bench/diagnose.py --strength 0.1 0.3 --snr 50   # weaker effects, noisier sensors
     python bench/diagnose.py --rig      # on the simulated rig's own physics (sim_backend, in-process)
 
-Each recording (recon.diagnosis.concealed: base excitation, 1 kHz, 3 x 4 s stages, 70 dB)
+Each recording (recon.testing.concealed: base excitation, 1 kHz, 3 x 4 s stages, 70 dB)
 has one catalog effect concealed; the diagnosis runs blind against the truth's model without
 the effect. Prints per effect: how often the right id ranks first, how often anything is
 reported, the most frequent wrong first answer, the validation NRMSE of the baseline (as given),
@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from recon.diagnosis.concealed import EFFECTS, concealed_run
+from recon.testing.concealed import EFFECTS, concealed_run
 from recon.diagnosis.diagnose import diagnose
 
 

@@ -9,7 +9,7 @@ Columns: max and median relative parameter error [%] (every per-unit-mass parame
 fn coefficient of the truth; for chains every layer, mass ratios excluded), spurious and
 missed fn terms (a hysteresis reported in a layer without one counts as spurious, a
 missed one as missed), validation NRMSE on the unseen stage(s) (the worst one), fit time. For chains the
-"weak" rows use the weak path form in every hysteretic layer (recon.mdof, the default;
+"weak" rows use the weak path form in every hysteretic layer (recon.chain.estimator, the default;
 the hysteresis decision and the pattern pilot still come from the pointwise agent model).
 Each form runs on its own (``fallback_form=None``): the default pipeline would switch
 to the weak form where the pointwise equation-error estimate is not admissible.
@@ -30,10 +30,10 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from recon.mdof import reconstruct_chain  # noqa: E402
-from recon.pipeline import ReconSettings, reconstruct  # noqa: E402
-from recon.truth import sdof_run  # noqa: E402
-from recon.truth_mdof import chain_run, five_layer_truth, mr_run, two_layer_truth  # noqa: E402
+from recon.chain.estimator import reconstruct_chain  # noqa: E402
+from recon import ReconSettings, reconstruct  # noqa: E402
+from recon.testing.truth import sdof_run  # noqa: E402
+from recon.testing.truth_mdof import chain_run, five_layer_truth, mr_run, two_layer_truth  # noqa: E402
 from shakerlab.errors import UserFacingError  # noqa: E402
 
 KEYS = ("c_m", "k_m", "alpha_m", "gamma", "delta")

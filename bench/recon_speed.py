@@ -2,7 +2,7 @@
 
 Run:  python bench/recon_speed.py [--snr 80] [--excitation base]
 
-Data: the ground-truth SDOF hysteretic system (recon.truth.sdof_run), two fitted
+Data: the ground-truth SDOF hysteretic system (recon.testing.truth.sdof_run), two fitted
 stages of 20 000 samples each (linear, nonlinear; 2 kHz, 10 s) plus a validation
 stage. Prints a table: fit time (numba compile excluded, printed separately),
 validation NRMSE, parameter errors, identified terms; and the same for PySINDy
@@ -67,8 +67,9 @@ def main() -> None:
     args = ap.parse_args()
 
     t0 = time.perf_counter()
-    from recon.pipeline import ReconSettings, reconstruct, stage_signals
-    from recon.truth import sdof_run
+    from recon import ReconSettings, reconstruct
+    from recon.signals import stage_signals
+    from recon.testing.truth import sdof_run
     from recon.validation import nrmse
 
     run, truth = sdof_run(args.excitation, snr_db=args.snr, seed=11)

@@ -1,10 +1,10 @@
-"""Coverage of the 95 % parameter intervals (recon.uncertainty) over simulated repetitions.
+"""Coverage of the 95 % parameter intervals (recon.output_error.uncertainty) over simulated repetitions.
 
     python bench/uncertainty_coverage.py                 # 50 repetitions at 60 dB, both modes
     python bench/uncertainty_coverage.py --reps 10 --mode structure --json
 
 Each repetition simulates the ground-truth SDOF base-excited system
-(recon.truth.sdof_run, new noise seed) at the given SNR and computes the
+(recon.testing.truth.sdof_run, new noise seed) at the given SNR and computes the
 intervals; the table gives, per parameter, the fraction of repetitions whose
 interval holds the true value, the median relative half-width and the mean
 relative error of the estimate (the bias).
@@ -36,19 +36,19 @@ NAMES = ("c_m", "k_m", "alpha_m", "gamma", "delta")
 
 def one(mode: str, seed: int, snr: float, fs: float, duration: float, resamples: int) -> dict:
     from recon.model import HystereticModel
-    from recon.truth import sdof_run
-    from recon.uncertainty import UncertaintySettings, covers, parameter_intervals
+    from recon.testing.truth import sdof_run
+    from recon.output_error.uncertainty import UncertaintySettings, covers, parameter_intervals
 
     t0 = time.perf_counter()
     run, truth = sdof_run("base", snr_db=snr, fs=fs, duration=duration, seed=1000 + seed)
     tp = truth.to_dict()["parameters"]
     try:
         if mode == "pipeline":
-            from recon.pipeline import reconstruct
+            from recon import reconstruct
 
             model = reconstruct(run).model
         else:
-            from recon.polish import polish
+            from recon.output_error.polish import polish
 
             rng = np.random.default_rng(seed)
             jitter = {k: (v * (1 + 0.03 * rng.standard_normal()) if not isinstance(v, dict)
@@ -104,7 +104,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     from dask.distributed import Client, LocalCluster, as_completed
 
-    from recon.truth import sdof_truth
+    from recon.testing.truth import sdof_truth
 
     tp = sdof_truth("base").to_dict()["parameters"]
     true_keys = list(NAMES) + [f"fn_m[{t}]" for t in tp["fn_m"]]

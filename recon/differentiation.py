@@ -18,7 +18,7 @@ channel of the stage, so that y, y', y'', y''' come from one local polynomial.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, asdict
+from dataclasses import asdict, dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -82,7 +82,7 @@ def estimate_spectrum(x: np.ndarray, dt: float) -> SpectrumEstimate:
 
 
 @lru_cache(maxsize=4096)
-def _coeffs(window: int, order: int, deriv: int, dt: float) -> np.ndarray:
+def filter_coefficients(window: int, order: int, deriv: int, dt: float) -> np.ndarray:
     return savgol_coeffs(window, order, deriv=deriv, delta=dt, use="dot")
 
 
@@ -96,7 +96,7 @@ def _response_error(coeffs: np.ndarray, dt: float, deriv: int, omega: np.ndarray
 
 def predicted_errors(window: int, order: int, deriv: int, dt: float, spectra: list[SpectrumEstimate]):
     """(noise variance, squared bias) of the derivative estimate."""
-    c = _coeffs(window, order, deriv, float(dt))
+    c = filter_coefficients(window, order, deriv, float(dt))
     noise = bias = 0.0
     g = float(np.sum(c * c))
     for s in spectra:
@@ -155,7 +155,7 @@ def choose_window(channels: dict[str, np.ndarray], dt: float, deriv: int = 3, wi
             win = int(win)
             if win <= order or win > max_win:
                 continue
-            c = _coeffs(win, order, deriv, float(dt))
+            c = filter_coefficients(win, order, deriv, float(dt))
             half = win // 2
             noise = noise_var * float(c @ c)
             bias = 0.0

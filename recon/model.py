@@ -14,9 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.differentiation import choose_window, derivatives, undo_passband_loss
+from recon.library import monomials
+from recon.simulation.rk4 import simulate_sdof, substeps
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import BASE, FORCE, Stage
-from recon import monomials
 
 UNITS = {
     "c_m": "1/s", "k_m": "1/s^2", "alpha_m": "1/s^2", "gamma": "1/m", "delta": "1/m",
@@ -142,7 +144,6 @@ class HystereticModel:
         Returns (y, dy, z) sampled at ``t`` (uniform sampling required).
         ``initial=(y0, dy0, z0)`` starts from that state instead of rest.
         """
-        from recon.simulate import simulate_sdof, substeps
 
         t = np.asarray(t, float)
         u = np.asarray(u, float)
@@ -165,7 +166,6 @@ class HystereticModel:
             raise UserFacingError(f"stage {stage.name!r} is {stage.excitation} excitation, model is {self.excitation}")
         if self.excitation == FORCE:
             return stage.channels["force"]
-        from recon.differentiation import choose_window, derivatives, undo_passband_loss
 
         # u = -x_base'' by a Savitzky-Golay second derivative, with the filter's known passband
         # loss undone (0.08 % at a 12.5 Hz drive with a 109-sample window at 2 kHz; left in, the
@@ -179,7 +179,6 @@ class HystereticModel:
 
         y, y', y'' by a Savitzky-Golay fit at the start; z from the equation of motion,
         z = g u - y'' - c y' - k y - fn(y, y'). A stage recorded from rest gives ~0."""
-        from recon.differentiation import choose_window, derivatives
 
         u = self.stage_input(stage) if u is None else u
         y = stage.y

@@ -1,4 +1,4 @@
-"""Sub-commands contributed by ``rig``: ``acquire`` and ``demo`` (see shakerlab.cli).
+"""Sub-commands contributed by ``rig``: ``acquire`` and ``gui`` (see shakerlab.cli).
 
 Kept import-light: the handlers import the heavy modules.
 """
@@ -6,7 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-EXIT_CODES = {"complete": 0, "error": 1, "tripped": 3, "aborted": 130}
+from rig.gui import register_gui  # the operator window (rig/gui/); import-light
+
 
 
 def register(subparsers) -> None:
@@ -30,33 +31,15 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="without --config: the simulated rig's noise seed")
     p.add_argument("--quiet", action="store_true", help="print only warnings, errors and the summary")
     p.set_defaults(handler=_acquire)
-
-    d = subparsers.add_parser(
-        "demo",
-        help="the whole experiment on an embedded simulated rig: record, reconstruct, report",
-        description="Start a simulated TMP-origami shaker rig, run the protocol on it (as fast as possible), "
-        "record the run file, reconstruct the governing equation, print it with the validation error "
-        "and the simulator's true parameters, and write a report with plots.",
-    )
-    d.add_argument("-o", "--output", type=Path, default=Path("shakerlab-demo"), metavar="DIR",
-                   help="report directory (default ./shakerlab-demo/)")
-    d.add_argument("--realtime", action="store_true", help="run the simulated rig in real time")
-    d.add_argument("--protocol", type=Path, metavar="PROTOCOL.toml", help="protocol (default: the shipped one)")
-    d.add_argument("--seed", type=int, default=0, help="noise seed of the simulated rig")
-    d.add_argument("--quiet", action="store_true", help="print only warnings, errors and the results")
-    d.set_defaults(handler=_demo)
-
-    from rig.gui import register_gui  # the operator window (rig/gui/); import-light
-
     register_gui(subparsers)
 
 
 def _acquire(args) -> int:
-    from rig.config import load_config
-    from rig.console import ConsoleProgress, print_summary, sigint_aborts
-    from rig.protocol import load_protocol
-    from rig.session import acquire, simulated_rig
-    from shakerlab.errors import UserFacingError
+    from rig.config import load_config  # heavy: numpy, h5py, Qt; loaded when the command runs
+    from rig.console import ConsoleProgress, print_summary, sigint_aborts  # heavy: numpy, h5py, Qt; loaded when the command runs
+    from rig.protocol import load_protocol  # heavy: numpy, h5py, Qt; loaded when the command runs
+    from rig.session import EXIT_CODES, acquire, simulated_rig  # heavy: numpy, h5py, Qt; loaded when the command runs
+    from shakerlab.errors import UserFacingError  # heavy: numpy, h5py, Qt; loaded when the command runs
 
     protocol = load_protocol(args.protocol)
     if args.output.exists() and not args.force:
@@ -81,10 +64,3 @@ def _acquire(args) -> int:
                               attrs={"simulated": True, "seed": args.seed})
     print_summary(outcome)
     return EXIT_CODES.get(outcome.status, 1)
-
-
-def _demo(args) -> int:
-    from rig.demo import run_demo
-
-    return run_demo(args.output, realtime=args.realtime, protocol_path=args.protocol, seed=args.seed,
-                    quiet=args.quiet)

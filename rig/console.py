@@ -7,7 +7,7 @@ import sys
 import threading
 import time
 
-from shakerlab.recording import read_info
+from shakerlab.runfile.reader import read_info
 
 
 class ConsoleProgress:

@@ -122,9 +122,9 @@ class RigInstruments:
     # -- connection -------------------------------------------------------------------------
     def connect(self) -> dict:
         """Open every driver and identify it; return {name: identity}."""
-        from drivers.laser_sensor import LaserSensor
-        from drivers.power_amplifier import PowerAmplifier
-        from drivers.signal_generator import SignalGenerator
+        from drivers.laser_sensor import LaserSensor  # lazy: pymodbus and pyserial when instruments are opened
+        from drivers.power_amplifier import PowerAmplifier  # lazy: pymodbus and pyserial when instruments are opened
+        from drivers.signal_generator import SignalGenerator  # lazy: pymodbus and pyserial when instruments are opened
 
         d = self.config.data
         self.gen = SignalGenerator(d["generator"]["url"], timeout=d["generator"]["timeout_s"])

@@ -1,7 +1,7 @@
-"""The HDF5 recorder: a runner observer that writes the run file (see shakerlab.recording)."""
+"""The HDF5 recorder: a runner observer that writes the run file (see shakerlab.runfile)."""
 from __future__ import annotations
 
-from shakerlab.recording import RunWriter
+from shakerlab.runfile.writer import RunWriter
 
 
 class Recorder:

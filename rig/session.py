@@ -18,6 +18,9 @@ from rig.runner import RunOutcome, Runner
 from rig.safety import Supervisor
 from shakerlab.errors import UserFacingError
 
+# exit status of `shakerlab acquire` and `shakerlab demo` per run outcome
+EXIT_CODES = {"complete": 0, "error": 1, "tripped": 3, "aborted": 130}
+
 
 def acquire(config: RigConfig, protocol: Protocol, output: str | Path, *, lockstep: bool = False,
             observers=(), overwrite: bool = False, attrs: dict | None = None, texts: dict | None = None,
@@ -62,7 +65,7 @@ def acquire(config: RigConfig, protocol: Protocol, output: str | Path, *, lockst
 @contextlib.contextmanager
 def simulated_rig(speed: float | None = 1.0, seed: int = 0, sim_config=None, rig_config: str | Path | None = None):
     """Start the simulated rig; yield (SimulatedRig, RigConfig with its addresses)."""
-    from sim_backend.rig import SimulatedRig
+    from sim_backend.rig import SimulatedRig  # lazy: the simulator only when a simulated rig is asked for
 
     sim = SimulatedRig(sim_config, speed=speed, seed=seed)
     sim.start()

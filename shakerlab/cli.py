@@ -15,7 +15,7 @@ from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 
 COMMAND_MODULES = (
-    "recon.commands",
+    "workflows.commands",
     "sim_backend.commands",
     "rig.commands",
     "shakerlab.import_command",

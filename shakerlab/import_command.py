@@ -6,7 +6,7 @@ Lines starting with ``#`` and blank lines are skipped. Every bad value is
 reported with its file, line and column.
 
 ``shakerlab import --recover CRASHED.h5 -o COPY.h5`` copies an interrupted run
-file into a new, cleanly closed one (see ``shakerlab.recording.recover_copy``).
+file into a new, cleanly closed one (see ``shakerlab.runfile.results.recover_copy``).
 """
 from __future__ import annotations
 
@@ -38,9 +38,9 @@ def read_csv(path: str | Path):
 
     Raises UserFacingError naming the file, line and column of the first bad value.
     """
-    import numpy as np
+    import numpy as np  # heavy: numpy, h5py; loaded when the command runs
 
-    from shakerlab.errors import UserFacingError
+    from shakerlab.errors import UserFacingError  # heavy: numpy, h5py; loaded when the command runs
 
     path = Path(path)
     try:
@@ -96,10 +96,10 @@ def read_csv(path: str | Path):
 
 def import_csv(output: str | Path, stage_files: dict[str, str | Path], *, overwrite: bool = False) -> Path:
     """Write a run file from ``{stage name: CSV path}``; return the output path."""
-    import numpy as np
+    import numpy as np  # heavy: numpy, h5py; loaded when the command runs
 
-    from shakerlab.errors import UserFacingError
-    from shakerlab.recording import RunWriter
+    from shakerlab.errors import UserFacingError  # heavy: numpy, h5py; loaded when the command runs
+    from shakerlab.runfile.writer import RunWriter  # heavy: numpy, h5py; loaded when the command runs
 
     if not stage_files:
         raise UserFacingError("nothing to import: give at least one of --linear, --nonlinear, --validation")
@@ -130,8 +130,9 @@ def import_csv(output: str | Path, stage_files: dict[str, str | Path], *, overwr
 
 
 def _handle(args) -> int:
-    from shakerlab.errors import UserFacingError
-    from shakerlab.recording import read_info, recover_copy
+    from shakerlab.errors import UserFacingError  # heavy: numpy, h5py; loaded when the command runs
+    from shakerlab.runfile.reader import read_info  # heavy: numpy, h5py; loaded when the command runs
+    from shakerlab.runfile.results import recover_copy  # heavy: numpy, h5py; loaded when the command runs
 
     if args.recover is not None:
         if any(getattr(args, s) for s in STAGE_OPTIONS):

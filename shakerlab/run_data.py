@@ -14,7 +14,6 @@ File formats (``.h5`` run files, ``.npz``) are read by :func:`load_run`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -99,56 +98,3 @@ class Run:
         if len(kinds) != 1:
             raise UserFacingError(f"{self.source or 'run'}: stages mix excitation kinds {sorted(kinds)}")
         return kinds.pop()
-
-
-def load_npz(path: str | Path) -> Run:
-    """Read an ``.npz`` run: arrays named ``<stage>/<channel>`` or ``<stage>_<channel>``.
-
-    Channels per stage: ``t`` plus ``x_base, x_tip`` (base excitation) or
-    ``force, x`` (force excitation).
-    """
-    path = Path(path)
-    try:
-        data = np.load(path, allow_pickle=False)
-    except Exception as exc:  # noqa: BLE001 - any unreadable file is the user's problem
-        raise UserFacingError(f"{path}: not a readable .npz file ({exc})") from None
-    grouped: dict[str, dict[str, np.ndarray]] = {}
-    for key in data.files:
-        for sep in ("/", "_"):
-            stage, _, channel = key.partition(sep)
-            if channel in ("t", "x_base", "x_tip", "force", "x"):
-                grouped.setdefault(stage, {})[channel] = data[key]
-                break
-    if not grouped:
-        raise UserFacingError(f"{path}: no stage arrays (expected names like 'linear/t', 'linear/x_tip')")
-    stages = {}
-    for name, ch in grouped.items():
-        if "t" not in ch:
-            raise UserFacingError(f"{path}: stage {name!r} has no time array 't'")
-        excitation = FORCE if "force" in ch else BASE
-        t = ch.pop("t")
-        stages[name] = Stage(name=name, t=t, channels=ch, excitation=excitation)
-    return Run(stages=stages, source=str(path))
-
-
-def save_npz(run: Run, path: str | Path) -> None:
-    arrays = {}
-    for name, st in run.stages.items():
-        arrays[f"{name}/t"] = st.t
-        for ch, v in st.channels.items():
-            arrays[f"{name}/{ch}"] = v
-    np.savez(path, **arrays)
-
-
-def load_run(path: str | Path) -> Run:
-    """Load a run from ``.h5`` (shakerlab run file) or ``.npz``."""
-    path = Path(path)
-    if not path.exists():
-        raise UserFacingError(f"{path}: no such file")
-    if path.suffix == ".npz":
-        return load_npz(path)
-    if path.suffix in (".h5", ".hdf5", ".nxs"):
-        from shakerlab import recording  # the HDF5 run-file format
-
-        return recording.read_run(path)
-    raise UserFacingError(f"{path}: unknown run file type {path.suffix!r} (expected .h5 or .npz)")

@@ -24,11 +24,11 @@ def register(subparsers) -> None:
 
 
 def _serve(args) -> int:
-    import sys
-    import time
+    import sys  # heavy: numba physics; loaded when the command runs
+    import time  # heavy: numba physics; loaded when the command runs
 
-    from shakerlab.errors import UserFacingError
-    from sim_backend.rig import SimulatedRig
+    from shakerlab.errors import UserFacingError  # heavy: numba physics; loaded when the command runs
+    from sim_backend.rig import SimulatedRig  # heavy: numba physics; loaded when the command runs
 
     if args.speed == "max":
         speed = None

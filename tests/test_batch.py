@@ -10,14 +10,14 @@ import h5py
 import numpy as np
 import pytest
 
-from recon.batch import (BatchSettings, expand, format_table, process_run, run_batch, settings_hash, write_csv,
+from workflows.batch import (BatchSettings, expand, format_table, process_run, run_batch, settings_hash, write_csv,
                          write_simulated_run)
-from recon.pipeline import ReconSettings, reconstruct
-from recon.uncertainty import UncertaintySettings, parameter_intervals
+from recon import ReconSettings, reconstruct
+from recon.output_error.uncertainty import UncertaintySettings, parameter_intervals
 from shakerlab.cli import main
 from shakerlab.errors import UserFacingError
-from shakerlab.recording import read_results
-from shakerlab.run_data import load_run
+from shakerlab.runfile.results import read_results
+from shakerlab.runfile.reader import load_run
 
 FAST = {"n_resamples": 50}
 GOOD = ("run_a.h5", "run_b.h5")
@@ -126,7 +126,7 @@ def test_reprocess_cli_serial_and_errors(batch_dir, tmp_path, capsys):
 
 
 def test_diagnose_unavailable_is_said(batch_dir, monkeypatch):
-    import recon.batch as batch
+    import workflows.batch as batch
 
     d, _ = batch_dir
     monkeypatch.setattr(batch, "diagnosis_available", lambda: False)

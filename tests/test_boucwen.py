@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from shakerlab.errors import UserFacingError
-from recon import resampling
-from recon.newmark import NewmarkParameters, newmark_integrate, simulate_chain
-from recon.output_error import refine
-from recon.single_level import detect_period, hysteresis_step, linear_step, periodic_record
+from recon.simulation import resampling
+from recon.simulation.newmark import NewmarkParameters, newmark_integrate, simulate_chain
+from recon.output_error.newmark_refine import refine
+from recon.benchmark.single_level import detect_period, hysteresis_step, linear_step, periodic_record
 
 FS = 750.0
 TRUE = NewmarkParameters.from_benchmark(m=2.0, c=10.0, k=5e4, alpha=5e4, beta_gamma=800.0, beta_delta=-1100.0)
@@ -160,7 +160,7 @@ def test_resampling_rejects_bad_input():
 
 def test_refine_model_accepts_a_hysteretic_model(training):
     from recon.model import HystereticModel
-    from recon.output_error import refine_model
+    from recon.output_error.newmark_refine import refine_model
 
     u, y = training
     n = 1500

@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.newmark import NewmarkParameters, simulate_chain
-from recon.single_level import agent_model_step, identify, linear_step, periodic_record
+from recon.simulation.newmark import NewmarkParameters, simulate_chain
+from recon.benchmark.single_level import agent_model_step, identify, linear_step, periodic_record
 
 FS = 750.0
 TRUE = NewmarkParameters(c=8 / 1.5, k=3e4 / 1.5, alpha=4e4 / 1.5, gamma=600.0, delta=-300.0, b=1 / 1.5,

@@ -7,7 +7,8 @@ import pytest
 from shakerlab import __version__
 from shakerlab.cli import main
 from shakerlab.errors import UserFacingError
-from shakerlab.run_data import Run, Stage, load_run, save_npz
+from shakerlab.run_data import Run, Stage
+from shakerlab.runfile.reader import load_run, save_npz
 
 
 def test_version_from_console_script():

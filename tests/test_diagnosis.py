@@ -8,12 +8,13 @@ import pytest
 
 from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.catalog import CATALOG
-from recon.diagnosis.concealed import EFFECTS, concealed_run
+from recon.testing.concealed import EFFECTS, concealed_run
 from recon.diagnosis.diagnose import diagnose
 from recon.diagnosis.locate import billings_voon
 from shakerlab.cli import main
 from shakerlab.errors import UserFacingError
-from shakerlab.run_data import FORCE, save_npz
+from shakerlab.run_data import FORCE
+from shakerlab.runfile.reader import save_npz
 
 # the truth's value of the main parameter each effect adds (checked within 15 %; the drift within
 # 30 %: it trades off against k_m over a 12 s session)

@@ -8,7 +8,8 @@ from PySide6 import QtCore
 
 from drivers.power_amplifier import PowerAmplifier
 from rig.gui.window import MainWindow
-from shakerlab.recording import add_result, read_events, read_info, read_results
+from shakerlab.runfile.results import add_result, read_results
+from shakerlab.runfile.reader import read_events, read_info
 
 PROTOCOL = """
 [run]

@@ -5,7 +5,7 @@ import pytest
 from shakerlab.cli import main
 from shakerlab.errors import UserFacingError
 from shakerlab.import_command import import_csv
-from shakerlab.run_data import load_run
+from shakerlab.runfile.reader import load_run
 
 
 def _csv(path, header, cols):

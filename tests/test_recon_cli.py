@@ -3,9 +3,9 @@ import json
 
 import pytest
 
-from recon.truth import sdof_run
+from recon.testing.truth import sdof_run
 from shakerlab.cli import main
-from shakerlab.run_data import save_npz
+from shakerlab.runfile.reader import save_npz
 
 
 @pytest.fixture(scope="module")

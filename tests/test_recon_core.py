@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from recon.pipeline import ReconSettings, reconstruct
-from recon.truth import Multisine, make_stage, sdof_run, sdof_truth
+from recon import ReconSettings, reconstruct
+from recon.testing.truth import Multisine, make_stage, sdof_run, sdof_truth
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import Run, Stage
 
@@ -63,7 +63,7 @@ def test_settings_report_choices(result_80db):
 def test_window_adapts_to_noise():
     clean, _ = sdof_run("base", snr_db=100.0, seed=1)
     noisy, _ = sdof_run("base", snr_db=60.0, seed=1)
-    from recon.pipeline import stage_signals
+    from recon.signals import stage_signals
 
     w_clean = stage_signals(clean.stage("nonlinear"), 3).choice
     w_noisy = stage_signals(noisy.stage("nonlinear"), 3).choice
@@ -92,8 +92,8 @@ def test_single_tone_force_excitation_is_refused():
 def test_single_tone_base_excitation_is_fine():
     # base excitation fixes the input coefficient to 1: one tone is enough
     run, truth = sdof_run("base", snr_db=80.0, seed=2)
-    from recon.pipeline import stage_signals
-    from recon.linear import fit_linear
+    from recon.signals import stage_signals
+    from recon.steps.linear import fit_linear
 
     sig = stage_signals(run.stage("linear"), 2, for_regression=False)
     lf = fit_linear(sig.y[0], sig.y[1], sig.y[2], sig.u[0], "base", sig.column_noise)

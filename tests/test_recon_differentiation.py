@@ -5,7 +5,7 @@ import numpy as np
 
 from recon.differentiation import derivative_gain, derivatives, undo_passband_loss
 from recon.model import HystereticModel
-from recon.truth import sdof_run
+from recon.testing.truth import sdof_run
 
 DT = 1.0 / 2000.0
 WINDOW, ORDER = 109, 7

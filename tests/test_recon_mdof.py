@@ -7,9 +7,9 @@ while still failing on any real mistake (a wrong mass ratio or a missed term is 
 import numpy as np
 import pytest
 
-from recon.mdof import linear_layer, reconstruct_chain, _derivs
-from recon.truth import Multisine
-from recon.truth_mdof import ChainRun, chain_run, chain_stage, five_layer_truth, two_layer_truth
+from recon.chain.estimator import linear_layer, reconstruct_chain, _derivs
+from recon.testing.truth import Multisine
+from recon.testing.truth_mdof import ChainRun, chain_run, chain_stage, five_layer_truth, two_layer_truth
 from shakerlab.errors import UserFacingError
 
 KEYS = ("c_m", "k_m", "alpha_m", "gamma", "delta", "inv_m")

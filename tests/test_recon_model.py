@@ -5,11 +5,11 @@ import json
 import numpy as np
 import pytest
 
-from recon import monomials
-from recon.kernel import cluster
-from recon.library import AgentLibrary, dphi
+from recon.library import monomials
+from recon.library.clustering import cluster
+from recon.library.agent import AgentLibrary, dphi
 from recon.model import HystereticModel
-from recon.truth import Multisine, sdof_truth, simulate_truth
+from recon.testing.truth import Multisine, sdof_truth, simulate_truth
 from recon.validation import nrmse
 from shakerlab.errors import UserFacingError
 
@@ -94,7 +94,7 @@ def test_library_reproduces_fn_derivative_exactly(form):
 
 def test_simulate_stage_starts_from_the_recorded_state():
     # a stage cut in the middle of the motion (as a rig stage that follows another one)
-    from recon.truth import sdof_run
+    from recon.testing.truth import sdof_run
     from shakerlab.run_data import Stage
 
     run, truth = sdof_run("base", snr_db=80.0, duration=4.0, seed=4)

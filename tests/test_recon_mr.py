@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from recon.model import HystereticModel
-from recon.pipeline import reconstruct, validate
-from recon.truth_mdof import MR_PARAMS, mr_run
+from recon import reconstruct
+from recon.estimator.finish import validate
+from recon.testing.truth_mdof import MR_PARAMS, mr_run
 
 
 @pytest.fixture(scope="module")

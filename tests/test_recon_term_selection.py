@@ -5,9 +5,9 @@ present, parameters a few percent off), polish it, and let the selection repair 
 import numpy as np
 import pytest
 
-from recon.polish import OutputError, polish
-from recon.term_selection import select_terms, stage_data
-from recon.truth import sdof_run
+from recon.output_error.polish import OutputError, polish
+from recon.output_error.term_selection import select_terms, stage_data
+from recon.testing.truth import sdof_run
 
 PARAMS = ("c_m", "k_m", "alpha_m", "gamma", "delta")
 

@@ -3,10 +3,10 @@ the weak linear step recovers c and K, and the estimator runs end to end."""
 import numpy as np
 import pytest
 
-import recon.weak as W
-from recon.library import AgentLibrary
-from recon.pipeline import ReconSettings, reconstruct
-from recon.truth import sdof_run
+import recon.weak.segments as W
+from recon.library.agent import AgentLibrary
+from recon import ReconSettings, reconstruct
+from recon.testing.truth import sdof_run
 
 
 def _system(excitation, snr_db, power, discrete=True):

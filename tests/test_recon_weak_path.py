@@ -4,11 +4,11 @@ weak-form estimator at 40 dB SNR."""
 import numpy as np
 import pytest
 
-import recon.weak as W
-import recon.weak_path as P
+import recon.weak.segments as W
+import recon.weak.path as P
 from recon.model import HystereticModel
-from recon.pipeline import ReconSettings, reconstruct
-from recon.truth import sdof_run
+from recon import ReconSettings, reconstruct
+from recon.testing.truth import sdof_run
 
 CORE = ("c_m", "k_m", "alpha_m", "gamma", "delta")
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from shakerlab.errors import UserFacingError
-from shakerlab.recording import (RunWriter, add_result, open_for_results, read_events, read_info, read_results,
-                                 read_run, recover_copy)
-from shakerlab.run_data import load_run
+from shakerlab.runfile.writer import RunWriter
+from shakerlab.runfile.results import add_result, open_for_results, read_results, recover_copy
+from shakerlab.runfile.reader import load_run, read_events, read_info, read_run
 
 
 def _write(path, n=5000, fs=1000.0):
@@ -97,7 +97,7 @@ def test_results_only_into_clean_files(tmp_path):
 
 WRITER = r"""
 import sys, time, numpy as np
-from shakerlab.recording import RunWriter
+from shakerlab.runfile.writer import RunWriter
 w = RunWriter(sys.argv[1], flush_interval=0.2)
 st = w.begin_stage("linear", fs=1000.0)
 i = 0

@@ -6,11 +6,11 @@ from html import unescape
 import h5py
 import pytest
 
-from recon.batch import write_simulated_run
-from recon.truth import sdof_run
+from workflows.batch import write_simulated_run
+from recon.testing.truth import sdof_run
 from shakerlab.cli import main
-from shakerlab.recording import read_results
-from shakerlab.run_data import save_npz
+from shakerlab.runfile.results import read_results
+from shakerlab.runfile.reader import save_npz
 
 
 @pytest.fixture(scope="module")

@@ -11,8 +11,8 @@ import pytest
 from rig.config import DEFAULT_RIG_PATH, load_config
 from rig.protocol import parse_protocol
 from rig.session import acquire, simulated_rig
-from shakerlab.recording import read_events, read_info
-from shakerlab.run_data import load_run
+from shakerlab.runfile.reader import read_events, read_info
+from shakerlab.runfile.reader import load_run
 
 SMALL_PROTOCOL = """
 [run]

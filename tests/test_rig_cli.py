@@ -11,7 +11,7 @@ import pytest
 
 from rig.config import DEFAULT_RIG_PATH
 from shakerlab.cli import main
-from shakerlab.recording import read_events, read_info, read_run
+from shakerlab.runfile.reader import read_events, read_info, read_run
 from sim_backend.rig import SimulatedRig
 
 from test_rig_acquisition import SMALL_PROTOCOL

@@ -10,7 +10,7 @@ import pytest
 
 from rig.protocol import load_protocol
 from rig.session import acquire, simulated_rig
-from shakerlab.run_data import load_run
+from shakerlab.runfile.reader import load_run
 
 pytestmark = pytest.mark.slow
 WEAK = "weak"
@@ -18,7 +18,7 @@ WEAK = "weak"
 
 @pytest.fixture(scope="module", params=[1])
 def reconstructed(request, tmp_path_factory):
-    from recon.pipeline import ReconSettings, reconstruct
+    from recon import ReconSettings, reconstruct
 
     path = tmp_path_factory.mktemp("e2e") / "run.h5"
     with simulated_rig(speed=None, seed=request.param) as (sim, cfg):

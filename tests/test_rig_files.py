@@ -142,7 +142,9 @@ def test_peak_frequency_refines_between_grid_points():
 def test_every_field_is_documented():
     from pathlib import Path
 
-    from rig import config, protocol
+    from rig import config
+
+    from rig import protocol
     from rig.toml_fields import schema_doc
 
     root = Path(__file__).resolve().parents[1]

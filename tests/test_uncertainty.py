@@ -1,10 +1,10 @@
-"""Parameter intervals (recon.uncertainty) on ground truth with known parameters."""
+"""Parameter intervals (recon.output_error.uncertainty) on ground truth with known parameters."""
 import numpy as np
 import pytest
 
-from recon.pipeline import reconstruct
-from recon.truth import sdof_run
-from recon.uncertainty import (UncertaintySettings, covers, fitted_stages, parameter_intervals, reconstruct_capturing,
+from recon import reconstruct
+from recon.testing.truth import sdof_run
+from recon.output_error.uncertainty import (UncertaintySettings, covers, fitted_stages, parameter_intervals, reconstruct_capturing,
                                term_inclusion)
 from shakerlab.errors import UserFacingError
 

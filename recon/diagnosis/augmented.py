@@ -16,7 +16,7 @@ What the sensors report (the output the model is compared with):
 ``t`` in the drift term is the stage's recorded time (session time when the
 recording keeps it). Every extra is off when its parameter is 0, so an
 ``AugmentedModel`` with no extras simulates exactly like its baseline.
-The integrator is the same fixed-step RK4 as :mod:`recon.simulate` (input
+The integrator is the same fixed-step RK4 as :mod:`recon.simulation.rk4` (input
 interpolated linearly between samples, sub-steps when sampling is coarse).
 """
 from __future__ import annotations
@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
+from recon.model import HystereticModel
+from recon.simulation.rk4 import substeps
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import BASE, Stage
-from recon.model import HystereticModel
-from recon.simulate import substeps
 
 EXTRAS = {
     # name: (default, unit, meaning)

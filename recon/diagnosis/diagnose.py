@@ -13,6 +13,7 @@ held-out mismatch they remove.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -20,13 +21,17 @@ from pathlib import Path
 
 import numpy as np
 
-from shakerlab.errors import UserFacingError
-from shakerlab.run_data import BASE, Run
 from recon.diagnosis import rank
 from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.catalog import CATALOG
-from recon.diagnosis.locate import locate
+from recon.diagnosis.locate import locate, stage_derivatives
+from recon.differentiation import estimate_spectrum
+from recon.estimator.pipeline import reconstruct
 from recon.model import HystereticModel
+from recon.signals import stage_signals
+from recon.steps.linear import count_lines, fit_linear
+from shakerlab.errors import UserFacingError
+from shakerlab.run_data import BASE, Run
 
 # which located findings support which candidate (evidence, not the decision)
 SIGNATURES = {
@@ -45,16 +50,12 @@ SIGNATURES = {
 
 def linear_baseline(run: Run) -> HystereticModel:
     """y'' + c y' + k y = g u from the linear step of recon (first stage named 'linear', else the first)."""
-    from recon.linear import fit_linear
-    from recon.pipeline import stage_signals
 
     name = "linear" if "linear" in run.stages else next(iter(run.stages))
     st = run.stage(name)
     s = stage_signals(st, deriv=2, for_regression=False)
     lines = None
     if st.excitation != BASE:
-        from recon.differentiation import estimate_spectrum
-        from recon.linear import count_lines
 
         lines = count_lines(estimate_spectrum(st.channels["force"], st.dt).freqs, 1.0 / (st.t[-1] - st.t[0]))
     lf = fit_linear(s.y[0], s.y[1], s.y[2], s.u[0], st.excitation, s.column_noise, name, lines)
@@ -69,7 +70,6 @@ def resolve_baseline(run: Run, baseline) -> tuple[AugmentedModel, str]:
     if isinstance(baseline, HystereticModel):
         return AugmentedModel(HystereticModel.from_dict(baseline.to_dict())), "model"
     if baseline in (None, "paper"):
-        from recon.pipeline import reconstruct
 
         return AugmentedModel(reconstruct(run).model), "paper"
     if baseline == "linear":
@@ -125,13 +125,28 @@ def _params_of(fr: rank.FitResult, keys) -> dict:
     return out
 
 
+# numerical failures of one candidate's fit or simulation: recorded, never raised
+CANDIDATE_FAILURES = (ArithmeticError, ValueError, np.linalg.LinAlgError)
+
+
+def _check_null(null, data, run) -> None:
+    """The null model (the baseline refitted) must simulate every stage and leave held-out samples."""
+    if null.n_held == 0:
+        raise UserFacingError(f"{run.source or 'run'}: no held-out samples to compare models on (stages "
+                              f"{', '.join(d.name for d in data)}); record a validation stage or longer stages")
+    if not math.isfinite(null.mse_held):
+        bad = [d for d in data if not np.isfinite(null.nrmse.get(d.name, np.nan))]
+        where = ", ".join(d.name for d in bad) or ", ".join(d.name for d in data)
+        raise UserFacingError(f"{run.source or 'run'}: the baseline refitted by output error does not simulate "
+                              f"stage(s) {where} (the simulation diverged); try --baseline linear or a saved model")
+
+
 def _one_blas_thread():
     """The fits' Jacobians are tall and thin: threaded BLAS only adds contention (40x slower
     SVDs measured on 2 shared cores), so BLAS runs single-threaded during a diagnosis."""
     try:
-        from threadpoolctl import threadpool_limits
+        from threadpoolctl import threadpool_limits  # optional: threadpoolctl may be absent
     except ImportError:          # optional: without it the diagnosis is only slower
-        import contextlib
 
         return contextlib.nullcontext()
     return threadpool_limits(1, user_api="blas")
@@ -153,8 +168,8 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     bkeys = rank.baseline_keys(base.baseline)
     extra_keys = [f"x:{k}" for k in base.extras if k not in ("v0", "side")]
     null = rank.fit(base, bkeys + extra_keys, data, max_nfev=max_nfev)
+    _check_null(null, data, run)
     sims = rank.simulate_all(null.model, data)
-    from recon.diagnosis.locate import stage_derivatives
 
     derivs = stage_derivatives(run, data)
     findings, ctx = locate(null.model, run, data, sims, derivs)
@@ -169,39 +184,47 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
         if cid in null.model.added or not cand.applies(null.model.baseline, ctx):
             continue
         tc = time.perf_counter()
-        starts = cand.starts(null.model.baseline, ctx)
-        for m, _, _, _ in starts:       # keep extras already in the baseline
-            for k, v in null.model.extras.items():
-                m.extras.setdefault(k, v)
-            m.added = list(null.model.added) + [cid]
-        if cand.column is not None:     # linear in its first parameter: equation-error step per start
-            stepped = [rank.equation_step(m, bkeys, keys[0], cand.column, derivs, data) for m, keys, _, _ in starts]
-            i = int(np.argmin([r for _, r in stepped]))
-            _, keys, sc, b = starts[i]
-            m = stepped[i][0]
-            lo = b.get(keys[0], (-np.inf, np.inf))[0]
-            if keys[0].startswith("x:") and np.isfinite(lo) and m.extras[keys[0][2:]] < lo:
-                # the equation-error step points across the term's physical bound (input-estimation
-                # errors bias it): also start from two values inside the bound, refit with c and k,
-                # and keep the start that fits best
-                m.extras[keys[0][2:]] = lo
-                tries = [m]
-                for mult in (1.0, 5.0):
-                    mm = m.copy()
-                    mm.extras[keys[0][2:]] = lo + mult * sc[keys[0]]
-                    tries.append(mm)
-                screened = [rank.fit(mm, [keys[0], "c_m", "k_m"], data, sc, max_nfev=8, bounds=b) for mm in tries]
-                m = screened[int(np.argmin([f.cost_fit for f in screened]))].model
-        elif len(starts) > 1:           # screen the starts with only the new terms free
-            screened = [rank.fit(m, keys[:cand.screen_keys], data, sc, max_nfev=5, bounds=b)
-                        for m, keys, sc, b in starts]
-            i = int(np.argmin([s.cost_fit for s in screened]))
-            m, keys, sc, b = starts[i]
-            m = screened[i].model
-        else:
-            m, keys, sc, b = starts[0]
-        fr = rank.fit(m, bkeys + extra_keys + keys, data, sc, max_nfev=max_nfev, bounds=b)
-        sc_ = rank.score(null, fr, len(keys), noise_mse)
+        try:
+            starts = cand.starts(null.model.baseline, ctx)
+            for m, _, _, _ in starts:       # keep extras already in the baseline
+                for k, v in null.model.extras.items():
+                    m.extras.setdefault(k, v)
+                m.added = list(null.model.added) + [cid]
+            if cand.column is not None:     # linear in its first parameter: equation-error step per start
+                stepped = [rank.equation_step(m, bkeys, keys[0], cand.column, derivs, data) for m, keys, _, _ in starts]
+                i = int(np.argmin([r for _, r in stepped]))
+                _, keys, sc, b = starts[i]
+                m = stepped[i][0]
+                lo = b.get(keys[0], (-np.inf, np.inf))[0]
+                if keys[0].startswith("x:") and np.isfinite(lo) and m.extras[keys[0][2:]] < lo:
+                    # the equation-error step points across the term's physical bound (input-estimation
+                    # errors bias it): also start from two values inside the bound, refit with c and k,
+                    # and keep the start that fits best
+                    m.extras[keys[0][2:]] = lo
+                    tries = [m]
+                    for mult in (1.0, 5.0):
+                        mm = m.copy()
+                        mm.extras[keys[0][2:]] = lo + mult * sc[keys[0]]
+                        tries.append(mm)
+                    screened = [rank.fit(mm, [keys[0], "c_m", "k_m"], data, sc, max_nfev=8, bounds=b) for mm in tries]
+                    m = screened[int(np.argmin([f.cost_fit for f in screened]))].model
+            elif len(starts) > 1:           # screen the starts with only the new terms free
+                screened = [rank.fit(m, keys[:cand.screen_keys], data, sc, max_nfev=5, bounds=b)
+                            for m, keys, sc, b in starts]
+                i = int(np.argmin([s.cost_fit for s in screened]))
+                m, keys, sc, b = starts[i]
+                m = screened[i].model
+            else:
+                m, keys, sc, b = starts[0]
+            fr = rank.fit(m, bkeys + extra_keys + keys, data, sc, max_nfev=max_nfev, bounds=b)
+            if not (math.isfinite(fr.mse_held) and fr.n_held > 0):
+                raise FloatingPointError(f"held-out mean-square error is {fr.mse_held} on {fr.n_held} samples")
+            sc_ = rank.score(null, fr, len(keys), noise_mse)
+        except CANDIDATE_FAILURES as exc:
+            # a candidate whose fit or simulation fails is recorded with its reason and not ranked
+            tested.append({"id": cid, "failed": f"{type(exc).__name__}: {exc}", "significant": False,
+                           "seconds": time.perf_counter() - tc})
+            continue
         fits[cid] = (fr, keys, sc, b)
         tested.append({"id": cid, **sc_, "held_out_nrmse": fr.nrmse_held, "seconds": time.perf_counter() - tc})
     sig = [t for t in tested if t["significant"]]
@@ -220,9 +243,13 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             if cand.id == "contact_stiffness":
                 m.extras["side"] = fr1.model.get("side")
             m.added = list(best_fr.model.added) + [t["id"]]
-            frc = rank.fit(m, bkeys + extra_keys + best_keys + keys1, data, {**best_sc, **sc1}, max_nfev=max_nfev,
-                           bounds={**best_b, **b1})
-            s2 = rank.score(best_fr, frc, len(keys1), noise_mse)
+            try:
+                frc = rank.fit(m, bkeys + extra_keys + best_keys + keys1, data, {**best_sc, **sc1},
+                               max_nfev=max_nfev, bounds={**best_b, **b1})
+                s2 = rank.score(best_fr, frc, len(keys1), noise_mse)
+            except CANDIDATE_FAILURES as exc:
+                t["on_top_of_best"] = {"failed": f"{type(exc).__name__}: {exc}", "significant": False}
+                continue
             t["on_top_of_best"] = s2
             if s2["significant"]:
                 kept.append(t)

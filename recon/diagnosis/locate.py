@@ -15,11 +15,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.signal import welch
+from scipy.signal import cont2discrete, lfilter, welch
 
-from shakerlab.run_data import BASE
 from recon.differentiation import choose_window, derivatives
-from recon.kernel import cluster
+from shakerlab.run_data import BASE
 
 N_SEGMENTS = 8
 UNITS = {
@@ -130,7 +129,6 @@ def billings_voon(e, u, max_lag=20):
 
 def mode_response(u, dt, w, zeta, g=1.0):
     """q of q'' + 2 zeta w q' + w^2 q = g u (zero-order-hold discretisation, from rest)."""
-    from scipy.signal import cont2discrete, lfilter
 
     num, den, _ = cont2discrete(([g], [1.0, 2 * zeta * w, w * w]), dt, method="bilinear")
     return lfilter(np.ravel(num), den, u)

@@ -27,10 +27,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from shakerlab.run_data import BASE, Run
 from recon.diagnosis.augmented import AugmentedModel
+from recon.diagnosis.locate import equation_residual
 from recon.differentiation import estimate_spectrum
+from recon.library import monomials
 from recon.model import HystereticModel
+from shakerlab.run_data import BASE, Run
 
 BIC_MARGIN = 10.0
 MIN_EXPLAINED = 0.15
@@ -244,7 +246,7 @@ def effective_samples(r: np.ndarray, max_lag: int = 2000) -> float:
 def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> dict:
     """Held-out comparison of a candidate with the null model (see the module docstring)."""
     n_eff = effective_samples(null.resid_held)
-    if not math.isfinite(cand.mse_held) or cand.mse_held <= 0:
+    if not (math.isfinite(cand.mse_held) and math.isfinite(null.mse_held)) or cand.mse_held <= 0 or null.mse_held <= 0:
         return {"dbic": float("inf"), "explained": 0.0, "n_eff": n_eff, "significant": False}
     dbic = n_eff * math.log(cand.mse_held / null.mse_held) + k_added * math.log(n_eff)
     excess = max(null.mse_held - noise_mse, 1e-300)
@@ -265,8 +267,6 @@ def equation_step(am: AugmentedModel, keys: list[str], new_key: str | None, colu
     then ``am`` moved by those increments (the differentiation bias is common to every
     column, so increments are far less biased than a fresh equation-error fit).
     Returns (model, relative residual rms)."""
-    from recon.diagnosis.locate import equation_residual
-    from recon import monomials
 
     rows, rhs = [], []
     for d in data:

@@ -15,16 +15,16 @@ import threading
 
 def run_gui(args) -> int:
     """Handler of ``shakerlab gui``: open the window, run the Qt event loop, stop safely."""
-    import os
-    import sys
+    import os  # heavy: Qt and pyqtgraph; loaded when the window opens
+    import sys  # heavy: Qt and pyqtgraph; loaded when the window opens
 
-    from PySide6 import QtWidgets
+    from PySide6 import QtWidgets  # heavy: Qt and pyqtgraph; loaded when the window opens
 
-    from rig.gui.window import MainWindow
+    from rig.gui.window import MainWindow  # heavy: Qt and pyqtgraph; loaded when the window opens
 
     if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY") and sys.platform.startswith("linux") \
             and not os.environ.get("QT_QPA_PLATFORM"):
-        from shakerlab.errors import UserFacingError
+        from shakerlab.errors import UserFacingError  # heavy: Qt and pyqtgraph; loaded when the window opens
 
         raise UserFacingError("no display (DISPLAY and WAYLAND_DISPLAY are unset); set QT_QPA_PLATFORM=offscreen "
                               "to run the window without one")
@@ -54,7 +54,7 @@ def _close_on_signals(window) -> dict:
     """Ctrl-C / SIGTERM close the window like its close button (a run is aborted safely first);
     a second one during that ramp-down cuts at once. The window's redraw timer lets Python run the
     handler within a frame."""
-    from PySide6 import QtCore
+    from PySide6 import QtCore  # heavy: Qt and pyqtgraph; loaded when the window opens
 
     def handler(signum, frame):  # noqa: ARG001 - signal handler signature
         if window.running() and window._close_pending:
@@ -69,7 +69,7 @@ def _close_on_signals(window) -> dict:
 
 def register_gui(subparsers) -> None:
     """Add ``shakerlab gui`` (called from rig/commands.py; import-light)."""
-    from pathlib import Path
+    from pathlib import Path  # heavy: Qt and pyqtgraph; loaded when the window opens
 
     g = subparsers.add_parser(
         "gui",

@@ -5,7 +5,7 @@ shown but nothing is written into it); when it already holds a
 reconstruction result (``entry/results/reconstruction_NNN``, written by
 ``shakerlab demo``, ``shakerlab reconstruct`` or this GUI) the newest one is
 shown, otherwise (or with ``reconstruct=True``) the governing equation is
-reconstructed with :func:`recon.pipeline.reconstruct` and written back into
+reconstructed with :func:`recon.estimator.pipeline.reconstruct` and written back into
 the file (when it was closed cleanly). The model is then simulated on the
 validation stage to give the measured-vs-simulated overlay and the
 hysteresis loop. A diagnosis is shown only when the file holds a
@@ -69,7 +69,7 @@ def _diagnosis_text(payload: dict) -> str:
 def data_loop(model, stage):
     """(y, z) implied by a base-excitation stage's data and the model's other terms, last third:
     ``z = -x_base'' - y'' - c_m y' - k_m y - fn(y, y')`` with Savitzky-Golay derivatives."""
-    from recon.differentiation import choose_window, derivatives
+    from recon.differentiation import choose_window, derivatives  # heavy: recon, loaded when a result is shown
 
     n = stage.t.size
     xb, xt = stage.channels["x_base"][2 * n // 3:], stage.channels["x_tip"][2 * n // 3:]
@@ -89,9 +89,11 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
     ``truth``: the simulated specimen's true parameters (runs on the simulated rig); shown beside the
     identified ones and stored with a new result.
     """
-    from recon.model import HystereticModel
-    from shakerlab.recording import add_result, read_info, read_results
-    from shakerlab.run_data import load_run
+    from recon.model import HystereticModel  # heavy: recon, loaded when a result is shown
+    from shakerlab.jsonsafe import clean  # heavy: recon, loaded when a result is shown
+    from shakerlab.runfile.results import read_results, store_result  # heavy: recon, loaded when a result is shown
+    from shakerlab.runfile.reader import read_info  # heavy: recon, loaded when a result is shown
+    from shakerlab.runfile.reader import load_run  # heavy: recon, loaded when a result is shown
 
     path = Path(path)
     run = load_run(path)
@@ -105,7 +107,7 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
     group, payload = _latest(results, "reconstruction")
     measured_loop = None
     if payload is None or reconstruct:
-        from recon.pipeline import reconstruct as run_recon
+        from recon.estimator.pipeline import reconstruct as run_recon  # heavy: recon, loaded when a result is shown
 
         result = run_recon(run)
         payload = result.to_dict()
@@ -114,16 +116,16 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
         model = result.model
         origin = "reconstructed now"
         if write_back:
-            if info["clean_close"]:
-                group = add_result(path, "reconstruction", payload, text=str(model))
-                origin += f", written to {group}"
+            group, note = store_result(path, "reconstruction", clean(payload), text=str(model))
+            if group is not None:
+                origin += f", written to entry/results/{group}"
             else:
-                notes.append("the run file was not closed cleanly: the result is not written into it")
+                notes.append(note)
     else:
         model = HystereticModel.from_dict({"excitation": payload.get("excitation", "base"),
                                            "parameters": payload["parameters"]})
         origin = f"stored result {group}"
-    from recon.validation import nrmse
+    from recon.validation import nrmse  # heavy: recon, loaded when a result is shown
 
     val = payload.get("validation", {}) or {}
     vstage = val.get("stage")

@@ -201,14 +201,14 @@ class MainWindow(QtWidgets.QMainWindow):
         return self._run_thread is not None and self._run_thread.is_alive()
 
     def config(self):
-        from rig.config import load_config
+        from rig.config import load_config  # lazy: loaded when the operator uses it (window start-up time)
 
         text = self.connection.config_path.text().strip()
         return load_config(text or None)
 
     def protocol(self):
         """The protocol in the editor (validated); the source names the file it came from."""
-        from rig.protocol import parse_protocol
+        from rig.protocol import parse_protocol  # lazy: loaded when the operator uses it (window start-up time)
 
         text = self.protocol_panel.editor.toPlainText()
         source = self._protocol_source + (" (edited)" if text != self._protocol_text else "")
@@ -219,7 +219,7 @@ class MainWindow(QtWidgets.QMainWindow):
         return parse_protocol(data, text, source)
 
     def load_protocol_file(self, path) -> None:
-        from rig.protocol import DEFAULT_PROTOCOL_PATH
+        from rig.protocol import DEFAULT_PROTOCOL_PATH  # lazy: loaded when the operator uses it (window start-up time)
 
         p = Path(path) if path else DEFAULT_PROTOCOL_PATH
         try:
@@ -288,7 +288,7 @@ class MainWindow(QtWidgets.QMainWindow):
     # -- simulated rig ------------------------------------------------------------------------------
     def _ensure_sim(self):
         """Start (or restart at another speed) the simulated rig; worker threads only."""
-        from sim_backend.rig import SimulatedRig
+        from sim_backend.rig import SimulatedRig  # lazy: loaded when the operator uses it (window start-up time)
 
         v = self.connection.speed.value()
         speed = None if v == 0 else float(v)
@@ -329,7 +329,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.connection.connect_button.setEnabled(False)
 
         def work():
-            from rig.instruments import RigInstruments
+            from rig.instruments import RigInstruments  # lazy: loaded when the operator uses it (window start-up time)
 
             try:
                 cfg = config.with_addresses(self._ensure_sim().addresses) if simulated else config
@@ -413,7 +413,7 @@ class MainWindow(QtWidgets.QMainWindow):
         bridge = _Bridge(self.signals)
 
         def work():
-            from rig.session import acquire
+            from rig.session import acquire  # lazy: loaded when the operator uses it (window start-up time)
 
             try:
                 cfg, lockstep, attrs, texts = config, False, {"operator_interface": "shakerlab gui"}, {}
@@ -421,7 +421,7 @@ class MainWindow(QtWidgets.QMainWindow):
                     sim = self._ensure_sim()
                     cfg = config.with_addresses(sim.addresses)
                     lockstep = self._sim_speed is None
-                    from sim_backend.config import DEFAULT_CONFIG_PATH
+                    from sim_backend.config import DEFAULT_CONFIG_PATH  # lazy: loaded when the operator uses it (window start-up time)
 
                     attrs.update(simulated=True, seed=self.seed)
                     texts["simulator_toml"] = DEFAULT_CONFIG_PATH.read_text()
@@ -569,7 +569,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.tabs.setCurrentWidget(self.results)
 
         def work():
-            from rig.gui.results import view_of_run_file
+            from rig.gui.results import view_of_run_file  # lazy: loaded when the operator uses it (window start-up time)
 
             try:
                 self.signals.result_ready.emit(view_of_run_file(path, reconstruct=reconstruct, truth=truth))

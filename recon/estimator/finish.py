@@ -1,0 +1,52 @@
+"""The end every form shares: admissibility, output-error polish, validation."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from recon.estimator.result import ReconSettings
+from recon.model import HystereticModel
+from recon.output_error.polish import polish
+from recon.validation import nrmse
+from shakerlab.run_data import Run
+
+
+def validate(model: HystereticModel, run: Run, skip: tuple = ()) -> dict:
+    names = [n for n in run.stages if n.startswith("validation")]
+    if not names:
+        names = [n for n in ("nonlinear",) if n in run.stages]
+    out = {}
+    for n in names:
+        st = run.stage(n)
+        _, ysim = model.simulate_stage(st)
+        out[n] = nrmse(ysim, st.y)
+    main = names[0] if names else None
+    return {"nrmse": out.get(main, float("nan")), "stage": main, "per_stage": out,
+            "fitted_on_validation_stage": main == "nonlinear"}
+
+
+def admissible(model: HystereticModel) -> bool:
+    """Physically admissible Bouc-Wen model: lambda > 0, alpha > 0, K > 0, finite."""
+    vals = [model.c_m, model.k_m, model.alpha_m, model.gamma, model.delta, *model.fn_m.values()]
+    return bool(np.all(np.isfinite(vals)) and model.lam > 0 and model.alpha_m > 0 and model.K_m > 0)
+
+
+def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info: dict, timings: dict,
+                        validate_model: bool):
+    """The common end of every form: mark whether the equation-error estimate is admissible
+    (``info``), polish it by output error on the nonlinear stage (``s.polish``), record both in
+    the provenance and validate. Returns (model, validation)."""
+    info["equation_error_admissible"] = admissible(model)
+    equation_error_model = model
+    polish_info = {"applied": False}
+    if s.polish:
+        tp = time.perf_counter()
+        model, polish_info = polish(model, [model.fit_item(run.stage(s.nonlinear_stage))])
+        timings["polish"] = time.perf_counter() - tp
+    model.provenance["equation_error_estimate"] = equation_error_model.to_dict()["parameters"]
+    model.provenance["output_error_polish"] = polish_info
+    t2 = time.perf_counter()
+    val = validate(model, run) if validate_model else {"nrmse": float("nan"), "stage": None}
+    timings["validation"] = time.perf_counter() - t2
+    return model, val

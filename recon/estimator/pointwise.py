@@ -1,0 +1,89 @@
+"""The pointwise estimator: linear step, agent-model sparse regression, Bouc-Wen parameters."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from recon.differentiation import estimate_spectrum
+from recon.estimator.finish import polish_and_validate
+from recon.estimator.result import ReconResult, ReconSettings
+from recon.library.agent import AgentLibrary
+from recon.library.clustering import cluster
+from recon.model import HystereticModel
+from recon.regression.criteria import filter_correlation_length
+from recon.regression.sparse import GroupedSparseSelector
+from recon.signals import stage_signals
+from recon.steps.bouc_wen import estimate_delta, extract, refit
+from recon.steps.linear import count_lines, fit_linear
+from shakerlab import __version__
+from shakerlab.errors import UserFacingError
+from shakerlab.run_data import BASE, Run
+
+
+def reconstruct_pointwise(run: Run, s: ReconSettings, validate_model: bool = True) -> ReconResult:
+    """The pointwise forms (``joint``, ``ab``): the agent model regressed sample by sample."""
+    exc = run.excitation
+    timings = {}
+    t0 = time.perf_counter()
+    # the linear step regresses on noisy columns (y', y): errors-in-variables, so the
+    # pointwise-optimal filter is used there; the nonlinear step uses the regression criterion
+    lin = stage_signals(run.stage(s.linear_stage), deriv=2, for_regression=False)
+    lst = run.stage(s.linear_stage)
+    lines = None
+    if exc != BASE:
+        lines = count_lines(estimate_spectrum(lst.channels["force"], lst.dt).freqs, 1.0 / (lst.t[-1] - lst.t[0]))
+    lf = fit_linear(lin.y[0], lin.y[1], lin.y[2], lin.u[0], exc, lin.column_noise, s.linear_stage, lines)
+    timings["linear"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    nl = stage_signals(run.stage(s.nonlinear_stage), deriv=3, window=s.window, order=s.sg_order)
+    y, dy, ddy, dddy = nl.y
+    g = 1.0 if exc == BASE else lf.inv_m
+    Fn = g * nl.u[0] - ddy - lf.c_m * dy - lf.K_m * y
+    dFn = g * nl.u[1] - dddy - lf.c_m * ddy - lf.K_m * dy
+    h = cluster(y, dy)
+    lib = AgentLibrary(s.library_order, s.form, linear_correction=bool(s.linear_correction) and s.form == "joint")
+    theta, target = lib.build(y, dy, ddy, Fn, dFn, h)
+    if theta.shape[0] < 4 * theta.shape[1]:
+        raise UserFacingError(f"stage {s.nonlinear_stage!r}: only {theta.shape[0]} samples in the AB/CD clusters for "
+                              f"{theta.shape[1]} library columns; record longer or lower --library-order")
+    groups, core = lib.groups()
+    selector = GroupedSparseSelector(groups, core, n_folds=s.n_folds, corr_len=filter_correlation_length(nl.choice))
+    sp = selector.fit(theta, target)
+    hp = extract(lib, sp.coef, sp.stderr, sp.support)
+    problem = {"A": theta, "b": target, "groups": groups, "core": core, "lib": lib, "terms": sorted(hp.fn),
+               "options": {"n_folds": selector.n_folds, "grid": selector.grid, "max_groups": selector.max_groups,
+                           "corr_len": selector.corr_len}}
+    c_m, K_m = lf.c_m, lf.K_m
+    if s.refit:
+        mask = lib.rows(h)
+        sig = h[mask].astype(float)
+        if lib.form == "ab":
+            sig = np.ones_like(sig)
+        hp, c_m, K_m, g = refit(hp, y[mask], dy[mask], ddy[mask], dddy[mask], nl.u[0][mask], nl.u[1][mask], sig,
+                                lf.c_m, lf.K_m, g, fit_g=exc != BASE, fit_linear=s.refit_linear)
+        Fn = g * nl.u[0] - ddy - c_m * dy - K_m * y
+        dFn = g * nl.u[1] - dddy - c_m * ddy - K_m * dy
+    hp = estimate_delta(hp, y, dy, ddy, Fn, dFn, h)
+    timings["nonlinear"] = time.perf_counter() - t1
+
+    model = HystereticModel(
+        excitation=exc, c_m=c_m, k_m=K_m - hp.alpha, alpha_m=hp.alpha, gamma=hp.gamma, delta=hp.delta,
+        fn_m=hp.fn, inv_m=None if exc == BASE else g,
+        provenance={"method": "agent-model sparse regression (shakerlab recon)", "software": f"shakerlab {__version__}",
+                    "settings": s.to_dict(), "threshold": sp.threshold, "source": run.source,
+                    "differentiation": {"linear": lin.choice, "nonlinear": nl.choice}},
+    )
+    model, val = polish_and_validate(model, run, s, hp.info, timings, validate_model)
+    return ReconResult(
+        model=model, linear=lf, sparse=sp.summary(), library_names=lib.names,
+        library_coef=[float(c) for c in sp.coef], hysteresis_info=hp.info,
+        differentiation={"linear": lin.choice, "nonlinear": nl.choice,
+                         "window": nl.choice["window"], "order": nl.choice["order"],
+                         "noise_level": nl.choice["noise_level"]},
+        validation=val, settings=s, timings=timings, selection_problem=problem,
+        # the smoothed measured motion of the fitted stage; quantities implied by a model
+        # (e.g. the hysteretic force) are derived from the final model, see recon.validation
+        signals={"t": nl.t, "y": y, "dy": dy, "ddy": ddy, "u": nl.u[0]},
+    )

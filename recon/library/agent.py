@@ -1,0 +1,170 @@
+"""The agent-model library for Fn' (the derivative of the nonlinear force).
+
+With fn = sum_j a_j phi_j(y, y') (phi_j = y^p y'^r, degree 2..q) and the
+Bouc-Wen agent zn' = -s lambda y' z on the clusters AB (s = +1) and CD (s = -1):
+
+    Fn' = sum_j a_j phi_j' + s lambda sum_j a_j y' phi_j - s lambda alpha y y' - s lambda y' Fn
+
+Two forms of the regression are offered:
+
+``joint`` (default): the CD rows are multiplied by s so that one coefficient
+vector fits AB and CD together. Target s Fn'; columns
+
+    s*d/dt(phi_j)   coefficient a_j           (named "d(phi)")
+    y'*phi_j        coefficient lambda a_j    (named "dy*phi")
+    y*y'            coefficient -lambda alpha
+    y'*Fn           coefficient -lambda
+
+No columns merge (s separates d(y^m)/dt = m y^(m-1) y' from y' y^(m-1)).
+
+``ab`` (the paper's form, AB samples only, s = +1): columns merge, so the
+pure-y coefficients must be recovered by back-substitution:
+
+    xi block   y^(m-i) y'^(i+1), m = 2..q, i = 0..m
+               (y^m y' has coefficient lambda a_{y^m} + (m+1) a_{y^(m+1)})
+    psi block  d/dt(y^p y'^r) for r >= 1, coefficient a_{y^p y'^r}
+    y*y'       coefficient 2 a_{y^2} - lambda alpha
+    y'*Fn      coefficient -lambda
+
+The columns are plain functions of per-sample arrays, so the same library is
+reused per layer (MDOF) and by an integral (weak-form) builder.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from recon.library import monomials
+from shakerlab.errors import UserFacingError
+
+FORMS = ("joint", "ab")
+
+
+def phi(y, dy, p, r):
+    return y ** p * dy ** r
+
+
+def dphi(y, dy, ddy, p, r):
+    """d/dt (y^p y'^r) = p y^(p-1) y'^(r+1) + r y^p y'^(r-1) y''."""
+    out = np.zeros_like(y)
+    if p:
+        out = out + p * y ** (p - 1) * dy ** (r + 1)
+    if r:
+        out = out + r * y ** p * dy ** (r - 1) * ddy
+    return out
+
+
+@dataclass(frozen=True)
+class Column:
+    name: str
+    role: str            # joint: a, lam_a, lam_alpha, lam ; ab: xi, psi, yy, yFn
+    p: int = 0
+    r: int = 0
+
+
+class AgentLibrary:
+    def __init__(self, order: int = 5, form: str = "joint", linear_correction: bool = False):
+        if order < 2:
+            raise UserFacingError(f"library order must be >= 2, got {order}")
+        if form not in FORMS:
+            raise UserFacingError(f"library form must be one of {FORMS}, got {form!r}")
+        self.order = int(order)
+        self.form = form
+        self.linear_correction = bool(linear_correction)
+        self.terms = monomials.up_to(self.order)
+        cols = []
+        if form == "joint":
+            for p, r in self.terms:
+                cols.append(Column(f"d({monomials.name(p, r)})", "a", p, r))
+            for p, r in self.terms:
+                cols.append(Column(f"dy*{monomials.name(p, r)}", "lam_a", p, r))
+            cols.append(Column("y*dy", "lam_alpha", 1, 1))
+            cols.append(Column("dy*Fn", "lam"))
+            if self.linear_correction:
+                # absorb the linear step's errors dc, dK: Fn carries -dc y' - dK y, so s Fn'
+                # gains s y'', s y' and the y' Fn column gains y'^2 (and y y', already present)
+                cols.append(Column("s*ddy", "lin", 0, 0))
+                cols.append(Column("s*dy", "lin", 0, 1))
+                cols.append(Column("dy^2", "lin", 0, 2))
+        else:
+            for m in range(2, self.order + 1):
+                for i in range(m + 1):
+                    cols.append(Column(monomials.name(m - i, i + 1), "xi", m - i, i))
+            for p, r in self.terms:
+                if r >= 1:
+                    cols.append(Column(f"d({monomials.name(p, r)})", "psi", p, r))
+            cols.append(Column("y*dy", "yy", 1, 1))
+            cols.append(Column("dy*Fn", "yFn"))
+        self.columns = cols
+
+    def groups(self):
+        """(groups, core): the columns one monomial's a_j enters, and the always-offered core.
+
+        joint: y^p y'^r -> {s*d(phi), y'*phi}. ab: non-pure -> {psi, xi}; pure y^m ->
+        {xi(y^m y'), xi(y^(m-1) y')} because d(y^m)/dt = m y^(m-1) y' merges into the
+        lower column (for m = 2 that is the core column y y')."""
+        core = [k for k, c in enumerate(self.columns) if c.role in ("lam_alpha", "lam", "yy", "yFn", "lin")]
+        by_term = {}
+        index = {(c.role, c.p, c.r): k for k, c in enumerate(self.columns)}
+        for k, c in enumerate(self.columns):
+            if c.role in ("a", "lam_a", "psi"):
+                by_term.setdefault((c.p, c.r), []).append(k)
+            elif c.role == "xi":
+                by_term.setdefault((c.p, c.r), []).append(k)
+                if c.r == 0 and ("xi", c.p - 1, 0) in index:
+                    by_term[(c.p, c.r)].append(index[("xi", c.p - 1, 0)])
+        return [sorted(set(g)) for g in by_term.values()], core
+
+    @property
+    def names(self) -> list[str]:
+        return [c.name for c in self.columns]
+
+    def rows(self, h: np.ndarray) -> np.ndarray:
+        """Samples this form uses (boolean mask) given the cluster array h."""
+        return (h != 0) if self.form == "joint" else (h == 1)
+
+    def build(self, y, dy, ddy, Fn, dFn, h):
+        """(Theta, target) over the rows this form uses."""
+        mask = self.rows(h)
+        y, dy, ddy, Fn, dFn = (a[mask] for a in (y, dy, ddy, Fn, dFn))
+        s = h[mask].astype(float)
+        theta = np.empty((y.size, len(self.columns)))
+        for k, c in enumerate(self.columns):
+            if c.role == "a":
+                theta[:, k] = s * dphi(y, dy, ddy, c.p, c.r)
+            elif c.role in ("lam_a", "xi"):
+                theta[:, k] = dy * phi(y, dy, c.p, c.r)
+            elif c.role == "psi":
+                theta[:, k] = dphi(y, dy, ddy, c.p, c.r)
+            elif c.role in ("lam_alpha", "yy"):
+                theta[:, k] = y * dy
+            elif c.role == "lin":
+                theta[:, k] = s * ddy if c.r == 0 else (s * dy if c.r == 1 else dy * dy)
+            else:
+                theta[:, k] = dy * Fn
+        target = s * dFn if self.form == "joint" else dFn
+        return theta, target
+
+    def true_coefficients(self, fn_m: dict, lam: float, alpha: float) -> np.ndarray:
+        """The coefficient vector a model implies (used to check the algebra)."""
+        a = {monomials.parse(k): v for k, v in fn_m.items()}
+        out = np.zeros(len(self.columns))
+        for k, c in enumerate(self.columns):
+            pr = (c.p, c.r)
+            if c.role == "a" or c.role == "psi":
+                out[k] = a.get(pr, 0.0)
+            elif c.role == "lam_a":
+                out[k] = lam * a.get(pr, 0.0)
+            elif c.role == "lam_alpha":
+                out[k] = -lam * alpha
+            elif c.role in ("lam", "yFn"):
+                out[k] = -lam
+            elif c.role == "yy":
+                out[k] = 2 * a.get((2, 0), 0.0) - lam * alpha
+            elif c.role == "xi":
+                v = lam * a.get(pr, 0.0)
+                if c.r == 0:
+                    v += (c.p + 1) * a.get((c.p + 1, 0), 0.0)
+                out[k] = v
+        return out

@@ -1,0 +1,83 @@
+"""The linear step: y'' = -c_m y' - K_m y + g u on the small-amplitude stage.
+
+Base excitation fixes g = 1 (u = -x_base'', so y'' - u = x_tip''); force
+excitation identifies g = inv_m = 1/m as well. The regression matrix is
+column-normalised; its condition number is reported, and a matrix whose
+smallest singular value is buried in the noise of its own columns is refused
+(e.g. one pure tone under force excitation: y, y' and u span only sin and cos
+at one frequency, three columns for two directions).
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from shakerlab.errors import UserFacingError
+from shakerlab.run_data import BASE
+
+
+@dataclass
+class LinearFit:
+    c_m: float
+    K_m: float
+    inv_m: float | None
+    condition_number: float
+    singular_values: list
+    noise_floor: float          # relative column perturbation expected from noise
+    r2: float
+    input_lines: int | None = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def count_lines(freqs: np.ndarray, df: float) -> int:
+    """Number of distinct spectral lines among significant bins (bins closer than 4 df merge)."""
+    if freqs.size == 0:
+        return 0
+    return int(1 + np.count_nonzero(np.diff(np.sort(freqs)) > 4 * df))
+
+
+def fit_linear(y, dy, ddy, u, excitation: str, column_noise: dict | None = None,
+               stage_name: str = "linear", input_lines: int | None = None) -> LinearFit:
+    """Least squares for (c_m, K_m[, inv_m]).
+
+    ``column_noise`` maps 'y', 'dy', 'u' to the expected rms error of that
+    column (from the differentiation choice) used for the rank decision.
+    """
+    if excitation == BASE:
+        A = np.column_stack([-dy, -y])
+        b = ddy - u
+        names = ["dy", "y"]
+    else:
+        A = np.column_stack([-dy, -y, u])
+        b = ddy
+        names = ["dy", "y", "u"]
+    norms = np.sqrt(np.sum(A * A, axis=0))
+    if np.any(norms == 0):
+        raise UserFacingError(f"stage {stage_name!r}: the linear regression has an all-zero column (no motion?)")
+    An = A / norms
+    sv = np.linalg.svd(An, compute_uv=False)
+    cond = float(sv[0] / sv[-1])
+    rms = norms / np.sqrt(A.shape[0])
+    cn = column_noise or {}
+    eps = max([cn.get(nm, 0.0) / r for nm, r in zip(names, rms)] + [1e-9])
+    # a direction weaker than a few times the noise in the columns is not determined
+    # a single-line input must rely on the response's own (transient) content: demand a
+    # well-conditioned matrix then (a steady single tone gives cond ~ 1e3 from harmonics alone)
+    single_tone = excitation != BASE and input_lines is not None and input_lines < 2 and cond > 100
+    if sv[-1] / sv[0] < 10 * eps or cond > 1e8 or single_tone:
+        hint = ("under force excitation a single tone leaves 1/m, c/m and K/m undetermined: "
+                "use a sweep, a multisine, or keep the start-up transient")
+        raise UserFacingError(
+            f"stage {stage_name!r}: the linear-step excitation is rank-deficient (condition number "
+            f"{cond:.3g}, smallest singular value {sv[-1] / sv[0]:.2g} of the largest, column noise level "
+            f"{eps:.2g}, input lines {input_lines}); {hint if excitation != BASE else 'excite with a non-zero tone'}")
+    x, *_ = np.linalg.lstsq(An, b, rcond=None)
+    x = x / norms
+    res = b - A @ x
+    r2 = 1.0 - float(res @ res) / float(np.sum((b - b.mean()) ** 2))
+    return LinearFit(c_m=float(x[0]), K_m=float(x[1]), inv_m=None if excitation == BASE else float(x[2]),
+                     condition_number=cond, singular_values=[float(s) for s in sv],
+                     noise_floor=float(eps), r2=r2, input_lines=input_lines)

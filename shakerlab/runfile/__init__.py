@@ -1,0 +1,1 @@
+"""The shakerlab run file (HDF5): format, writer, reader, results (docs/recording-format.md)."""

@@ -1,0 +1,159 @@
+"""Reading run files: the HDF5 run file (read-only opens) and the ``.npz`` run."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from shakerlab.errors import UserFacingError
+from shakerlab.run_data import BASE, CHANNELS, FORCE, Run, Stage
+from shakerlab.runfile.format import open_read, stage_order, text
+
+
+def read_run(path: str | Path, stages: list[str] | None = None) -> Run:
+    """Read a run file into a :class:`~shakerlab.run_data.Run` (read-only open).
+
+    Every recorded stage is returned (``linear``, ``nonlinear``,
+    ``validation``, ``resonance_search``, ...) unless ``stages`` names a
+    subset. A stage's ``settings`` holds its recorded settings plus
+    ``status``, ``summary``, ``t0`` and ``steps``. Samples flagged by a
+    sensor (out of range, signal loss) cannot be used: a stage holding any is
+    refused with a message naming the first one.
+    """
+    path = Path(path)
+    with open_read(path) as f:
+        entry = f["entry"]
+        out: dict[str, Stage] = {}
+        names = stage_order(f)
+        if stages is not None:
+            missing = [s for s in stages if s not in names]
+            if missing:
+                raise UserFacingError(f"{path}: no stage(s) {', '.join(missing)} (stages: {', '.join(names)})")
+            names = [n for n in names if n in stages]
+        for name in names:
+            g = entry["stages"][name]
+            excitation = text(g.attrs.get("excitation", "base"))
+            n = int(g["time"].shape[0])
+            if n < 2:
+                continue  # a stage interrupted before its first block holds nothing to analyse
+            channels = {ch: g[ch][:] for ch in CHANNELS[excitation]}
+            for ch in CHANNELS[excitation]:
+                flags = g[f"flags_{ch}"][:]
+                if flags.any():
+                    i = int(np.flatnonzero(flags)[0])
+                    raise UserFacingError(
+                        f"{path}: stage {name!r} channel {ch!r} has {int(np.count_nonzero(flags))} flagged "
+                        f"sample(s) (sensor out of range or signal loss), first at sample {i}"
+                    )
+            settings = json.loads(text(g.attrs.get("settings_json", "{}")))
+            settings["status"] = text(g.attrs.get("status", ""))
+            settings["t0"] = float(g.attrs.get("t0", 0.0))
+            settings["summary"] = json.loads(text(g.attrs.get("summary_json", "{}")))
+            settings["steps"] = [
+                {"sample_index": int(r["sample_index"]), "amplitude_vpp": float(r["amplitude_vpp"]),
+                 "frequency_hz": float(r["frequency_hz"]), "label": text(r["label"])}
+                for r in g["steps"][:]
+            ]
+            out[name] = Stage(name=name, t=g["time"][:], channels=channels, excitation=excitation,
+                              settings=settings)
+        attrs = {k: text(v) if isinstance(v, bytes) else (v.item() if isinstance(v, np.generic) else v)
+                 for k, v in entry.attrs.items()}
+        attrs["clean_close"] = bool(f.attrs.get("clean_close", False))
+        attrs["software_version"] = text(f.attrs.get("software_version", ""))
+    if not out:
+        raise UserFacingError(f"{path}: the run file holds no recorded samples")
+    return Run(stages=out, attrs=attrs, source=str(path))
+
+
+def read_events(path: str | Path) -> list[dict]:
+    """The event log: dicts with wall_time, run_time, level, message."""
+    with open_read(path) as f:
+        return [
+            {"wall_time": float(r["wall_time"]), "run_time": float(r["run_time"]),
+             "level": text(r["level"]), "message": text(r["message"])}
+            for r in f["entry/events"][:]
+        ]
+
+
+def read_info(path: str | Path) -> dict:
+    """Run-level metadata: attributes, instruments, config texts, stage summaries, results."""
+    with open_read(path) as f:
+        entry = f["entry"]
+        info = {
+            "clean_close": bool(f.attrs.get("clean_close", False)),
+            "software_version": text(f.attrs.get("software_version", "")),
+            "status": text(entry.attrs.get("status", "")),
+            "config": {k: text(entry["config"][k][()]) for k in entry["config"]},
+            "instruments": {},
+            "stages": {},
+            "results": list(entry["results"]),
+        }
+        for name, g in entry["instrument"].items():
+            info["instruments"][name] = {
+                "identity": text(g.attrs.get("identity", "")),
+                "address": text(g.attrs.get("address", "")),
+                "settings": json.loads(text(g.attrs.get("settings_json", "{}"))),
+            }
+        for name in stage_order(f):
+            g = entry["stages"][name]
+            info["stages"][name] = {
+                "status": text(g.attrs.get("status", "")),
+                "n_samples": int(g["time"].shape[0]),
+                "fs": float(g.attrs.get("fs", 0.0)),
+                "t0": float(g.attrs.get("t0", 0.0)),
+                "settings": json.loads(text(g.attrs.get("settings_json", "{}"))),
+                "summary": json.loads(text(g.attrs.get("summary_json", "{}"))),
+            }
+        return info
+
+
+def load_npz(path: str | Path) -> Run:
+    """Read an ``.npz`` run: arrays named ``<stage>/<channel>`` or ``<stage>_<channel>``.
+
+    Channels per stage: ``t`` plus ``x_base, x_tip`` (base excitation) or
+    ``force, x`` (force excitation).
+    """
+    path = Path(path)
+    try:
+        data = np.load(path, allow_pickle=False)
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is the user's problem
+        raise UserFacingError(f"{path}: not a readable .npz file ({exc})") from None
+    grouped: dict[str, dict[str, np.ndarray]] = {}
+    for key in data.files:
+        for sep in ("/", "_"):
+            stage, _, channel = key.partition(sep)
+            if channel in ("t", "x_base", "x_tip", "force", "x"):
+                grouped.setdefault(stage, {})[channel] = data[key]
+                break
+    if not grouped:
+        raise UserFacingError(f"{path}: no stage arrays (expected names like 'linear/t', 'linear/x_tip')")
+    stages = {}
+    for name, ch in grouped.items():
+        if "t" not in ch:
+            raise UserFacingError(f"{path}: stage {name!r} has no time array 't'")
+        excitation = FORCE if "force" in ch else BASE
+        t = ch.pop("t")
+        stages[name] = Stage(name=name, t=t, channels=ch, excitation=excitation)
+    return Run(stages=stages, source=str(path))
+
+
+def save_npz(run: Run, path: str | Path) -> None:
+    arrays = {}
+    for name, st in run.stages.items():
+        arrays[f"{name}/t"] = st.t
+        for ch, v in st.channels.items():
+            arrays[f"{name}/{ch}"] = v
+    np.savez(path, **arrays)
+
+
+def load_run(path: str | Path) -> Run:
+    """Load a run from ``.h5`` (shakerlab run file) or ``.npz``."""
+    path = Path(path)
+    if not path.exists():
+        raise UserFacingError(f"{path}: no such file")
+    if path.suffix == ".npz":
+        return load_npz(path)
+    if path.suffix in (".h5", ".hdf5", ".nxs"):
+        return read_run(path)
+    raise UserFacingError(f"{path}: unknown run file type {path.suffix!r} (expected .h5 or .npz)")

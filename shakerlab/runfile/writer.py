@@ -1,0 +1,230 @@
+"""Writing a run file while it is recorded (layout and crash safety: shakerlab.runfile.format)."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from shakerlab import __version__
+from shakerlab.errors import UserFacingError
+from shakerlab.jsonsafe import clean
+from shakerlab.run_data import CHANNELS
+from shakerlab.runfile.format import (CHUNK, FORMAT, FORMAT_VERSION, LEVELS, event_dtype, now_iso, set_scalar_attrs,
+                                      step_dtype, str_dtype)
+
+
+def _clean_attr(value):
+    return clean(value, nan_to_none=False)
+
+
+class StageWriter:
+    """Appends one stage's samples; made by :meth:`RunWriter.begin_stage`."""
+
+    def __init__(self, writer: "RunWriter", group, channels: tuple[str, ...], start_index: int, fs: float):
+        self._writer = writer
+        self.group = group
+        self.name = group.name.rsplit("/", 1)[-1]
+        self.channels = channels
+        self.start_index = int(start_index)
+        self.fs = float(fs)
+        self.n_samples = 0
+        self.n_flagged = 0
+        self.closed = False
+
+    def append(self, index0: int, values: dict[str, np.ndarray], flags: dict[str, np.ndarray] | None = None,
+               time_s: np.ndarray | None = None) -> None:
+        """Append samples ``index0 .. index0+n-1`` of every channel (same length each).
+
+        ``time_s`` (seconds since the stage start) defaults to the sample
+        index over ``fs``; importers pass the file's own time column.
+        """
+        if self.closed:
+            raise RuntimeError(f"stage {self.name!r} is closed")
+        arrays = {ch: np.asarray(values[ch], dtype=float) for ch in self.channels}
+        n = arrays[self.channels[0]].size
+        if any(a.shape != (n,) for a in arrays.values()):
+            raise ValueError(f"stage {self.name!r}: channels differ in length")
+        if n == 0:
+            return
+        index = np.arange(index0, index0 + n, dtype=np.int64)
+        if time_s is None:
+            time_s = (index - self.start_index) / self.fs
+        g = self.group
+        new = self.n_samples + n
+        columns = {"sample_index": index, "time": np.asarray(time_s, dtype=float)}
+        columns.update(arrays)
+        for ch in self.channels:
+            f = np.zeros(n, np.uint8) if flags is None or ch not in flags else np.asarray(flags[ch], np.uint8)
+            self.n_flagged += int(np.count_nonzero(f))
+            columns[f"flags_{ch}"] = f
+        for key, col in columns.items():
+            ds = g[key]
+            ds.resize((new,))
+            ds[self.n_samples:new] = col
+        self.n_samples = new
+        g.attrs["n_samples"] = new
+        self._writer._maybe_flush()
+
+    def add_step(self, sample_index: int, amplitude_vpp: float, frequency_hz: float, label: str = "") -> None:
+        """Record a setpoint change (a row of the stage's ``steps`` table)."""
+        ds = self.group["steps"]
+        n = ds.shape[0]
+        ds.resize((n + 1,))
+        ds[n] = (int(sample_index), float(amplitude_vpp), float(frequency_hz), str(label))
+        self._writer._maybe_flush()
+
+    def close(self, status: str = "complete", summary: dict | None = None) -> None:
+        if self.closed:
+            return
+        self.group.attrs["status"] = status
+        self.group.attrs["end_index"] = self.start_index + self.n_samples
+        if summary is not None:
+            self.group.attrs["summary_json"] = json.dumps(_clean_attr(summary), sort_keys=True)
+        self.closed = True
+        self._writer.flush()
+
+
+class RunWriter:
+    """Writes one run file. Use as a context manager or call :meth:`close`.
+
+    ``RunWriter(path)`` refuses to overwrite an existing file unless
+    ``overwrite=True``.
+    """
+
+    def __init__(self, path: str | Path, *, overwrite: bool = False, flush_interval: float = 0.5,
+                 attrs: dict | None = None):
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise UserFacingError(f"{self.path}: file exists (choose another -o name or delete it)")
+        try:
+            self.file = h5py.File(self.path, "w")  # default libver, never SWMR
+        except OSError as exc:
+            raise UserFacingError(f"{self.path}: cannot create the run file ({exc})") from None
+        self.flush_interval = float(flush_interval)
+        self._last_flush = time.monotonic()
+        self._t_start = time.time()
+        self.n_events = 0
+        f = self.file
+        f.attrs.update({
+            "format": FORMAT, "format_version": FORMAT_VERSION, "software_version": __version__,
+            "creator": f"shakerlab {__version__}", "created": now_iso(), "file_name": self.path.name,
+            "clean_close": False, "NX_class": "NXroot", "default": "entry",
+        })
+        entry = f.create_group("entry")
+        entry.attrs.update({"NX_class": "NXentry", "status": "running", "start_time": now_iso()})
+        for key, value in (attrs or {}).items():
+            entry.attrs[key] = _clean_attr(value) if not isinstance(value, dict) else json.dumps(_clean_attr(value))
+        entry.create_group("config").attrs["NX_class"] = "NXcollection"
+        entry.create_group("instrument").attrs["NX_class"] = "NXinstrument"
+        stages = entry.create_group("stages")
+        stages.attrs["NX_class"] = "NXcollection"
+        stages.attrs["order"] = json.dumps([])
+        entry.create_group("results").attrs["NX_class"] = "NXcollection"
+        entry.create_dataset("events", shape=(0,), maxshape=(None,), dtype=event_dtype(), chunks=(256,))
+        self.stages: dict[str, StageWriter] = {}
+        self.flush()
+
+    # -- context manager ---------------------------------------------------
+    def __enter__(self) -> "RunWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self.file.id.valid:
+            self.close("complete" if exc_type is None else "error")
+
+    # -- metadata ------------------------------------------------------------
+    def set_attrs(self, **attrs) -> None:
+        for key, value in attrs.items():
+            self.file["entry"].attrs[key] = (
+                json.dumps(_clean_attr(value)) if isinstance(value, (dict, list)) else _clean_attr(value)
+            )
+
+    def set_text(self, name: str, text: str) -> None:
+        """Store a text document (``rig_toml``, ``protocol_toml``, ...) under ``entry/config``."""
+        grp = self.file["entry/config"]
+        if name in grp:
+            del grp[name]
+        grp.create_dataset(name, data=str(text), dtype=str_dtype())
+        self.flush()
+
+    def set_instrument(self, name: str, *, identity: str, address: str, settings: dict | None = None) -> None:
+        """Record an instrument's identity (``*IDN?``-like), address and settings."""
+        grp = self.file["entry/instrument"].require_group(name)
+        grp.attrs["NX_class"] = "NXcollection"
+        grp.attrs["identity"] = str(identity)
+        grp.attrs["address"] = str(address)
+        set_scalar_attrs(grp, settings or {})
+        self.flush()
+
+    def log(self, level: str, message: str, run_time: float = float("nan"), wall_time: float | None = None) -> None:
+        """Append an event (level in debug/info/warning/error/critical)."""
+        if level not in LEVELS:
+            raise ValueError(f"event level {level!r} is not one of {LEVELS}")
+        ds = self.file["entry/events"]
+        n = ds.shape[0]
+        ds.resize((n + 1,))
+        ds[n] = (time.time() if wall_time is None else wall_time, run_time, level, str(message))
+        self.n_events = n + 1
+        if level in ("warning", "error", "critical"):
+            self.flush()
+        else:
+            self._maybe_flush()
+
+    # -- stages ----------------------------------------------------------------
+    def begin_stage(self, name: str, *, fs: float, excitation: str = "base", start_index: int = 0,
+                    settings: dict | None = None) -> StageWriter:
+        """Create ``entry/stages/<name>`` and return its :class:`StageWriter`."""
+        if excitation not in CHANNELS:
+            raise ValueError(f"excitation must be one of {sorted(CHANNELS)}")
+        stages = self.file["entry/stages"]
+        if name in stages:
+            raise ValueError(f"stage {name!r} already recorded in {self.path}")
+        channels = CHANNELS[excitation]
+        g = stages.create_group(name)
+        g.attrs.update({
+            "NX_class": "NXdata", "signal": channels[1], "axes": "time", "excitation": excitation,
+            "fs": float(fs), "start_index": int(start_index), "t0": int(start_index) / float(fs),
+            "status": "recording", "n_samples": 0, "start_time": now_iso(),
+        })
+        set_scalar_attrs(g, settings or {})
+        g.create_dataset("sample_index", shape=(0,), maxshape=(None,), dtype="<i8", chunks=(CHUNK,))
+        t = g.create_dataset("time", shape=(0,), maxshape=(None,), dtype="<f8", chunks=(CHUNK,))
+        t.attrs["units"] = "s"
+        for ch in channels:
+            d = g.create_dataset(ch, shape=(0,), maxshape=(None,), dtype="<f8", chunks=(CHUNK,))
+            d.attrs["units"] = "N" if ch == "force" else "m"
+            g.create_dataset(f"flags_{ch}", shape=(0,), maxshape=(None,), dtype="u1", chunks=(CHUNK,))
+        g.create_dataset("steps", shape=(0,), maxshape=(None,), dtype=step_dtype(), chunks=(64,))
+        order = json.loads(stages.attrs["order"])
+        order.append(name)
+        stages.attrs["order"] = json.dumps(order)
+        sw = StageWriter(self, g, channels, start_index, fs)
+        self.stages[name] = sw
+        self.flush()
+        return sw
+
+    # -- flushing and closing --------------------------------------------------
+    def _maybe_flush(self) -> None:
+        if time.monotonic() - self._last_flush >= self.flush_interval:
+            self.flush()
+
+    def flush(self) -> None:
+        self.file.flush()
+        self._last_flush = time.monotonic()
+
+    def close(self, status: str = "complete") -> None:
+        """Close every open stage, write the end status and mark the file cleanly closed."""
+        if not self.file.id.valid:
+            return
+        for sw in self.stages.values():
+            if not sw.closed:
+                sw.close(status="interrupted" if status != "complete" else "complete")
+        entry = self.file["entry"]
+        entry.attrs["status"] = status
+        entry.attrs["end_time"] = now_iso()
+        self.file.attrs["clean_close"] = True
+        self.file.flush()
+        self.file.close()

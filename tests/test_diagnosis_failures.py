@@ -1,0 +1,95 @@
+"""Issue 17: a failing candidate is recorded and left out of the ranking; a failing null model is a
+clear UserFacingError; no exception reaches the user."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from recon import diagnose
+from recon.diagnosis import rank
+from recon.diagnosis.augmented import AugmentedModel
+from recon.testing.concealed import concealed_run
+from shakerlab.errors import UserFacingError
+
+CANDIDATES = ["coulomb_friction", "quadratic_damping"]
+
+
+@pytest.fixture(scope="module")
+def run():
+    r = concealed_run("coulomb_friction", duration=2.0, seed=3)
+    return r[0] if isinstance(r, tuple) else r
+
+
+def _is_candidate(am) -> bool:
+    return any(c in getattr(am, "added", []) for c in CANDIDATES)
+
+
+def test_a_diverging_candidate_simulation_is_recorded_not_raised(run, monkeypatch):
+    real = AugmentedModel.simulate
+
+    def diverging(self, *a, **k):
+        if "coulomb_friction" in self.added:
+            raise FloatingPointError("overflow in the simulation (forced by the test)")
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(AugmentedModel, "simulate", diverging)
+    d = diagnose(run, baseline="linear", candidates=CANDIDATES).to_dict()
+    tested = {t["id"]: t for t in d["candidates_tested"]}
+    assert "FloatingPointError" in tested["coulomb_friction"]["failed"]
+    assert not tested["coulomb_friction"]["significant"]
+    assert "coulomb_friction" not in [m["id"] for m in d["missing_physics"]]
+    assert "failed" not in tested["quadratic_damping"]          # the other candidate was still ranked
+
+
+def test_a_non_finite_candidate_mse_is_recorded_not_raised(run, monkeypatch):
+    real = rank.fit
+
+    def inf_fit(am, keys, data, *a, **k):
+        fr = real(am, keys, data, *a, **k)
+        if _is_candidate(am) and "quadratic_damping" in am.added:
+            fr = dataclasses.replace(fr, mse_held=float("inf"))
+        return fr
+
+    monkeypatch.setattr(rank, "fit", inf_fit)
+    d = diagnose(run, baseline="linear", candidates=CANDIDATES).to_dict()
+    tested = {t["id"]: t for t in d["candidates_tested"]}
+    assert "mean-square error is inf" in tested["quadratic_damping"]["failed"]
+
+
+def test_an_empty_held_out_set_is_a_clear_error(run, monkeypatch):
+    real = rank.prepare
+
+    def no_held(*a, **k):
+        data = real(*a, **k)
+        for dd in data:
+            dd.held = np.zeros_like(dd.held)
+        return data
+
+    monkeypatch.setattr(rank, "prepare", no_held)
+    with pytest.raises(UserFacingError, match="no held-out samples"):
+        diagnose(run, baseline="linear", candidates=CANDIDATES)
+
+
+def test_a_diverging_null_model_names_the_stage(run, monkeypatch):
+    real = rank.fit
+
+    def null_diverges(am, keys, data, *a, **k):
+        fr = real(am, keys, data, *a, **k)
+        if not getattr(am, "added", []):
+            fr = dataclasses.replace(fr, mse_held=float("inf"), nrmse={**fr.nrmse, "nonlinear": float("inf")})
+        return fr
+
+    monkeypatch.setattr(rank, "fit", null_diverges)
+    with pytest.raises(UserFacingError, match="does not simulate stage.*nonlinear"):
+        diagnose(run, baseline="linear", candidates=CANDIDATES)
+
+
+def test_score_never_raises_on_degenerate_mse():
+    r = rank.FitResult(model=None, cost_fit=0.0, mse_held=float("inf"), nrmse={}, nrmse_held=float("nan"), n_held=10,
+                       resid_held=np.ones(10))
+    ok = dataclasses.replace(r, mse_held=1.0)
+    for null, cand in ((r, ok), (ok, r), (dataclasses.replace(ok, mse_held=0.0), ok)):
+        s = rank.score(null, cand, 1, 0.1)
+        assert s["significant"] is False

@@ -1,0 +1,167 @@
+"""The architecture, asserted: layers, no import cycles, no private names across modules,
+no imports inside functions except the documented lazy ones (docs/architecture.md)."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("shakerlab", "drivers", "sim_backend", "rig", "recon", "workflows")
+
+# what each package may import (besides itself and third-party code)
+ALLOWED = {
+    "shakerlab": {"shakerlab"},
+    "drivers": {"shakerlab"},
+    "sim_backend": {"shakerlab"},
+    "rig": {"shakerlab", "drivers"},
+    "recon": {"shakerlab"},
+    "workflows": {"shakerlab", "recon", "rig", "sim_backend"},
+}
+# the application's entry points may reach everything (command line, operator window)
+ENTRY_POINTS = {
+    "shakerlab.cli": set(PACKAGES),
+    "rig.gui.window": {"sim_backend", "recon"},
+    "rig.gui.results": {"recon"},
+    "rig.session": {"sim_backend"},
+}
+# a function-local import is allowed only with a one-line reason on the same line ("# heavy: ..." or
+# "# lazy: ..."), for start-up time of the command line or the operator window
+LAZY_MARKERS = ("# heavy", "# lazy", "# optional")
+
+
+def _modules():
+    for pkg in PACKAGES:
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            rel = path.relative_to(ROOT).with_suffix("")
+            parts = list(rel.parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            yield ".".join(parts), path
+
+
+MODULES = dict(_modules())
+
+
+def _imports(path: Path):
+    """(module imported, names, node, inside a function?) for every import statement."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    funcs = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for sub in ast.walk(node):
+                if sub is not node:
+                    funcs.add(id(sub))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                yield a.name, [], node, id(node) in funcs
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            yield node.module, [a.name for a in node.names], node, id(node) in funcs
+
+
+def _first_party(name: str) -> str | None:
+    top = name.split(".")[0]
+    return top if top in PACKAGES else None
+
+
+def _resolve(module: str, names: list[str]) -> list[str]:
+    """The project modules an import statement loads (``from pkg import mod`` loads pkg.mod)."""
+    out = [module] if module in MODULES else []
+    for n in names:
+        if f"{module}.{n}" in MODULES:
+            out.append(f"{module}.{n}")
+    return out
+
+
+def test_every_package_respects_its_layer():
+    bad = []
+    for mod, path in MODULES.items():
+        pkg = mod.split(".")[0]
+        allowed = ALLOWED[pkg] | {pkg} | ENTRY_POINTS.get(mod, set())
+        for name, _, node, _ in _imports(path):
+            top = _first_party(name)
+            if top and top not in allowed:
+                bad.append(f"{mod}:{node.lineno} imports {name}")
+    assert not bad, "layer violations:\n" + "\n".join(bad)
+
+
+def test_recon_is_a_library_without_application_dependencies():
+    bad = []
+    for mod, path in MODULES.items():
+        if mod.split(".")[0] != "recon":
+            continue
+        for name, _, node, _ in _imports(path):
+            if name.split(".")[0] in ("matplotlib", "dask", "distributed", "argparse", "PySide6", "pyqtgraph"):
+                bad.append(f"{mod}:{node.lineno} imports {name}")
+    assert not bad, "\n".join(bad)
+
+
+def test_no_import_cycles():
+    graph = {m: set() for m in MODULES}
+    for mod, path in MODULES.items():
+        for name, names, _, _ in _imports(path):
+            for dep in _resolve(name, names):
+                if dep != mod and not mod.startswith(dep + "."):   # a package's __init__ is not a cycle
+                    graph[mod].add(dep)
+    # Tarjan's strongly connected components
+    index, low, stack, on, comps, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                comps.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    assert not comps, "import cycles: " + "; ".join(" <-> ".join(c) for c in comps)
+
+
+def test_no_private_name_is_imported_across_modules():
+    bad = []
+    for mod, path in MODULES.items():
+        for name, names, node, _ in _imports(path):
+            if _first_party(name):
+                for n in names:
+                    if n.startswith("_") and not n.startswith("__"):
+                        bad.append(f"{mod}:{node.lineno} imports {name}.{n}")
+    assert not bad, "\n".join(bad)
+
+
+def test_imports_inside_functions_are_only_the_documented_lazy_ones():
+    bad = []
+    for mod, path in MODULES.items():
+        lines = path.read_text(encoding="utf-8").splitlines()
+        for name, _, node, inside in _imports(path):
+            if inside and not any(m in lines[node.lineno - 1] for m in LAZY_MARKERS):
+                bad.append(f"{mod}:{node.lineno} imports {name} inside a function without a reason")
+    assert not bad, "\n".join(bad)
+
+
+def test_importing_recon_loads_no_application_code():
+    """In a fresh interpreter, ``import recon`` (the whole public API) loads neither the application
+    layer nor matplotlib, Dask or Qt."""
+    import subprocess
+    import sys
+
+    code = ("import sys, recon; print(sorted({m.split('.')[0] for m in sys.modules} & "
+            "{'workflows', 'rig', 'drivers', 'matplotlib', 'dask', 'distributed', 'PySide6', 'pyqtgraph'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert out.stdout.strip() == "[]", out.stdout

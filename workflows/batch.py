@@ -1,0 +1,377 @@
+"""Reprocess many run files in parallel on Dask (``shakerlab reprocess``).
+
+    from workflows.batch import BatchSettings, run_batch, write_csv, format_table
+    rows = run_batch(paths, BatchSettings(workers=2))        # one dict per run
+    write_csv(rows, "summary.csv"); print(format_table(rows))
+
+Each run is one task, :func:`process_run`, which never raises: a bad file
+(unreadable, not a run file, a stage missing, a recording too short, ...)
+comes back as a row with ``status = "failed"`` and the reason, and the batch
+goes on. A good run is reconstructed (:func:`recon.estimator.pipeline.reconstruct`),
+its parameter intervals computed (:mod:`recon.output_error.uncertainty`) and the result
+written back into the run file as a new ``entry/results/reconstruction_NNN``
+group holding a *settings hash* (attribute ``settings_hash`` and key
+``reprocess.settings_hash`` of the payload). A later batch with the same
+settings finds the hash and skips the run (``status = "skipped"``, the
+stored parameters are reported again). Files not closed cleanly are
+processed but never written (``written = false`` and a note).
+
+The scheduler is a ``dask.distributed.LocalCluster`` (``workers`` processes,
+one thread each: the numba kernels and numpy hold the GIL in places, so
+processes scale better) unless the address of a running scheduler is given.
+"""
+from __future__ import annotations
+
+import csv
+import glob
+import hashlib
+import importlib.util
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from dask.distributed import Client, LocalCluster, as_completed
+
+from recon import ReconSettings, reconstruct
+from recon.output_error.uncertainty import (UncertaintySettings, parameter_intervals, reconstruct_capturing,
+                                            term_inclusion)
+from recon.testing.truth import sdof_run
+from shakerlab import __version__
+from shakerlab.errors import UserFacingError
+from shakerlab.jsonsafe import clean
+from shakerlab.runfile.reader import load_run
+from shakerlab.runfile.results import find_result, store_result
+from shakerlab.runfile.writer import RunWriter
+
+RESULT_KIND = "reconstruction"
+PARAMS = ("c_m", "k_m", "alpha_m", "gamma", "delta", "inv_m")
+
+
+@dataclass
+class BatchSettings:
+    recon: dict = field(default_factory=dict)        # recon.estimator.pipeline.ReconSettings fields
+    uncertainty: bool = True
+    uncertainty_settings: dict = field(default_factory=dict)   # recon.output_error.uncertainty.UncertaintySettings fields
+    term_models: int = 0                              # > 0: term-selection ensemble (recon.output_error.uncertainty.term_inclusion)
+    diagnose: bool = False
+    write_back: bool = True
+    force: bool = False                               # reprocess even when the settings hash is stored
+    workers: int = 2
+    scheduler: str | None = None                      # address of a running scheduler
+    processes: bool = True                            # LocalCluster workers as processes (False: threads)
+    connect_timeout: float = 10.0                     # seconds to reach --scheduler
+
+    def job(self) -> dict:
+        """What a worker needs (JSON-safe)."""
+        return {"recon": dict(self.recon), "uncertainty": self.uncertainty,
+                "uncertainty_settings": dict(self.uncertainty_settings), "term_models": int(self.term_models),
+                "diagnose": self.diagnose,
+                "write_back": self.write_back, "force": self.force}
+
+
+def settings_hash(job: dict) -> str:
+    """Hash of everything that decides a reconstruction's numbers: the recon settings with
+    their defaults filled in, the uncertainty settings, and the software version."""
+
+    rs = ReconSettings(**job.get("recon", {})).to_dict()
+    us = UncertaintySettings(**job.get("uncertainty_settings", {})).to_dict() if job.get("uncertainty") else None
+    text = json.dumps({"recon": rs, "uncertainty": us, "software": __version__,
+                       **({"term_models": int(job["term_models"])} if job.get("term_models") else {})},
+                      sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _row(path, status, **kw) -> dict:
+    row = {"run": str(path), "status": status, "reason": "", "written": False, "group": "", "seconds": 0.0,
+           "parameters": {}, "intervals": {}, "nrmse": None, "validation_stage": None, "notes": []}
+    row.update(kw)
+    return row
+
+
+def _fill(row: dict, payload: dict) -> dict:
+    row["parameters"] = payload.get("parameters", {})
+    row["intervals"] = (payload.get("uncertainty") or {}).get("intervals", {})
+    val = payload.get("validation") or {}
+    row["nrmse"] = val.get("nrmse")
+    row["validation_stage"] = val.get("stage")
+    return row
+
+
+def reconstruct_payload(run, job: dict):
+    """(result, payload) for one run: the reconstruction's JSON, plus ``uncertainty`` when asked."""
+
+    settings = ReconSettings(**job.get("recon", {}))
+    if job.get("term_models"):
+
+        result, problem = reconstruct_capturing(run, settings)
+        payload = result.to_dict()
+        payload["term_selection"] = term_inclusion(problem, n_models=int(job["term_models"]))
+    else:
+        result = reconstruct(run, settings)
+        payload = result.to_dict()
+    if job.get("uncertainty"):
+
+        payload["uncertainty"] = parameter_intervals(result.model, run,
+                                                     UncertaintySettings(**job.get("uncertainty_settings", {})))
+    return result, clean(payload)
+
+
+def process_run(path: str, job: dict) -> dict:
+    """Reconstruct one run file; never raises (failures are rows with a reason)."""
+    t0 = time.perf_counter()
+    path = Path(path)
+    try:
+        digest = settings_hash(job)
+        is_h5 = path.suffix in (".h5", ".hdf5", ".nxs")
+        if is_h5 and not job.get("force") and path.exists():
+            try:
+                hit = find_result(path, RESULT_KIND, digest)
+            except UserFacingError:
+                hit = None            # unreadable: load_run below names the problem
+            if hit is not None:
+                return _fill(_row(path, "skipped", reason=f"already processed with these settings ({hit[0]})",
+                                  group=hit[0], settings_hash=digest, seconds=time.perf_counter() - t0), hit[1])
+        run = load_run(path)
+        result, payload = reconstruct_payload(run, job)
+        payload["reprocess"] = {"settings_hash": digest, "settings": job, "software": f"shakerlab {__version__}"}
+        row = _fill(_row(path, "ok", settings_hash=digest), payload)
+        if job.get("diagnose"):
+            row["diagnosis"] = _diagnose(run, result, path if is_h5 else None, row)
+        if job.get("write_back", True):
+            group, note = store_result(path, RESULT_KIND, payload, text=str(result.model), settings_hash=digest)
+            if group is None:
+                row["notes"].append(note)
+            else:
+                row["written"], row["group"] = True, group
+        row["seconds"] = time.perf_counter() - t0
+        return row
+    except UserFacingError as exc:
+        return _row(path, "failed", reason=str(exc), seconds=time.perf_counter() - t0)
+    except Exception as exc:  # noqa: BLE001 - one bad run must not stop the batch
+        return _row(path, "failed", reason=f"{type(exc).__name__}: {exc}", seconds=time.perf_counter() - t0)
+
+
+def diagnosis_available() -> bool:
+
+    try:
+        return importlib.util.find_spec("recon.diagnosis.diagnose") is not None
+    except ModuleNotFoundError:
+        return False
+
+
+def _diagnose(run, result, path, row) -> str:
+    if not diagnosis_available():
+        row["notes"].append("diagnosis unavailable (recon.diagnosis is not installed)")
+        return "unavailable"
+    try:
+        from recon.diagnosis.diagnose import diagnose  # optional: diagnosis may be left out of an install
+
+        d = diagnose(run, baseline=result.model).to_dict()
+    except Exception as exc:  # noqa: BLE001 - a failed diagnosis leaves the reconstruction valid
+        row["notes"].append(f"diagnosis failed: {exc}")
+        return "failed"
+    if path is not None:
+        store_result(path, "diagnosis", clean(d), text=str(d.get("result", "")))
+    return str(d.get("result", ""))
+
+
+# ---------------------------------------------------------------------------
+# progress, scheduling
+# ---------------------------------------------------------------------------
+
+class TextProgress:
+    """A one-line text progress bar on stderr (redrawn in place on a terminal, one line per run otherwise)."""
+
+    def __init__(self, total: int, stream=None, width: int = 30, enabled: bool = True):
+        self.total, self.width, self.enabled = total, width, enabled
+        self.stream = stream or sys.stderr
+        self.done = 0
+        self.counts = {"ok": 0, "skipped": 0, "failed": 0}
+        self.t0 = time.monotonic()
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+
+    def update(self, row: dict) -> None:
+        self.done += 1
+        self.counts[row["status"]] = self.counts.get(row["status"], 0) + 1
+        if not self.enabled:
+            return
+        frac = self.done / max(self.total, 1)
+        bar = "#" * int(round(frac * self.width))
+        line = (f"[{bar:<{self.width}}] {self.done}/{self.total} runs  ok {self.counts['ok']}  "
+                f"skipped {self.counts['skipped']}  failed {self.counts['failed']}  "
+                f"{time.monotonic() - self.t0:.0f} s")
+        if self.tty:
+            self.stream.write("\r" + line + ("\n" if self.done == self.total else ""))
+        else:
+            self.stream.write(f"{line}  {Path(row['run']).name}: {row['status']}\n")
+        self.stream.flush()
+
+
+def expand(patterns: list[str]) -> list[str]:
+    """Glob patterns (quoted on the command line so the shell leaves them) to a sorted, unique list."""
+
+    out = []
+    for pat in patterns:
+        hits = sorted(glob.glob(pat, recursive=True))
+        if not hits:
+            if any(c in pat for c in "*?["):
+                raise UserFacingError(f"no run file matches {pat!r}")
+            hits = [pat]      # a plain name: process_run reports it if it does not exist
+        out.extend(h for h in hits if h not in out)
+    return out
+
+
+def run_loop(paths: list[str], settings: BatchSettings, progress: TextProgress | None = None) -> list[dict]:
+    """The plain loop (no Dask): same rows, same order as ``paths`` (duplicates once)."""
+    paths = list(dict.fromkeys(str(p) for p in paths))
+    rows = []
+    for p in paths:
+        rows.append(process_run(str(p), settings.job()))
+        if progress:
+            progress.update(rows[-1])
+    return rows
+
+
+def run_batch(paths: list[str], settings: BatchSettings | None = None, progress: TextProgress | None = None) -> list[dict]:
+    """Process ``paths`` on Dask; rows come back in the order of ``paths`` (a path given twice is
+    processed once: two tasks must never write into the same file)."""
+    s = settings or BatchSettings()
+    paths = list(dict.fromkeys(str(p) for p in paths))
+    if s.workers < 1:
+        raise UserFacingError(f"--workers must be at least 1, got {s.workers}")
+
+    cluster = None
+    try:
+        if s.scheduler:
+            try:
+                client = Client(s.scheduler, timeout=f"{s.connect_timeout}s")
+            except (OSError, TimeoutError, ValueError) as exc:
+                raise UserFacingError(f"--scheduler {s.scheduler}: cannot connect ({exc})") from None
+        else:
+            cluster = LocalCluster(n_workers=s.workers, threads_per_worker=1, processes=s.processes,
+                                   dashboard_address=":0", host="127.0.0.1")
+            client = Client(cluster)
+        with client:
+            job = s.job()
+            futures = [client.submit(process_run, str(p), job, pure=False, key=f"reprocess-{i}-{Path(p).name}")
+                       for i, p in enumerate(paths)]
+            index = {f.key: i for i, f in enumerate(futures)}
+            rows: list[dict | None] = [None] * len(paths)
+            for fut in as_completed(futures):
+                i = index[fut.key]
+                try:
+                    row = fut.result()
+                except Exception as exc:  # noqa: BLE001 - e.g. a worker killed while running this run
+                    row = _row(paths[i], "failed", reason=f"worker error: {type(exc).__name__}: {exc}")
+                rows[i] = row
+                if progress:
+                    progress.update(row)
+            return rows
+    finally:
+        if cluster is not None:
+            cluster.close()
+
+
+# ---------------------------------------------------------------------------
+# summary table
+# ---------------------------------------------------------------------------
+
+def _columns(rows: list[dict]) -> list[str]:
+    fn = []
+    for r in rows:
+        for k in (r.get("parameters") or {}).get("fn_m", {}):
+            if k not in fn:
+                fn.append(k)
+    params = [p for p in PARAMS if any(p in (r.get("parameters") or {}) for r in rows)]
+    return params + [f"fn_m[{k}]" for k in fn]
+
+
+def _value(row: dict, col: str):
+    p = row.get("parameters") or {}
+    if col.startswith("fn_m["):
+        return (p.get("fn_m") or {}).get(col[5:-1])
+    return p.get(col)
+
+
+def _interval(row: dict, col: str):
+    iv = row.get("intervals") or {}
+    if col.startswith("fn_m["):
+        return (iv.get("fn_m") or {}).get(col[5:-1])
+    return iv.get(col)
+
+
+def write_csv(rows: list[dict], path: str | Path) -> Path:
+    """One line per run: run, status, nrmse, each parameter with its interval, reason, notes."""
+    path = Path(path)
+    cols = _columns(rows)
+    header = ["run", "status", "validation_stage", "nrmse"]
+    for c in cols:
+        header += [c, f"{c}_low", f"{c}_high"]
+    header += ["written", "group", "seconds", "reason", "notes"]
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        for r in rows:
+            line = [r["run"], r["status"], r.get("validation_stage") or "", _fmt_csv(r.get("nrmse"))]
+            for c in cols:
+                iv = _interval(r, c) or [None, None]
+                line += [_fmt_csv(_value(r, c)), _fmt_csv(iv[0]), _fmt_csv(iv[1])]
+            line += [r.get("written", False), r.get("group", ""), f"{r.get('seconds', 0.0):.2f}", r.get("reason", ""),
+                     "; ".join(r.get("notes", []))]
+            w.writerow(line)
+    return path
+
+
+def _fmt_csv(v) -> str:
+    return "" if v is None else repr(float(v))
+
+
+def format_table(rows: list[dict]) -> str:
+    """The summary printed for a person: one line per run, parameters to 4 significant digits."""
+    cols = _columns(rows)
+    header = ["run", "status", "nrmse"] + cols
+    lines = [header]
+    for r in rows:
+        nr = r.get("nrmse")
+        shown = "" if r["status"] == "failed" else "diverged" if nr is None else f"{nr:.3g}"
+        line = [Path(r["run"]).name, r["status"], shown]
+        line += ["" if _value(r, c) is None else f"{_value(r, c):.4g}" for c in cols]
+        lines.append(line)
+    widths = [max(len(str(l[i])) for l in lines) for i in range(len(header))]
+    out = ["  ".join(str(v).ljust(w) for v, w in zip(l, widths)).rstrip() for l in lines]
+    bad = [r for r in rows if r["status"] == "failed"]
+    if bad:
+        out.append("")
+        out.append("failed runs:")
+        out += [f"  {r['reason']}" if r["reason"].startswith(r["run"]) else f"  {r['run']}: {r['reason']}"
+                for r in bad]
+    notes = [(r["run"], n) for r in rows for n in r.get("notes", [])]
+    if notes:
+        out.append("")
+        out.append("notes:")
+        out += [f"  {p}: {n}" for p, n in notes]
+    return "\n".join(out)
+
+
+def batch_settings_dict(s: BatchSettings) -> dict:
+    return asdict(s)
+
+
+def write_simulated_run(path: str | Path, excitation: str = "base", snr_db: float | None = 80.0, fs: float = 2000.0,
+                        duration: float = 10.0, seed: int = 0, stages: tuple | None = None, overwrite: bool = False):
+    """A ground-truth run (recon.testing.truth.sdof_run) written as a cleanly closed .h5 run file.
+
+    ``stages`` limits which stages are written (e.g. to make a run that lacks one).
+    Returns the true model. Used by the tests and the benches."""
+
+    run, truth = sdof_run(excitation, snr_db=snr_db, fs=fs, duration=duration, seed=seed)
+    with RunWriter(path, overwrite=overwrite, attrs={"excitation": excitation, "simulated": True, "seed": seed}) as w:
+        for name, st in run.stages.items():
+            if stages is not None and name not in stages:
+                continue
+            sw = w.begin_stage(name, fs=fs, excitation=excitation, settings={"snr_db": snr_db})
+            sw.append(0, st.channels)
+            sw.close()
+    return truth

@@ -1,0 +1,158 @@
+"""The handlers of the recon sub-commands (parsers: workflows.commands): reconstruct, report,
+reprocess, diagnose, demo."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from recon import ReconSettings, diagnose, reconstruct
+from recon.output_error.uncertainty import UncertaintySettings, parameter_intervals
+from shakerlab.errors import UserFacingError
+from shakerlab.jsonsafe import clean
+from shakerlab.runfile.reader import load_run
+from workflows.batch import (BatchSettings, TextProgress, diagnosis_available, expand, format_table, run_batch,
+                             run_loop, write_csv)
+from workflows.demo import run_demo
+from workflows.diagnosis_report import write_report
+from workflows.figures import write_validation_plots
+from workflows.report import StepProgress, interval_lines, make_report
+
+
+def reconstruct_command(args) -> int:
+
+    if args.library_order < 2 or args.library_order > 8:
+        raise UserFacingError(f"--library-order must be between 2 and 8, got {args.library_order}")
+    run = load_run(args.run)
+    result = reconstruct(run, ReconSettings(library_order=args.library_order, polish=not args.no_polish,
+                                            form=getattr(args, "form", "joint")))
+    out = result.to_dict()
+    if getattr(args, "uncertainty", False):
+
+        out["uncertainty"] = parameter_intervals(result.model, run)
+    if args.plots:
+        out["plots"] = [str(p) for p in write_validation_plots(result, run, Path(args.plots))]
+    if args.save_model:
+        result.model.save(args.save_model)
+    if args.json:
+        print(json.dumps(clean(out)))
+        return 0
+    print(f"{run.source}: {result.model.excitation} excitation, per unit mass")
+    print(result.model.equation())
+    v = result.validation
+    print(f"validation NRMSE on stage {v['stage']!r}: {v['nrmse']:.4g}"
+          + (" (no validation stage: fitted stage)" if v.get("fitted_on_validation_stage") else ""))
+    d = result.differentiation["nonlinear"]
+    print(f"Savitzky-Golay (nonlinear stage): window {d['window']}, order {d['order']}, "
+          f"noise level {', '.join(f'{k} {v:.3g}' for k, v in d['noise_level'].items())}")
+    print(f"sparse regression: {result.sparse['n_terms']} library terms, threshold {result.sparse['threshold']:.3g}; "
+          f"linear step condition number {result.linear.condition_number:.3g}")
+    if "uncertainty" in out:
+
+        print(*interval_lines(out), sep="\n")
+    for p in out.get("plots", []):
+        print(f"plot: {p}")
+    return 0
+
+
+def _recon_settings(args) -> dict:
+
+    if args.library_order < 2 or args.library_order > 8:
+        raise UserFacingError(f"--library-order must be between 2 and 8, got {args.library_order}")
+    if args.resamples < 50:
+        raise UserFacingError(f"--resamples must be at least 50, got {args.resamples}")
+    return {"library_order": args.library_order, "polish": not args.no_polish}
+
+
+def _term_models(args) -> int:
+
+    if args.term_models < 0 or 0 < args.term_models < 5:
+        raise UserFacingError(f"--term-models must be 0 (off) or at least 5, got {args.term_models}")
+    return args.term_models
+
+
+def report_command(args) -> int:
+
+    rs = _recon_settings(args)
+    d = make_report(args.run, args.output, settings=ReconSettings(**rs), uncertainty=not args.no_uncertainty,
+                    uncertainty_settings=UncertaintySettings(n_resamples=args.resamples),
+                    write_back=not args.no_write_back, progress=StepProgress(enabled=not args.json),
+                    term_models=_term_models(args))
+    if args.json:
+        print(json.dumps(d))
+        return 0
+    print(d["equation"])
+    v = d["validation"]
+    print(f"validation NRMSE on stage {v['stage']!r}: {v['nrmse']:.4g}" if v.get("nrmse") is not None
+          else "validation: simulation diverged")
+    if "uncertainty" in d:
+        print(*interval_lines(d), sep="\n")
+    ts = d.get("term_selection") or {}
+    if ts.get("available"):
+        print(f"term selection over {ts['n_models']} row subsamples: "
+              + ", ".join(f"{t} {f:.2f}" + ("*" if t in ts["selected"] else "") for t, f in ts["inclusion"].items())
+              + "  (* selected)")
+    print(d["report"]["note"])
+    print(f"report: {d['report']['html']}")
+    return 0
+
+
+def reprocess_command(args) -> int:
+
+    rs = _recon_settings(args)
+    paths = expand(args.patterns)
+    if args.diagnose and not diagnosis_available():
+        print("shakerlab reprocess: --diagnose: diagnosis unavailable (recon.diagnosis is not installed); "
+              "reconstructing only", file=sys.stderr)
+    s = BatchSettings(recon=rs, uncertainty=not args.no_uncertainty,
+                      uncertainty_settings={"n_resamples": args.resamples} if args.resamples != 200 else {},
+                      diagnose=args.diagnose and diagnosis_available(), write_back=not args.no_write_back,
+                      force=args.force, workers=args.workers, scheduler=args.scheduler, processes=not args.threads,
+                      term_models=_term_models(args))
+    where = ("a plain loop" if args.serial else f"scheduler {args.scheduler}" if args.scheduler
+             else f"a local Dask cluster ({args.workers} {'threads' if args.threads else 'processes'})")
+    print(f"reprocessing {len(paths)} run(s) on {where}", file=sys.stderr)
+    progress = TextProgress(len(paths), enabled=not args.quiet)
+    rows = run_loop(paths, s, progress) if args.serial else run_batch(paths, s, progress)
+    print(format_table(rows))
+    print(f"summary: {write_csv(rows, args.csv)}")
+    n_bad = sum(r["status"] == "failed" for r in rows)
+    return 1 if n_bad else 0
+
+
+def diagnose_command(args) -> int:
+
+    run = load_run(args.run)
+    d = diagnose(run, baseline=args.baseline)
+    out = d.to_dict()
+    if args.report:
+
+        out["report"] = [str(p) for p in write_report(d, run, Path(args.report))]
+    if args.save_model:
+        d.best.save(args.save_model)
+    if args.json:
+        print(json.dumps(clean(out)))
+        return 0
+    print(f"{run.source}: baseline ({d.baseline_kind})")
+    print(out["baseline"])
+    fb, fa = out["fit_before"]["nrmse"], out["fit_after"]["nrmse"]
+    for stage in fb:
+        print(f"  NRMSE {stage:12s} before {fb[stage]:.4g}  refit {out['fit_before']['refit_nrmse'][stage]:.4g}"
+              f"  after {fa[stage]:.4g}")
+    for f in out["mismatch"][:8]:
+        print(f"  mismatch: {f['kind']} in {f['stage']} {f['region']} size {f['size']:.3g}")
+    print(out["result"])
+    for m in out["missing_physics"]:
+        ps = ", ".join(f"{k} = {v['value']:.4g}" for k, v in m["parameters"].items())
+        print(f"  {m['id']}: {m['explanation']} ({ps}); held-out NRMSE "
+              f"{m['evidence']['held_out_nrmse_before']:.4g} -> {m['evidence']['held_out_nrmse_after']:.4g}")
+    if out["missing_physics"]:
+        print("augmented model:\n" + out["fit_after"]["model"])
+    for p in out.get("report", []):
+        print(f"report: {p}")
+    return 0
+
+
+def demo_command(args) -> int:
+    return run_demo(args.output, realtime=args.realtime, protocol_path=args.protocol, seed=args.seed,
+                    quiet=args.quiet)
