@@ -13,7 +13,6 @@ held-out mismatch they remove.
 """
 from __future__ import annotations
 
-import contextlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -21,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.determinism import single_thread_blas
 from recon.diagnosis import rank
 from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.catalog import CATALOG
@@ -141,21 +141,10 @@ def _check_null(null, data, run) -> None:
                               f"stage(s) {where} (the simulation diverged); try --baseline linear or a saved model")
 
 
-def _one_blas_thread():
-    """The fits' Jacobians are tall and thin: threaded BLAS only adds contention (40x slower
-    SVDs measured on 2 shared cores), so BLAS runs single-threaded during a diagnosis."""
-    try:
-        from threadpoolctl import threadpool_limits  # optional: threadpoolctl may be absent
-    except ImportError:          # optional: without it the diagnosis is only slower
-
-        return contextlib.nullcontext()
-    return threadpool_limits(1, user_api="blas")
-
-
+@single_thread_blas
 def diagnose(run: Run, baseline="paper", candidates=None, max_nfev: int = 30) -> Diagnosis:
     """Diagnose ``run`` against ``baseline`` ("paper", "linear", a model JSON path or a model)."""
-    with _one_blas_thread():
-        return _diagnose(run, baseline, candidates, max_nfev)
+    return _diagnose(run, baseline, candidates, max_nfev)
 
 
 def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:

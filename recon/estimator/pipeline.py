@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from recon.determinism import single_thread_blas
 from recon.estimator.finish import admissible, validate
 from recon.estimator.pointwise import reconstruct_pointwise
 from recon.estimator.result import ReconResult, ReconSettings
@@ -26,6 +27,7 @@ from shakerlab.run_data import Run
 FORMS = {"joint": reconstruct_pointwise, "ab": reconstruct_pointwise, "weak": reconstruct_weak}
 
 
+@single_thread_blas
 def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model: bool = True) -> ReconResult:
     """Identify the model.
 

@@ -59,6 +59,7 @@ import numpy as np
 
 from recon.differentiation import choose_window, derivatives, estimate_spectrum, undo_passband_loss
 from recon.estimator.pipeline import reconstruct
+from recon.determinism import single_thread_blas
 from recon.model import HystereticModel
 from recon.regression.sparse import GroupedSparseSelector
 from recon.steps.bouc_wen import extract
@@ -198,6 +199,7 @@ def _block_ids(sizes: list[int], residuals: list[np.ndarray], s: UncertaintySett
     return np.concatenate(ids), lengths, offset
 
 
+@single_thread_blas
 def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintySettings | None = None) -> dict:
     """Percentile intervals of every parameter of ``model`` fitted on ``run`` (see module doc)."""
     s = settings or UncertaintySettings()
