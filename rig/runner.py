@@ -92,6 +92,9 @@ class Runner:
         self._stopping = False
         self._aborts_at_stop = 0
         self.samples_lost = 0
+        self.handlers = {BeginStage: self._begin_stage, EndStage: self._end_stage,
+                         SetFrequency: self._set_frequency, Ramp: self._ramp, Acquire: self._acquire_window,
+                         Rest: self._rest, Log: self._log_message, Checkpoint: self._checkpoint}
 
     # -- control (thread-safe; also from a signal handler) --------------------------------------
     def subscribe(self, observer) -> None:
@@ -221,47 +224,58 @@ class Runner:
                 xt = np.concatenate(xt)[:n_target]
                 return Window(start, self.fs, xb, xt, self.inst.vpp if self.inst.output else 0.0, self.inst.frequency)
 
+    # The message-type -> handler table (bluesky's RunEngine command registry, kept small): each
+    # handler takes the message and returns what the plan receives back from its ``yield``.
+    def _begin_stage(self, msg: BeginStage) -> None:
+        self.stage = msg.name
+        self.stage_status[msg.name] = "recording"
+        self._notify("on_stage_begin", msg.name, dict(msg.settings), self.index)
+        self.log("info", f"stage {msg.name} begins")
+
+    def _end_stage(self, msg: EndStage) -> None:
+        self._ramp_to(0.0, self.ramp_rate)
+        name = self.stage
+        self.stage = None
+        self.stage_status[name] = "complete"
+        self._notify("on_stage_end", name, "complete", dict(msg.summary))
+        self.log("info", f"stage {name} complete")
+
+    def _set_frequency(self, msg: SetFrequency) -> None:
+        self.inst.set_frequency(msg.hz)
+        self._notify("on_setpoint", self.index, self.inst.vpp if self.inst.output else 0.0, msg.hz, "frequency")
+
+    def _ramp(self, msg: Ramp) -> None:
+        self._notify("on_setpoint", self.index, msg.vpp, self.inst.frequency, f"ramp to {msg.vpp:g} Vpp {msg.label}".strip())
+        self._ramp_to(msg.vpp, self.ramp_rate)
+        self._notify("on_setpoint", self.index, msg.vpp, self.inst.frequency, f"level {msg.label}".strip())
+
+    def _acquire_window(self, msg: Acquire) -> Window:
+        return self._acquire(msg.duration_s)
+
+    def _rest(self, msg: Rest) -> None:
+        self._ramp_to(0.0, self.ramp_rate)
+        if msg.duration_s > 0:
+            self._acquire(msg.duration_s)
+
+    def _log_message(self, msg: Log) -> None:
+        self.log(msg.level, msg.message)
+
+    def _checkpoint(self, msg: Checkpoint) -> None:
+        if self._abort_count:
+            raise _Stop("aborted", self._abort_reason)
+        if self._pause_requested.is_set() and not self._in_pause:
+            self._pause()
+
+    def register_command(self, message_type: type, handler) -> None:
+        """Execute plan messages of ``message_type`` with ``handler(msg)`` (its return value is sent
+        back to the plan)."""
+        self.handlers[message_type] = handler
+
     def _execute(self, msg):
-        if isinstance(msg, BeginStage):
-            self.stage = msg.name
-            self.stage_status[msg.name] = "recording"
-            self._notify("on_stage_begin", msg.name, dict(msg.settings), self.index)
-            self.log("info", f"stage {msg.name} begins")
-            return None
-        if isinstance(msg, EndStage):
-            self._ramp_to(0.0, self.ramp_rate)
-            name = self.stage
-            self.stage = None
-            self.stage_status[name] = "complete"
-            self._notify("on_stage_end", name, "complete", dict(msg.summary))
-            self.log("info", f"stage {name} complete")
-            return None
-        if isinstance(msg, SetFrequency):
-            self.inst.set_frequency(msg.hz)
-            self._notify("on_setpoint", self.index, self.inst.vpp if self.inst.output else 0.0, msg.hz, "frequency")
-            return None
-        if isinstance(msg, Ramp):
-            self._notify("on_setpoint", self.index, msg.vpp, self.inst.frequency, f"ramp to {msg.vpp:g} Vpp {msg.label}".strip())
-            self._ramp_to(msg.vpp, self.ramp_rate)
-            self._notify("on_setpoint", self.index, msg.vpp, self.inst.frequency, f"level {msg.label}".strip())
-            return None
-        if isinstance(msg, Acquire):
-            return self._acquire(msg.duration_s)
-        if isinstance(msg, Rest):
-            self._ramp_to(0.0, self.ramp_rate)
-            if msg.duration_s > 0:
-                self._acquire(msg.duration_s)
-            return None
-        if isinstance(msg, Log):
-            self.log(msg.level, msg.message)
-            return None
-        if isinstance(msg, Checkpoint):
-            if self._abort_count:
-                raise _Stop("aborted", self._abort_reason)
-            if self._pause_requested.is_set() and not self._in_pause:
-                self._pause()
-            return None
-        raise TypeError(f"unknown plan message {msg!r}")
+        handler = self.handlers.get(type(msg))
+        if handler is None:
+            raise TypeError(f"unknown plan message {msg!r}")
+        return handler(msg)
 
     # -- the run ---------------------------------------------------------------------------------------
     def run(self, plan, run_info: dict | None = None) -> RunOutcome:
