@@ -12,7 +12,7 @@ import copy
 from dataclasses import dataclass
 from pathlib import Path
 
-from rig.toml_fields import Field, load_toml, validate
+from shakerlab.toml_fields import Field, load_toml, validate
 from shakerlab.errors import UserFacingError
 
 DEFAULT_RIG_PATH = Path(__file__).with_name("default_rig.toml")

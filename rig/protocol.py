@@ -23,7 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from rig.toml_fields import Field, load_toml, validate
+from shakerlab.toml_fields import Field, load_toml, validate
 from shakerlab.errors import UserFacingError
 
 DEFAULT_PROTOCOL_PATH = Path(__file__).with_name("default_protocol.toml")

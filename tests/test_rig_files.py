@@ -143,7 +143,7 @@ def test_every_field_is_documented():
     from pathlib import Path
 
     from rig import config, protocol
-    from rig.toml_fields import schema_doc
+    from shakerlab.toml_fields import schema_doc
 
     root = Path(__file__).resolve().parents[1]
     proto_doc = (root / "docs" / "protocol.md").read_text()
