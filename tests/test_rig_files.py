@@ -86,7 +86,7 @@ def test_protocol_amplitude_over_rig_limit(tmp_path):
 
     path = tmp_path / "p.toml"
     path.write_text(_edit(DEFAULT_PROTOCOL_PATH.read_text(), "max_vpp = 5.5", "max_vpp = 9.0"))
-    with pytest.raises(UserFacingError, match=r"\[nonlinear\] max_vpp = 9 V exceeds the rig's limit max_generator_vpp = 6 V"):
+    with pytest.raises(UserFacingError, match=r"\[nonlinear\] max_vpp = 9: generator amplitude 9 Vpp exceeds limits.max_generator_vpp = 6 Vpp"):
         load_protocol(path).check_against_limits(load_config().limits)
 
 
