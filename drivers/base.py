@@ -1,10 +1,13 @@
-"""Common ground of the instrument drivers: errors, strict validators and a property helper.
+"""Common ground of the instrument drivers: errors, strict validators, the :class:`Instrument`
+base and the declarative properties.
 
-A driver reads like the instrument's manual: each setting is a class attribute
-declared with :class:`Setting`, naming the command that reads it, the command
-that writes it and a validator that rejects out-of-range values *before*
-anything is sent (values are never clipped).  Every error is an
-:class:`InstrumentError` whose message names the instrument and the command.
+A driver reads like the instrument's manual (the PyMeasure idea): each setting
+is a class attribute declared with :meth:`Instrument.control` /
+:meth:`Instrument.measurement` (a text command that reads it, one that writes
+it) or :class:`Register` (a Modbus holding register, its scale and range), with
+a validator that rejects out-of-range values *before* anything is sent (values
+are never clipped).  Every error is an :class:`InstrumentError` whose message
+names the instrument and the command.
 """
 from __future__ import annotations
 
@@ -142,6 +145,102 @@ class Setting:
             self.set(inst, value)
         else:
             inst._write(command.format(self.fmt(value)))
+
+
+def on_off(value: bool) -> str:
+    """SCPI boolean argument."""
+    return "ON" if value else "OFF"
+
+
+class Register:
+    """One Modbus holding register as a validated property: ``value = raw / scale``.
+
+    ``signed`` reads the 16-bit word as int16; ``kind=bool`` maps 0/1.  Before a
+    write, ``validator`` checks the value, or ``bounds(instrument) -> (low, high)``
+    for a range the device itself reports (e.g. MAX_GAIN); nothing is sent when
+    it fails.  ``writable=False``: read only.  ``cached``: a device constant,
+    read once per driver.  The instrument provides ``_read(address, count,
+    label)`` and ``_write_register(address, raw, label)``.
+    """
+
+    def __init__(self, address: int, label: str, doc: str = "", *, scale: float = 1, signed: bool = False,
+                 kind: type = float, writable: bool = True, validator: Validator | None = None,
+                 bounds: Callable[[Any], tuple[float, float]] | None = None, unit: str = "",
+                 cached: bool = False):
+        self.address = address
+        self.label = label
+        self.scale = scale
+        self.signed = signed
+        self.kind = kind
+        self.writable = writable
+        self.validator = boolean if kind is bool and validator is None else validator
+        self.bounds = bounds
+        self.unit = unit
+        self.cached = cached
+        self.__doc__ = doc
+        self.name = label.lower()
+
+    def __set_name__(self, owner, name):
+        self.name = name
+
+    def decode(self, raw: int):
+        if self.kind is bool:
+            return bool(raw)
+        if self.signed and raw >= 0x8000:
+            raw -= 0x10000
+        return raw if self.kind is int else raw / self.scale
+
+    def __get__(self, inst, owner=None):
+        if inst is None:
+            return self
+        cache = inst.__dict__.setdefault("_register_cache", {})
+        if self.cached and self.address in cache:
+            return cache[self.address]
+        value = self.decode(inst._read(self.address, 1, self.label)[0])
+        if self.cached:
+            cache[self.address] = value
+        return value
+
+    def __set__(self, inst, value):
+        if not self.writable:
+            raise AttributeError(f"{inst.name}: {self.name} is read-only (register {self.label})")
+        if self.validator is not None:
+            value = self.validator(inst.name, self.name, value)
+        if self.bounds is not None:
+            value = in_range(*self.bounds(inst), self.unit)(inst.name, self.name, value)
+        raw = int(value) if self.kind is bool else int(round(value * self.scale))
+        inst._write_register(self.address, raw, self.label)
+
+
+class Instrument:
+    """Base of every driver: a name for its messages, ``close()`` and the context manager.
+
+    Text-protocol drivers implement ``_query(command) -> reply`` and
+    ``_write(command)``, which the properties made by :meth:`control` and
+    :meth:`measurement` use.
+    """
+
+    name = "instrument"
+
+    @staticmethod
+    def control(get, set, doc: str, validator: Validator | None = None, parse: Callable[[str], Any] = float,
+                fmt: Callable[[Any], str] = repr) -> Setting:
+        """A read/write setting: query ``get``, write ``set`` (a format string) after ``validator``."""
+        return Setting(get, set, validator, parse=parse, fmt=fmt, doc=doc)
+
+    @staticmethod
+    def measurement(get, doc: str, parse: Callable[[str], Any] = float) -> Setting:
+        """A read-only value."""
+        return Setting(get, None, parse=parse, doc=doc)
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
 
 
 def parse_bool(reply: str) -> bool:

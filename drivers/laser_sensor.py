@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.base import (InstrumentError, InstrumentFault, MalformedReply, Setting, int_range, parse_float,
-                          one_of)
+from drivers.base import (Instrument, InstrumentError, InstrumentFault, MalformedReply, int_range, one_of,
+                          parse_float)
 from drivers.line_link import LineLink
 
 RATES = (1000, 2000, 5000, 10000, 20000, 50000)
@@ -47,7 +47,7 @@ class SensorBlock:
         return int(self.values.size)
 
 
-class LaserSensor:
+class LaserSensor(Instrument):
     name = "laser sensor"
 
     def __init__(self, url: str, timeout: float = 1.0, name: str | None = None, **link_options):
@@ -80,15 +80,13 @@ class LaserSensor:
         self._query(command)
 
     # ---- settings -----------------------------------------------------------------------------
-    sampling_rate = Setting(lambda s: float(s._int_field("SS")), "SS,{}",
-                            one_of(RATES), fmt=lambda v: str(int(v)),
-                            doc="Sampling rate [Hz], one of 1, 2, 5, 10, 20, 50 kHz (the controller "
-                                "may refuse rates it cannot do).")
+    sampling_rate = Instrument.control(lambda s: float(s._int_field("SS")), "SS,{}",
+                                       "Sampling rate [Hz], one of 1, 2, 5, 10, 20, 50 kHz (the controller "
+                                       "may refuse rates it cannot do).", one_of(RATES), fmt=lambda v: str(int(v)))
 
-    @property
-    def measuring_range(self) -> float:
-        """Half measuring range [m] (readings span +-range about the reference distance)."""
-        return self._float_field("RG") * 1e-3
+    measuring_range = Instrument.measurement(lambda s: s._float_field("RG") * 1e-3,
+                                             "Half measuring range [m] (readings span +-range about the "
+                                             "reference distance).")
 
     def _int_field(self, command: str) -> int:
         text = self._field(command)
@@ -215,9 +213,3 @@ class LaserSensor:
 
     def close(self) -> None:
         self.link.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()

@@ -18,6 +18,24 @@ import serial
 from drivers.base import InstrumentConnectionError, InstrumentTimeout, MalformedReply
 
 MAX_REPLY = 16 * 1024 * 1024
+URL_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep")  # pyserial's URL handlers
+URL_FORMS = "socket://host:port, a serial device such as /dev/ttyUSB0, or a pty path"
+
+
+def url_problem(url: str) -> str | None:
+    """Why ``url`` is not a pyserial URL this link can open (None when it looks right)."""
+    if not isinstance(url, str) or not url.strip():
+        return f"no address given (expected {URL_FORMS})"
+    scheme, sep, rest = url.partition("://")
+    if not sep:
+        return None  # a device path: the OS says whether it exists
+    if scheme not in URL_SCHEMES:
+        return f"unknown URL scheme {scheme + '://'!r} in {url!r} (expected {URL_FORMS})"
+    if scheme == "socket":
+        host, colon, port = rest.split("?", 1)[0].rpartition(":")
+        if not colon or not host or not port.isdigit() or not 0 < int(port) < 65536:
+            return f"bad address {url!r}: expected socket://host:port with a port 1..65535"
+    return None
 
 
 class LineLink:
@@ -41,6 +59,9 @@ class LineLink:
 
     # ---- connection -----------------------------------------------------------------------
     def open(self) -> None:
+        problem = url_problem(self.url)
+        if problem is not None:
+            raise InstrumentConnectionError(self.instrument, f"connect {self.url}", problem)
         last = None
         for attempt in range(max(1, self.reconnect_attempts)):
             try:

@@ -16,19 +16,12 @@ from dataclasses import dataclass
 from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
-from drivers.base import (InstrumentConnectionError, InstrumentFault, InstrumentTimeout,
-                          MalformedReply, Setting, SettingRangeError, boolean, in_range)
+from drivers.base import (Instrument, InstrumentConnectionError, InstrumentFault, InstrumentTimeout,
+                          MalformedReply, Register, SettingRangeError, in_range)
 
-REG_ENABLE, REG_GAIN, REG_LIMIT, REG_WATCHDOG, REG_RESET, REG_HEARTBEAT = range(6)
-REG_STATUS, REG_CURRENT, REG_VOLTAGE, REG_TEMPERATURE, REG_MAX_GAIN, REG_MAX_LIMIT = range(16, 22)
-REG_IDENT, N_IDENT = 32, 16
 STATUS_ACTIVE, STATUS_OVER_CURRENT, STATUS_OVER_TEMPERATURE, STATUS_CLIP, STATUS_WATCHDOG = 1, 2, 4, 8, 16
 MAX_WATCHDOG_S = 60.0
-REG_NAMES = {REG_ENABLE: "ENABLE", REG_GAIN: "GAIN", REG_LIMIT: "CURRENT_LIMIT",
-             REG_WATCHDOG: "WATCHDOG_TIMEOUT", REG_RESET: "FAULT_RESET", REG_HEARTBEAT: "HEARTBEAT",
-             REG_STATUS: "STATUS", REG_CURRENT: "OUTPUT_CURRENT", REG_VOLTAGE: "OUTPUT_VOLTAGE",
-             REG_TEMPERATURE: "TEMPERATURE", REG_MAX_GAIN: "MAX_GAIN", REG_MAX_LIMIT: "MAX_CURRENT_LIMIT",
-             REG_IDENT: "IDENT"}
+REG_IDENT, N_IDENT = 32, 16
 MODBUS_EXCEPTIONS = {1: "illegal function", 2: "illegal data address", 3: "illegal data value (out of range)",
                      4: "device failure", 6: "device busy"}
 
@@ -48,12 +41,33 @@ class AmplifierFaults:
         return [n for n in ("over_current", "over_temperature", "clip", "watchdog") if getattr(self, n)]
 
 
-def _signed(v: int) -> int:
-    return v - 0x10000 if v >= 0x8000 else v
+class PowerAmplifier(Instrument):
+    """The register map (docs/protocols.md), one property per register."""
 
-
-class PowerAmplifier:
     name = "power amplifier"
+
+    enabled = Register(0, "ENABLE", "Output stage enabled (muted when False).", kind=bool)
+    gain = Register(1, "GAIN", "Gain, 0..max_gain, resolution 0.001.", scale=1000,
+                    bounds=lambda amp: (0.0, amp.max_gain))
+    current_limit = Register(2, "CURRENT_LIMIT", "Over-current trip level [A], resolution 1 mA.", scale=1000,
+                             bounds=lambda amp: (0.001, amp.max_current_limit), unit=" A")
+    watchdog_timeout = Register(3, "WATCHDOG_TIMEOUT", "Comms watchdog [s]; 0 = off.  The output mutes when "
+                                "the master is silent for longer (while enabled).", scale=1000,
+                                validator=in_range(0.0, MAX_WATCHDOG_S, " s"))
+    fault_reset = Register(4, "FAULT_RESET", "Write 1: clear latched faults (reads 0).", kind=int)
+    heartbeat_count = Register(5, "HEARTBEAT", "Any value; a cheap request for the watchdog.", kind=int)
+    status = Register(16, "STATUS", "Bits: output active, over-current, over-temperature, clip, watchdog.",
+                      kind=int, writable=False)
+    output_current = Register(17, "OUTPUT_CURRENT", "Measured output current [A].", scale=1000, signed=True,
+                              writable=False)
+    output_voltage = Register(18, "OUTPUT_VOLTAGE", "Measured output voltage [V].", scale=100, signed=True,
+                              writable=False)
+    temperature = Register(19, "TEMPERATURE", "Output-stage temperature [degC].", scale=10, signed=True,
+                           writable=False)
+    max_gain = Register(20, "MAX_GAIN", "Highest gain the device accepts.", scale=1000, writable=False,
+                        cached=True)
+    max_current_limit = Register(21, "MAX_CURRENT_LIMIT", "Highest current limit the device accepts [A].",
+                                 scale=1000, writable=False, cached=True)
 
     def __init__(self, address: str, device_id: int = 1, timeout: float = 1.0,
                  reconnect_attempts: int = 3, reconnect_delay: float = 0.1):
@@ -69,7 +83,6 @@ class PowerAmplifier:
         self.reconnect_delay = reconnect_delay
         self._client = ModbusTcpClient(host, port=int(port), timeout=self.timeout, retries=0)
         self._lock = threading.Lock()
-        self._limits: tuple[float, float] | None = None
         self._heartbeat = 0
         self._connect("connect")
 
@@ -106,81 +119,36 @@ class PowerAmplifier:
             raise InstrumentFault(self.name, what, f"Modbus exception {code}: {meaning}")
         return rr
 
-    def _read(self, reg: int, count: int = 1) -> list[int]:
-        what = f"read {REG_NAMES.get(reg, reg)} (register {reg}, count {count})"
+    def _read(self, reg: int, count: int, label: str) -> list[int]:
+        what = f"read {label} (register {reg}, count {count})"
         rr = self._call(what, self._client.read_holding_registers, reg, count=count)
         regs = list(getattr(rr, "registers", []) or [])
         if len(regs) != count:
             raise MalformedReply(self.name, what, f"expected {count} register(s), got {len(regs)}")
         return regs
 
-    def _write_reg(self, reg: int, value: int) -> None:
-        what = f"write {REG_NAMES.get(reg, reg)} (register {reg}) = {value}"
+    def _write_register(self, reg: int, value: int, label: str) -> None:
+        what = f"write {label} (register {reg}) = {value}"
         self._call(what, self._client.write_register, reg, value)
 
     def _write_regs(self, reg: int, values: list[int]) -> None:
         what = f"write registers {reg}..{reg + len(values) - 1} = {values}"
         self._call(what, self._client.write_registers, reg, values)
 
-    # ---- device limits (read once from the device) ----------------------------------------------
-    def _device_limits(self) -> tuple[float, float]:
-        if self._limits is None:
-            g, i = self._read(REG_MAX_GAIN, 2)
-            self._limits = (g / 1000.0, i / 1000.0)
-        return self._limits
-
-    def _set_gain(self, value: float) -> None:
-        max_gain = self._device_limits()[0]
-        in_range(0.0, max_gain)(self.name, "gain", value)
-        self._write_reg(REG_GAIN, int(round(value * 1000)))
-
-    def _set_limit(self, value: float) -> None:
-        max_limit = self._device_limits()[1]
-        in_range(0.001, max_limit, " A")(self.name, "current_limit", value)
-        self._write_reg(REG_LIMIT, int(round(value * 1000)))
-
-    # ---- settings ----------------------------------------------------------------------------
-    enabled = Setting(lambda s: bool(s._read(REG_ENABLE)[0]),
-                      lambda s, v: s._write_reg(REG_ENABLE, int(v)), boolean,
-                      doc="Output stage enabled (muted when False).")
-    gain = Setting(lambda s: s._read(REG_GAIN)[0] / 1000.0, lambda s, v: s._set_gain(v),
-                   doc="Gain, 0..max_gain, resolution 0.001.")
-    current_limit = Setting(lambda s: s._read(REG_LIMIT)[0] / 1000.0, lambda s, v: s._set_limit(v),
-                            doc="Over-current trip level [A], resolution 1 mA.")
-    watchdog_timeout = Setting(lambda s: s._read(REG_WATCHDOG)[0] / 1000.0,
-                               lambda s, v: s._write_reg(REG_WATCHDOG, int(round(v * 1000))),
-                               in_range(0.0, MAX_WATCHDOG_S, " s"),
-                               doc="Comms watchdog [s]; 0 = off.  The output mutes when the "
-                                   "master is silent for longer (while enabled).")
-    output_current = Setting(lambda s: _signed(s._read(REG_CURRENT)[0]) / 1000.0,
-                             doc="Measured output current [A] (read only).")
-    output_voltage = Setting(lambda s: _signed(s._read(REG_VOLTAGE)[0]) / 100.0,
-                             doc="Measured output voltage [V] (read only).")
-    temperature = Setting(lambda s: _signed(s._read(REG_TEMPERATURE)[0]) / 10.0,
-                          doc="Output-stage temperature [degC] (read only).")
-
-    @property
-    def max_gain(self) -> float:
-        return self._device_limits()[0]
-
-    @property
-    def max_current_limit(self) -> float:
-        return self._device_limits()[1]
-
     @property
     def faults(self) -> AmplifierFaults:
-        s = self._read(REG_STATUS)[0]
+        s = self.status
         return AmplifierFaults(bool(s & STATUS_OVER_CURRENT), bool(s & STATUS_OVER_TEMPERATURE),
                                bool(s & STATUS_CLIP), bool(s & STATUS_WATCHDOG))
 
     @property
     def output_active(self) -> bool:
         """True when the output stage is enabled and not muted by a fault."""
-        return bool(self._read(REG_STATUS)[0] & STATUS_ACTIVE)
+        return bool(self.status & STATUS_ACTIVE)
 
     # ---- methods --------------------------------------------------------------------------------
     def identify(self) -> str:
-        regs = self._read(REG_IDENT, N_IDENT)
+        regs = self._read(REG_IDENT, N_IDENT, "IDENT")
         raw = b"".join(bytes([(r >> 8) & 0xFF, r & 0xFF]) for r in regs)
         try:
             return raw.decode("ascii").rstrip(" \x00")
@@ -189,12 +157,12 @@ class PowerAmplifier:
 
     def reset_faults(self) -> None:
         """Clear latched faults (over-temperature stays until the stage has cooled)."""
-        self._write_reg(REG_RESET, 1)
+        self.fault_reset = 1
 
     def heartbeat(self) -> None:
         """Tell the watchdog the master is alive (any request does; this is the cheapest)."""
         self._heartbeat = (self._heartbeat + 1) & 0xFFFF
-        self._write_reg(REG_HEARTBEAT, self._heartbeat)
+        self.heartbeat_count = self._heartbeat
 
     def check_errors(self) -> list[str]:
         """Names of the active (latched) faults; [] when healthy."""
@@ -202,17 +170,11 @@ class PowerAmplifier:
 
     def safe_state(self) -> None:
         """Disable the output and set the gain to 0 (one request)."""
-        self._write_regs(REG_ENABLE, [0, 0])
+        self._write_regs(PowerAmplifier.enabled.address, [0, 0])
 
     def close(self) -> None:
         with self._lock:
             self._client.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 __all__ = ["PowerAmplifier", "AmplifierFaults", "SettingRangeError"]

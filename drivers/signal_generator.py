@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import re
 
-from drivers.base import (InstrumentError, InstrumentFault, MalformedReply, Setting, parse_float,
-                          SettingRangeError, boolean, in_range, int_range, parse_bool)
+from drivers.base import (Instrument, InstrumentError, InstrumentFault, MalformedReply, SettingRangeError,
+                          boolean, in_range, int_range, on_off, parse_bool, parse_float)
 from drivers.line_link import LineLink
 
 FREQ_RANGE = (1e-6, 30e6)      # Hz (sine)
@@ -27,7 +27,7 @@ def _num(v: float) -> str:
     return f"{v:.12g}"
 
 
-class SignalGenerator:
+class SignalGenerator(Instrument):
     """One channel of a Keysight 33500B-style generator (sine only)."""
 
     name = "signal generator"
@@ -57,21 +57,20 @@ class SignalGenerator:
         return int(m.group(1)), m.group(2)
 
     # ---- settings ------------------------------------------------------------------------------
-    frequency = Setting("FREQ?", "FREQ {}", in_range(*FREQ_RANGE, " Hz"), fmt=_num,
-                        doc="Output frequency [Hz].")
-    amplitude = Setting("VOLT?", "VOLT {}", in_range(*VPP_RANGE, " Vpp"), fmt=_num,
-                        doc="Output amplitude [Vpp] (into the configured load).")
-    offset = Setting("VOLT:OFFS?", "VOLT:OFFS {}", in_range(*OFFSET_RANGE, " V"), fmt=_num,
-                     doc="DC offset [V].")
-    output = Setting("OUTP?", "OUTP {}", boolean, parse=parse_bool,
-                     fmt=lambda b: "ON" if b else "OFF", doc="Output relay on/off.")
-    sweep_enabled = Setting("SWE:STAT?", "SWE:STAT {}", boolean, parse=parse_bool,
-                            fmt=lambda b: "ON" if b else "OFF", doc="Linear frequency sweep on/off.")
-    burst_enabled = Setting("BURS:STAT?", "BURS:STAT {}", boolean, parse=parse_bool,
-                            fmt=lambda b: "ON" if b else "OFF", doc="Triggered burst mode on/off.")
-    voltage_limits_enabled = Setting("VOLT:LIM:STAT?", "VOLT:LIM:STAT {}", boolean, parse=parse_bool,
-                                     fmt=lambda b: "ON" if b else "OFF",
-                                     doc="Output voltage limits active.")
+    frequency = Instrument.control("FREQ?", "FREQ {}", "Output frequency [Hz].",
+                                   in_range(*FREQ_RANGE, " Hz"), fmt=_num)
+    amplitude = Instrument.control("VOLT?", "VOLT {}", "Output amplitude [Vpp] (into the configured load).",
+                                   in_range(*VPP_RANGE, " Vpp"), fmt=_num)
+    offset = Instrument.control("VOLT:OFFS?", "VOLT:OFFS {}", "DC offset [V].",
+                                in_range(*OFFSET_RANGE, " V"), fmt=_num)
+    output = Instrument.control("OUTP?", "OUTP {}", "Output relay on/off.", boolean, parse=parse_bool, fmt=on_off)
+    sweep_enabled = Instrument.control("SWE:STAT?", "SWE:STAT {}", "Linear frequency sweep on/off.", boolean,
+                                       parse=parse_bool, fmt=on_off)
+    burst_enabled = Instrument.control("BURS:STAT?", "BURS:STAT {}", "Triggered burst mode on/off.", boolean,
+                                       parse=parse_bool, fmt=on_off)
+    voltage_limits_enabled = Instrument.control("VOLT:LIM:STAT?", "VOLT:LIM:STAT {}",
+                                                "Output voltage limits active.", boolean, parse=parse_bool,
+                                                fmt=on_off)
 
     @property
     def voltage_limits(self) -> tuple[float, float]:
@@ -143,12 +142,6 @@ class SignalGenerator:
 
     def close(self) -> None:
         self.link.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 __all__ = ["SignalGenerator", "InstrumentError"]

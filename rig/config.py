@@ -12,10 +12,13 @@ import copy
 from dataclasses import dataclass
 from pathlib import Path
 
-from rig.toml_fields import Field, load_toml, validate
 from shakerlab.errors import UserFacingError
+from shakerlab.toml_fields import Field, load_toml, validate
 
 DEFAULT_RIG_PATH = Path(__file__).with_name("default_rig.toml")
+# The highest drive frequency leaves this many samples per period: the analysis fits five harmonics,
+# the fifth then sits at half the sensors' Nyquist frequency.
+SAMPLES_PER_PERIOD = 20
 
 SCHEMA = {
     "generator": {
@@ -68,6 +71,13 @@ SCHEMA = {
                                      help="amplitude changes are ramped at this rate, never stepped"),
         "abort_ramp_s": Field("number", 0.5, min=0, min_exclusive=True, max=30,
                               help="on abort, error or trip the output ramps from its level to zero in this time"),
+        "max_drive_frequency_hz": Field("number", None, min=0, min_exclusive=True,
+                                        help="highest drive frequency; default and upper bound: "
+                                             "acquisition.sample_rate_hz / 20 (the fifth harmonic the analysis "
+                                             "fits stays at half the sensors' Nyquist frequency)"),
+        "max_step_duration_s": Field("number", 3600.0, min=0, min_exclusive=True,
+                                     help="longest time of any one protocol step (a duration, dwell, hold, "
+                                          "settle or measuring window)"),
         "soft_limit_fraction": Field("number", 0.8, min=0.1, max=1.0,
                                      help="the nonlinear stage stops raising when the next step's predicted "
                                           "response exceeds this fraction of a limit"),
@@ -114,6 +124,14 @@ def parse_config(data: dict, text: str = "", source: str = "rig.toml") -> RigCon
         raise UserFacingError(
             f"{source}: [amplifier] gain: {cfg['amplifier']['gain']:g} exceeds [limits] max_amplifier_gain "
             f"{lim['max_amplifier_gain']:g}"
+        )
+    highest_drive_hz = cfg["acquisition"]["sample_rate_hz"] / SAMPLES_PER_PERIOD
+    if lim["max_drive_frequency_hz"] is None:
+        lim["max_drive_frequency_hz"] = highest_drive_hz
+    elif lim["max_drive_frequency_hz"] > highest_drive_hz:
+        raise UserFacingError(
+            f"{source}: [limits] max_drive_frequency_hz: {lim['max_drive_frequency_hz']:g} Hz exceeds "
+            f"[acquisition] sample_rate_hz / {SAMPLES_PER_PERIOD} = {highest_drive_hz:g} Hz"
         )
     if ":" not in cfg["amplifier"]["address"]:
         raise UserFacingError(f"{source}: [amplifier] address: expected host:port, got {cfg['amplifier']['address']!r}")

@@ -18,6 +18,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drivers.laser_sensor import LaserSensor
+from drivers.power_amplifier import PowerAmplifier
+from drivers.signal_generator import SignalGenerator
+
 MIN_VPP = 0.001  # the generator's lowest amplitude; "zero" = this, then output off
 
 
@@ -90,6 +94,27 @@ class _Aligner:
         return index0, out
 
 
+@dataclass(frozen=True)
+class SafeStateReport:
+    """What :meth:`RigInstruments.mute` confirmed by reading the instruments back ("" = confirmed)."""
+
+    generator_problem: str
+    amplifier_problem: str
+    watchdog_timeout_s: float
+
+    @property
+    def confirmed(self) -> bool:
+        return not (self.generator_problem or self.amplifier_problem)
+
+    def __str__(self) -> str:
+        generator = ("generator output off (read back)" if not self.generator_problem else
+                     f"generator output NOT confirmed off ({self.generator_problem})")
+        amplifier = ("amplifier muted (read back: disabled, gain 0)" if not self.amplifier_problem else
+                     f"amplifier NOT confirmed muted ({self.amplifier_problem}); its comms watchdog mutes it "
+                     f"after {self.watchdog_timeout_s:g} s of silence")
+        return f"{generator}; {amplifier}"
+
+
 class SamplesLost(Exception):
     def __init__(self, message: str, n: int):
         super().__init__(message)
@@ -122,16 +147,12 @@ class RigInstruments:
     # -- connection -------------------------------------------------------------------------
     def connect(self) -> dict:
         """Open every driver and identify it; return {name: identity}."""
-        from drivers.laser_sensor import LaserSensor  # lazy: pymodbus and pyserial when instruments are opened
-        from drivers.power_amplifier import PowerAmplifier  # lazy: pymodbus and pyserial when instruments are opened
-        from drivers.signal_generator import SignalGenerator  # lazy: pymodbus and pyserial when instruments are opened
-
         d = self.config.data
         self.gen = SignalGenerator(d["generator"]["url"], timeout=d["generator"]["timeout_s"])
         self.amp = PowerAmplifier(d["amplifier"]["address"], device_id=d["amplifier"]["device_id"],
                                   timeout=d["amplifier"]["timeout_s"])
-        self.base = LaserSensor(d["sensors"]["base"]["url"], timeout=d["sensors"]["base"]["timeout_s"])
-        self.tip = LaserSensor(d["sensors"]["tip"]["url"], timeout=d["sensors"]["tip"]["timeout_s"])
+        self.base = LaserSensor(d["sensors"]["base"]["url"], timeout=d["sensors"]["base"]["timeout_s"], name="base")
+        self.tip = LaserSensor(d["sensors"]["tip"]["url"], timeout=d["sensors"]["tip"]["timeout_s"], name="tip")
         self.identities = {"generator": self.gen.identify(), "amplifier": self.amp.identify(),
                            "sensor_base": self.base.identify(), "sensor_tip": self.tip.identify()}
         return self.identities
@@ -267,20 +288,24 @@ class RigInstruments:
             self.gen.output = True
             self.output = True
 
-    def mute(self) -> list[str]:
-        """Generator output off and amplifier safe (each tried even if the other fails); return problems."""
-        problems = []
+    def mute(self) -> "SafeStateReport":
+        """Generator output off and amplifier muted, each tried even if the other fails, each read back;
+        report what was confirmed."""
+        generator_problem = amplifier_problem = ""
         try:
-            self.gen.output = False
+            self.gen.safe_state()  # OUTP OFF, then OUTP? must read 0
             self.output = False
-        except Exception as exc:  # noqa: BLE001
-            problems.append(f"generator: {exc}")
+        except Exception as exc:  # noqa: BLE001 - reported, the amplifier is still muted
+            generator_problem = str(exc)
         try:
             with self.amp_lock:
                 self.amp.safe_state()
-        except Exception as exc:  # noqa: BLE001
-            problems.append(f"amplifier: {exc}")
-        return problems
+                if self.amp.enabled or self.amp.gain != 0.0:
+                    amplifier_problem = "ENABLE/GAIN still read non-zero after the write"
+        except Exception as exc:  # noqa: BLE001 - reported; its comms watchdog mutes it
+            amplifier_problem = str(exc)
+        return SafeStateReport(generator_problem, amplifier_problem,
+                               self.config.data["amplifier"]["watchdog_timeout_s"])
 
     def close(self) -> None:
         self.stop_heartbeat()

@@ -36,6 +36,20 @@ class SetFrequency:
 
 
 @dataclass(frozen=True)
+class CheckSetpoint:
+    """Refuse (the run stops, ramped down, with the reason) unless the rig's limits allow this drive.
+
+    Plans yield it as soon as they derive a setpoint from measured data (the
+    resonance found, the nonlinear stage's final level), before the stage that
+    uses it begins. ``origin`` says how the setpoint was derived.
+    """
+
+    vpp: float | None
+    hz: float | None
+    origin: str
+
+
+@dataclass(frozen=True)
 class Ramp:
     """Ramp the generator amplitude to ``vpp`` at the configured rate, acquiring meanwhile.
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from rig import analysis
-from rig.messages import Acquire, BeginStage, Checkpoint, EndStage, Log, Ramp, Rest, SetFrequency
+from rig.messages import Acquire, BeginStage, Checkpoint, CheckSetpoint, EndStage, Log, Ramp, Rest, SetFrequency
 
 
 class PlanContext:
@@ -116,7 +116,8 @@ def allowed_scale(limits: dict, r: analysis.Response) -> tuple[float, str]:
 def nonlinear_stage(p: dict, settle_s: float, ctx: PlanContext):
     """Raise the amplitude step by step near the resonance until clear nonlinearity or a limit."""
     f = p["frequency_hz"] if p["frequency_hz"] is not None else p["frequency_factor"] * ctx.resonance_hz
-    vmax = min(p["max_vpp"], ctx.limits["max_generator_vpp"])
+    vmax = p["max_vpp"]
+    yield CheckSetpoint(vmax, f, f"[nonlinear] drive frequency {drive_origin(p, ctx)}, levels up to max_vpp")
     yield Rest(settle_s)
     yield BeginStage("nonlinear", {"kind": "stepped_amplitude", **p, "drive_frequency_hz": f,
                                    "resonance_hz": ctx.resonance_hz})
@@ -167,13 +168,23 @@ def nonlinear_stage(p: dict, settle_s: float, ctx: PlanContext):
     return vpp
 
 
+def drive_origin(p: dict, ctx: PlanContext) -> str:
+    """How a stage's drive frequency was set (for refusals)."""
+    if p["frequency_hz"] is not None:
+        return "(frequency_hz)"
+    return f"(frequency_factor {p['frequency_factor']:g} x the resonance found, {ctx.resonance_hz:g} Hz)"
+
+
 def validation_stage(v: dict, settle_s: float, ctx: PlanContext):
     f = v["frequency_hz"] if v["frequency_hz"] is not None else v["frequency_factor"] * ctx.resonance_hz
     if v["amplitude_vpp"] is not None:
-        vpp = v["amplitude_vpp"]
+        vpp, amplitude_origin = v["amplitude_vpp"], "amplitude_vpp"
     else:
         vpp = v["amplitude_fraction"] * ctx.nonlinear_vpp
-    vpp = min(vpp, ctx.limits["max_generator_vpp"])
+        amplitude_origin = f"amplitude_fraction {v['amplitude_fraction']:g} x the nonlinear final level " \
+                           f"{ctx.nonlinear_vpp:g} Vpp"
+    yield CheckSetpoint(vpp, f, f"[{v['name']}] drive {vpp:g} Vpp ({amplitude_origin}) at {f:g} Hz "
+                                f"{drive_origin(v, ctx)}")
     yield Rest(settle_s)
     yield BeginStage(v["name"], {"kind": "harmonic", **v, "drive_frequency_hz": f, "drive_vpp": vpp})
     yield SetFrequency(f)

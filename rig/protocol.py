@@ -23,8 +23,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from rig.toml_fields import Field, load_toml, validate
+from rig.safety import LimitError, Supervisor
 from shakerlab.errors import UserFacingError
+from shakerlab.toml_fields import Field, load_toml, validate
 
 DEFAULT_PROTOCOL_PATH = Path(__file__).with_name("default_protocol.toml")
 
@@ -98,20 +99,36 @@ class Protocol:
         return self.data[table]
 
     def check_against_limits(self, limits: dict, config_source: str = "rig config") -> None:
-        """Refuse amplitudes above ``limits.max_generator_vpp`` before anything moves."""
-        vmax = limits["max_generator_vpp"]
-        fields = [("linear", "amplitude_vpp", self.data["linear"]["amplitude_vpp"]),
-                  ("resonance_search", "amplitude_vpp", self.data["resonance_search"]["amplitude_vpp"]),
-                  ("nonlinear", "start_vpp", self.data["nonlinear"]["start_vpp"]),
-                  ("nonlinear", "max_vpp", self.data["nonlinear"]["max_vpp"])]
-        fields += [(f"validation {v['name']}", "amplitude_vpp", v["amplitude_vpp"]) for v in self.validation
-                   if v["amplitude_vpp"] is not None]
-        for table, key, value in fields:
-            if value > vmax:
-                raise UserFacingError(
-                    f"{self.source}: [{table}] {key} = {value:g} V exceeds the rig's limit "
-                    f"max_generator_vpp = {vmax:g} V ({config_source})"
-                )
+        """Refuse, before anything moves, every setpoint the protocol can produce beyond the rig's limits
+        (the supervisor's own checks): amplitudes (``*_vpp``), drive frequencies (``*_hz``) and step
+        durations (``*_s``) of every table; a frequency_factor over the whole range the resonance can
+        take (the search's start_hz..stop_hz); an amplitude_fraction of the highest final level of
+        the nonlinear stage (its max_vpp)."""
+        supervisor = Supervisor(limits)
+        check_by_suffix = {"_vpp": supervisor.check_amplitude, "_hz": supervisor.check_frequency,
+                           "_s": supervisor.check_duration}
+        search = self.data["resonance_search"]
+        highest_level = self.data["nonlinear"]["max_vpp"]
+        tables = [(name, values) for name, values in self.data.items()
+                  if name != "resonance_search" or search["enabled"]]
+        tables += [(f"validation #{i + 1}", v) for i, v in enumerate(self.validation)]
+        for table, values in tables:
+            checks = [(key, value, check) for key, value in values.items() for suffix, check in check_by_suffix.items()
+                      if key.endswith(suffix) and isinstance(value, float)]
+            factor = values.get("frequency_factor")
+            if factor is not None and values.get("frequency_hz") is None:
+                for end in ("start_hz", "stop_hz"):
+                    checks.append((f"frequency_factor ({factor:g} x [resonance_search] {end} {search[end]:g} Hz)",
+                                   factor * search[end], supervisor.check_frequency))
+            fraction = values.get("amplitude_fraction")
+            if fraction is not None:
+                checks.append((f"amplitude_fraction ({fraction:g} x [nonlinear] max_vpp {highest_level:g} V)",
+                               fraction * highest_level, supervisor.check_amplitude))
+            for key, value, check in checks:
+                try:
+                    check(value)
+                except LimitError as exc:
+                    raise UserFacingError(f"{self.source}: [{table}] {key} = {value:g}: {exc} ({config_source})") from None
 
 
 def parse_protocol(data: dict, text: str = "", source: str = "protocol.toml") -> Protocol:

@@ -40,7 +40,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rig.instruments import MIN_VPP, SamplesLost
-from rig.messages import Acquire, BeginStage, Checkpoint, EndStage, Log, Ramp, Rest, SetFrequency, Window
+from rig.messages import (Acquire, BeginStage, Checkpoint, CheckSetpoint, EndStage, Log, Ramp, Rest, SetFrequency,
+                          Window)
 from rig.safety import LimitError, Supervisor
 
 
@@ -92,6 +93,10 @@ class Runner:
         self._stopping = False
         self._aborts_at_stop = 0
         self.samples_lost = 0
+        self.handlers = {BeginStage: self._begin_stage, EndStage: self._end_stage,
+                         SetFrequency: self._set_frequency, Ramp: self._ramp, Acquire: self._acquire_window,
+                         Rest: self._rest, Log: self._log_message, Checkpoint: self._checkpoint,
+                         CheckSetpoint: self._check_setpoint}
 
     # -- control (thread-safe; also from a signal handler) --------------------------------------
     def subscribe(self, observer) -> None:
@@ -221,47 +226,70 @@ class Runner:
                 xt = np.concatenate(xt)[:n_target]
                 return Window(start, self.fs, xb, xt, self.inst.vpp if self.inst.output else 0.0, self.inst.frequency)
 
+    # The message-type -> handler table (bluesky's RunEngine command registry, kept small): each
+    # handler takes the message and returns what the plan receives back from its ``yield``.
+    def _begin_stage(self, msg: BeginStage) -> None:
+        self.stage = msg.name
+        self.stage_status[msg.name] = "recording"
+        self._notify("on_stage_begin", msg.name, dict(msg.settings), self.index)
+        self.log("info", f"stage {msg.name} begins")
+
+    def _end_stage(self, msg: EndStage) -> None:
+        self._ramp_to(0.0, self.ramp_rate)
+        name = self.stage
+        self.stage = None
+        self.stage_status[name] = "complete"
+        self._notify("on_stage_end", name, "complete", dict(msg.summary))
+        self.log("info", f"stage {name} complete")
+
+    def _set_frequency(self, msg: SetFrequency) -> None:
+        self.sup.check_frequency(msg.hz)
+        self.inst.set_frequency(msg.hz)
+        self._notify("on_setpoint", self.index, self.inst.vpp if self.inst.output else 0.0, msg.hz, "frequency")
+
+    def _ramp(self, msg: Ramp) -> None:
+        self._notify("on_setpoint", self.index, msg.vpp, self.inst.frequency, f"ramp to {msg.vpp:g} Vpp {msg.label}".strip())
+        self._ramp_to(msg.vpp, self.ramp_rate)
+        self._notify("on_setpoint", self.index, msg.vpp, self.inst.frequency, f"level {msg.label}".strip())
+
+    def _acquire_window(self, msg: Acquire) -> Window:
+        self.sup.check_duration(msg.duration_s)
+        return self._acquire(msg.duration_s)
+
+    def _rest(self, msg: Rest) -> None:
+        self.sup.check_duration(msg.duration_s)
+        self._ramp_to(0.0, self.ramp_rate)
+        if msg.duration_s > 0:
+            self._acquire(msg.duration_s)
+
+    def _log_message(self, msg: Log) -> None:
+        self.log(msg.level, msg.message)
+
+    def _check_setpoint(self, msg: CheckSetpoint) -> None:
+        try:
+            if msg.vpp is not None:
+                self.sup.check_amplitude(msg.vpp)
+            if msg.hz is not None:
+                self.sup.check_frequency(msg.hz)
+        except LimitError as exc:
+            raise LimitError(f"{msg.origin}: {exc}") from None
+
+    def _checkpoint(self, msg: Checkpoint) -> None:
+        if self._abort_count:
+            raise _Stop("aborted", self._abort_reason)
+        if self._pause_requested.is_set() and not self._in_pause:
+            self._pause()
+
+    def register_command(self, message_type: type, handler) -> None:
+        """Execute plan messages of ``message_type`` with ``handler(msg)`` (its return value is sent
+        back to the plan)."""
+        self.handlers[message_type] = handler
+
     def _execute(self, msg):
-        if isinstance(msg, BeginStage):
-            self.stage = msg.name
-            self.stage_status[msg.name] = "recording"
-            self._notify("on_stage_begin", msg.name, dict(msg.settings), self.index)
-            self.log("info", f"stage {msg.name} begins")
-            return None
-        if isinstance(msg, EndStage):
-            self._ramp_to(0.0, self.ramp_rate)
-            name = self.stage
-            self.stage = None
-            self.stage_status[name] = "complete"
-            self._notify("on_stage_end", name, "complete", dict(msg.summary))
-            self.log("info", f"stage {name} complete")
-            return None
-        if isinstance(msg, SetFrequency):
-            self.inst.set_frequency(msg.hz)
-            self._notify("on_setpoint", self.index, self.inst.vpp if self.inst.output else 0.0, msg.hz, "frequency")
-            return None
-        if isinstance(msg, Ramp):
-            self._notify("on_setpoint", self.index, msg.vpp, self.inst.frequency, f"ramp to {msg.vpp:g} Vpp {msg.label}".strip())
-            self._ramp_to(msg.vpp, self.ramp_rate)
-            self._notify("on_setpoint", self.index, msg.vpp, self.inst.frequency, f"level {msg.label}".strip())
-            return None
-        if isinstance(msg, Acquire):
-            return self._acquire(msg.duration_s)
-        if isinstance(msg, Rest):
-            self._ramp_to(0.0, self.ramp_rate)
-            if msg.duration_s > 0:
-                self._acquire(msg.duration_s)
-            return None
-        if isinstance(msg, Log):
-            self.log(msg.level, msg.message)
-            return None
-        if isinstance(msg, Checkpoint):
-            if self._abort_count:
-                raise _Stop("aborted", self._abort_reason)
-            if self._pause_requested.is_set() and not self._in_pause:
-                self._pause()
-            return None
-        raise TypeError(f"unknown plan message {msg!r}")
+        handler = self.handlers.get(type(msg))
+        if handler is None:
+            raise TypeError(f"unknown plan message {msg!r}")
+        return handler(msg)
 
     # -- the run ---------------------------------------------------------------------------------------
     def run(self, plan, run_info: dict | None = None) -> RunOutcome:
@@ -305,9 +333,7 @@ class Runner:
         finally:
             plan.close()
             self._stopping = True
-            problems = self.inst.mute()
-            for p in problems:
-                self.log("warning", f"making safe: {p}")
+            safe_state = self.inst.mute()
             if self.stage is not None:
                 self.stage_status[self.stage] = status if status != "complete" else "interrupted"
                 self._notify("on_stage_end", self.stage, self.stage_status[self.stage], {"stop_reason": reason})
@@ -317,8 +343,8 @@ class Runner:
                 self.log("warning", "the runner stalled: the heartbeat was withheld so the amplifier watchdog "
                                     "could mute the output")
             self.log("debug", f"longest gap between amplifier heartbeats: {self.inst.max_heartbeat_gap:.3f} s")
-            self.log("info" if status == "complete" else "error",
-                     f"run {status}" + (f": {reason}" if reason else "") + "; output off, amplifier muted")
+            self.log("info" if status == "complete" and safe_state.confirmed else "error",
+                     f"run {status}" + (f": {reason}" if reason else "") + f"; {safe_state}")
             self._notify("on_run_end", status, reason)
             self._set_state("done")
         return RunOutcome(status=status, reason=reason, stages=dict(self.stage_status), n_samples=self.index,

@@ -2,8 +2,11 @@
 
 The :class:`Supervisor` checks
 
-- every setpoint before it is sent (generator amplitude, amplifier gain):
-  a setpoint beyond a limit is refused (:class:`LimitError`), never clipped;
+- every setpoint before it is sent (generator amplitude, drive frequency,
+  amplifier gain, step duration): a setpoint beyond a limit is refused
+  (:class:`LimitError`), never clipped; the protocol check
+  (:meth:`rig.protocol.Protocol.check_against_limits`) uses the same checks
+  before anything moves;
 - every acquired block while the output runs (interlocks): base and tip
   displacement about their rest readings, sensor flags (out of range, signal
   loss), the amplifier's measured output current and its fault bits.
@@ -19,6 +22,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from drivers.signal_generator import FREQ_RANGE as GENERATOR_FREQUENCY_RANGE
 
 
 class LimitError(Exception):
@@ -61,6 +66,20 @@ class Supervisor:
         vmax = self.limits["max_generator_vpp"]
         if vpp > vmax * (1 + 1e-12):
             raise LimitError(f"generator amplitude {vpp:g} Vpp exceeds limits.max_generator_vpp = {vmax:g} Vpp")
+
+    def check_frequency(self, hz: float) -> None:
+        low, high = GENERATOR_FREQUENCY_RANGE
+        if not low <= hz <= high:
+            raise LimitError(f"drive frequency {hz:g} Hz is outside the generator's range {low:g}..{high:g} Hz")
+        fmax = self.limits["max_drive_frequency_hz"]
+        if hz > fmax * (1 + 1e-12):
+            raise LimitError(f"drive frequency {hz:g} Hz exceeds limits.max_drive_frequency_hz = {fmax:g} Hz "
+                             f"(at most the sensors' sample rate / 20)")
+
+    def check_duration(self, seconds: float) -> None:
+        tmax = self.limits["max_step_duration_s"]
+        if seconds > tmax:
+            raise LimitError(f"step duration {seconds:g} s exceeds limits.max_step_duration_s = {tmax:g} s")
 
     def check_gain(self, gain: float) -> None:
         gmax = self.limits["max_amplifier_gain"]

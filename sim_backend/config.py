@@ -1,23 +1,24 @@
 """Configuration of the simulated rig: the shipped defaults merged with user overrides.
 
 ``load_config(None)`` returns the defaults from ``default_sim.toml``; a dict or a
-TOML file path overrides any subset of its tables/keys.  Unknown tables or keys
-and non-numeric or out-of-range values raise :class:`UserFacingError` naming the
-source and the field.
+TOML file path overrides any subset of its tables/keys.  The schema is the
+defaults themselves (every value a finite number; the fields below must be
+positive or non-negative), checked by :mod:`shakerlab.toml_fields` like the rig
+config and the protocol: unknown tables or keys and non-numeric or
+out-of-range values raise :class:`UserFacingError` naming the source, the table
+and the field.
 """
 from __future__ import annotations
 
-import copy
-import math
 import tomllib
 from pathlib import Path
 
 from shakerlab.errors import UserFacingError
+from shakerlab.toml_fields import Field, load_toml, validate
 
 DEFAULT_CONFIG_PATH = Path(__file__).with_name("default_sim.toml")
 
-# fields that must be strictly positive
-_POSITIVE = {
+POSITIVE_FIELDS = {
     ("clock", "sample_rate"), ("clock", "lockstep_block_s"), ("clock", "ring_seconds"),
     ("specimen", "mass"), ("shaker", "armature_mass"), ("shaker", "force_constant"),
     ("shaker", "coil_resistance"), ("amplifier", "transconductance"), ("amplifier", "max_gain"),
@@ -25,8 +26,7 @@ _POSITIVE = {
     ("amplifier", "rail_voltage"), ("amplifier", "thermal_resistance"),
     ("amplifier", "thermal_time_constant"), ("sensors", "range"), ("sensors", "resolution"),
 }
-# fields that must be >= 0
-_NON_NEGATIVE = {
+NON_NEGATIVE_FIELDS = {
     ("specimen", "c_m"), ("shaker", "suspension_stiffness"), ("shaker", "suspension_damping"),
     ("amplifier", "watchdog_timeout"), ("sensors", "noise_std"),
     ("effects", "coulomb_friction"), ("effects", "contact_stiffness"), ("effects", "channel_delay"),
@@ -39,59 +39,40 @@ def default_config() -> dict:
         return tomllib.load(fh)
 
 
-def _merge(base: dict, override: dict, source: str, prefix: str = "") -> None:
-    for key, value in override.items():
-        where = f"{prefix}{key}"
-        if key not in base:
-            known = ", ".join(sorted(base))
-            raise UserFacingError(f"{source}: unknown simulator setting {where!r} (known here: {known})")
-        if isinstance(base[key], dict):
-            if not isinstance(value, dict):
-                raise UserFacingError(f"{source}: {where!r} must be a table")
-            _merge(base[key], value, source, where + ".")
+def _schema(defaults: dict, path: tuple = ()) -> dict:
+    """The defaults as a schema: every value a finite number, some positive or non-negative."""
+    schema = {}
+    for key, value in defaults.items():
+        where = (*path, key)
+        if isinstance(value, dict):
+            schema[key] = _schema(value, where)
+        elif where in POSITIVE_FIELDS:
+            schema[key] = Field("number", value, min=0.0, min_exclusive=True)
+        elif where in NON_NEGATIVE_FIELDS:
+            schema[key] = Field("number", value, min=0.0)
         else:
-            base[key] = value
+            schema[key] = Field("number", value)
+    return schema
+
+
+SCHEMA = _schema(default_config())
 
 
 def load_config(config: dict | str | Path | None = None) -> dict:
     """Return the full, validated simulator configuration."""
-    cfg = default_config()
     if config is None:
         source, override = "default_sim.toml", {}
     elif isinstance(config, dict):
-        source, override = "simulator config", copy.deepcopy(config)
+        source, override = "simulator config", config
     else:
-        path = Path(config)
-        source = str(path)
-        try:
-            with open(path, "rb") as fh:
-                override = tomllib.load(fh)
-        except FileNotFoundError:
-            raise UserFacingError(f"simulator config file {path} does not exist") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise UserFacingError(f"{path}: not valid TOML: {exc}") from None
-    _merge(cfg, override, source)
-    _validate(cfg, source)
+        source = str(config)
+        override, _ = load_toml(config, "simulator config")
+    cfg = validate(override, SCHEMA, source)
+    _cross_check(cfg, source)
     return cfg
 
 
-def _validate(cfg: dict, source: str) -> None:
-    def check(table: str, key: str, value) -> None:
-        name = f"{table}.{key}"
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise UserFacingError(f"{source}: {name} must be a finite number, got {value!r}")
-        if (table, key) in _POSITIVE and value <= 0:
-            raise UserFacingError(f"{source}: {name} must be > 0, got {value!r}")
-        if (table, key) in _NON_NEGATIVE and value < 0:
-            raise UserFacingError(f"{source}: {name} must be >= 0, got {value!r}")
-
-    for table, values in cfg.items():
-        for key, value in values.items():
-            if isinstance(value, dict):
-                for sub, v in value.items():
-                    check(f"{table}.{key}", sub, v)
-            else:
-                check(table, key, value)
+def _cross_check(cfg: dict, source: str) -> None:
     amp = cfg["amplifier"]
     if amp["current_limit"] > amp["max_current_limit"]:
         raise UserFacingError(f"{source}: amplifier.current_limit exceeds amplifier.max_current_limit")

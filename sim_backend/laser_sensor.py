@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+from sim_backend.line_server import is_printable_ascii
+
 MODEL = "shakerlab SIM-LKG5001"
 RATES = (1000, 2000, 5000, 10000, 20000, 50000)  # the controller's selectable sampling rates [Hz]
 MAX_PER_REPLY = 100_000
@@ -19,6 +21,8 @@ MAX_ARM = 1_000_000_000
 OVER_POS, OVER_NEG, LOSS = "+FFFFFFF", "-FFFFFFF", "XXXXXXXX"
 
 E_COMMAND, E_PARAM, E_RANGE, E_STATE = "00", "20", "22", "30"
+INVALID_REQUEST = f"ER,??,{E_COMMAND}"   # a non-ASCII or control byte: the command cannot be named
+LINE_TOO_LONG = f"ER,??,{E_PARAM}"
 
 
 class _Err(Exception):
@@ -51,6 +55,8 @@ class SimLaserSensor:
 
     # ---- protocol ---------------------------------------------------------------------------
     def handle(self, line: str) -> str:
+        if not is_printable_ascii(line):
+            return INVALID_REQUEST
         cmd, *args = [p.strip() for p in line.split(",")]
         cmd = cmd.upper()
         try:

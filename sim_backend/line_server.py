@@ -4,6 +4,13 @@ A simulated instrument is a ``handler(line: str) -> str | None`` (None = no repl
 :class:`LineServer` serves it: requests end with CR or LF (either works, empty
 lines are ignored), replies are sent with the instrument's terminator.
 
+Bytes that are not ASCII reach the handler as U+FFFD (decoded with replacement;
+:func:`is_printable_ascii` tells the handler to answer with its protocol's error),
+and a reply is always sent as ASCII. A request line longer than
+:data:`MAX_LINE` bytes (an instrument's input buffer) is answered with the
+instrument's ``line_too_long`` reply and the connection is dropped (a pty's
+input is discarded).
+
 Fault injection for tests, one shot each (:meth:`LineServer.inject`):
 ``"garbage"`` the next reply is replaced by non-protocol bytes; ``"split"`` the
 next reply is sent in 1-byte packets with small pauses; ``"silent"`` the next
@@ -20,17 +27,32 @@ import time
 import tty
 
 FAULTS = ("garbage", "split", "silent", "kill")
+MAX_LINE = 4096  # bytes of one request line, like an instrument's input buffer
+
+
+class LineTooLong(Exception):
+    """A request line exceeded MAX_LINE bytes."""
+
+
+def is_printable_ascii(text: str) -> bool:
+    """True when every character is printable ASCII (or a tab)."""
+    return all(" " <= c <= "~" or c == "\t" for c in text)
 
 
 class LineServer:
     def __init__(self, name: str, handler, terminator: str, host: str = "127.0.0.1",
-                 port: int = 0, pty: bool = False):
+                 port: int = 0, pty: bool = False, line_too_long: str = "line too long"):
         self.name = name
         self.handler = handler
         self.terminator = terminator.encode()
+        self.line_too_long = line_too_long
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._sock.bind((host, port))
+        try:
+            self._sock.bind((host, port))
+        except OSError as exc:
+            self._sock.close()
+            raise OSError(exc.errno, f"{name}: cannot listen on {host}:{port}: {exc.strerror}") from None
         self._sock.listen(8)
         self.host, self.port = self._sock.getsockname()[:2]
         self._clients: set[socket.socket] = set()
@@ -99,6 +121,8 @@ class LineServer:
                     break
                 buf += data
                 buf = self._process(buf, lambda b: conn.sendall(b))
+        except LineTooLong:
+            pass  # answered; the connection is dropped
         except OSError:
             pass
         finally:
@@ -131,13 +155,18 @@ class LineServer:
                 return
             try:
                 buf = self._process(buf + data, send)
+            except LineTooLong:
+                buf = b""  # answered; the rest of the line is discarded
             except OSError:
                 return
 
     def _process(self, buf: bytes, send) -> bytes:
         while True:
             cut = [i for i in (buf.find(b"\r"), buf.find(b"\n")) if i >= 0]
-            if not cut:
+            if not cut or min(cut) > MAX_LINE:
+                if len(buf) > MAX_LINE:
+                    send(self.line_too_long.encode("ascii") + self.terminator)
+                    raise LineTooLong()
                 return buf
             i = min(cut)
             line, buf = buf[:i], buf[i + 1:]
@@ -155,7 +184,7 @@ class LineServer:
                 reply = self.handler(text)
             if reply is None or fault == "silent":
                 continue
-            out = reply.encode("ascii") + self.terminator
+            out = reply.encode("ascii", errors="replace") + self.terminator
             if fault == "garbage":
                 send(b"\x00\xff#!garbage\xfe" + self.terminator)
             elif fault == "split":

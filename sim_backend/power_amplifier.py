@@ -114,7 +114,7 @@ class SimPowerAmplifier:
         if not ready.wait(10.0):
             raise RuntimeError("simulated amplifier: Modbus server did not start")
         if error:
-            raise RuntimeError(f"simulated amplifier: Modbus server failed: {error[0]}")
+            raise OSError(f"amplifier: cannot listen on {self.host}:{self.port}: Modbus server failed ({error[0]})")
         self.last_activity = time.monotonic()
         self._wd_thread = threading.Thread(target=self._watchdog_loop, name="sim-amp-watchdog",
                                            daemon=True)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from sim_backend import laser_sensor, signal_generator
 from sim_backend.laser_sensor import SimLaserSensor
 from sim_backend.line_server import LineServer
 from sim_backend.power_amplifier import SimPowerAmplifier
@@ -44,14 +45,19 @@ class SimulatedRig:
     def start(self) -> "SimulatedRig":
         if self.started:
             return self
-        gen = LineServer("generator", self.generator.handle, "\n", self.host,
-                         self._ports.get("generator", 0), pty=self._pty)
-        gen.on_kill = self.generator.power_off
-        self.servers["generator"] = gen.start()
-        for name, sensor in self.sensors.items():
-            self.servers[name] = LineServer(name, sensor.handle, "\r", self.host,
-                                            self._ports.get(name, 0), pty=self._pty).start()
-        self.amplifier.start()
+        try:
+            gen = LineServer("generator", self.generator.handle, "\n", self.host,
+                             self._ports.get("generator", 0), pty=self._pty,
+                             line_too_long=signal_generator.LINE_TOO_LONG)
+            gen.on_kill = self.generator.power_off
+            self.servers["generator"] = gen.start()
+            for name, sensor in self.sensors.items():
+                self.servers[name] = LineServer(name, sensor.handle, "\r", self.host, self._ports.get(name, 0),
+                                                pty=self._pty, line_too_long=laser_sensor.LINE_TOO_LONG).start()
+            self.amplifier.start()
+        except OSError:  # a port in use (the message names the instrument and the port)
+            self.stop()
+            raise
         self.world.start_clock()
         self.started = True
         return self

@@ -10,11 +10,13 @@ from __future__ import annotations
 import re
 
 from sim_backend import physics as ph
+from sim_backend.line_server import MAX_LINE, is_printable_ascii
 
 IDN = "shakerlab,SIM33521B,SIM0001,0.1.0"
 QUEUE_LEN = 20
 
 ERRORS = {
+    -101: "Invalid character",
     -102: "Syntax error",
     -104: "Data type error",
     -108: "Parameter not allowed",
@@ -22,6 +24,7 @@ ERRORS = {
     -113: "Undefined header",
     -221: "Settings conflict",
     -222: "Data out of range",
+    -223: "Too much data",
     -224: "Illegal parameter value",
     -350: "Queue overflow",
 }
@@ -34,6 +37,7 @@ LIMITS = {
     "SWE:TIME": (1e-3, 3600.0, 1.0),
     "NCYC": (1, 100_000_000, 1),
 }
+LINE_TOO_LONG = f'-223,"Too much data; request line longer than {MAX_LINE} bytes: connection closed"'
 MAX_OUTPUT = 5.0  # V peak into 50 ohm: |offset| + Vpp/2 must stay within this
 
 _UNITS = {
@@ -157,6 +161,9 @@ class SimSignalGenerator:
         self.errors.append((code, text))
 
     def handle(self, line: str) -> str | None:
+        if not is_printable_ascii(line):
+            self.push_error(-101, "a non-ASCII or control byte in the request")
+            return None
         replies = []
         for part in line.split(";"):
             part = part.strip()

@@ -151,9 +151,9 @@ def test_watchdog_mutes_a_silent_master_and_heartbeat_prevents_it(setup):
 
 
 def test_modbus_exception_reply_is_an_instrument_fault_naming_the_register(setup):
-    from drivers.power_amplifier import REG_CURRENT
     _, _, amp = setup
     with pytest.raises(InstrumentFault) as info:
-        amp._write_reg(REG_CURRENT, 1)  # read-only register: the device answers exception 2
+        # read-only register (the driver refuses this write itself): the device answers exception 2
+        amp._write_register(PowerAmplifier.output_current.address, 1, PowerAmplifier.output_current.label)
     msg = str(info.value)
     assert "power amplifier" in msg and "OUTPUT_CURRENT" in msg and "illegal data address" in msg

@@ -239,9 +239,16 @@ def test_instrument_killed_mid_stage(tmp_path, sim, name):
     out = acquire(cfg, small_protocol(), tmp_path / "run.h5", lockstep=True, observers=[tape])
     assert time.monotonic() - t0 < 20
     assert out.status == "error"
-    label = {"generator": "signal generator", "amplifier": "amplifier", "sensor_base": "laser sensor",
-             "sensor_tip": "laser sensor"}[name]
+    label = {"generator": "signal generator", "amplifier": "amplifier", "sensor_base": "laser sensor base",
+             "sensor_tip": "laser sensor tip"}[name]
     assert label in out.reason.lower()
+    # the last event says what was confirmed by reading the instruments back, nothing more
+    last = read_events(out.path)[-1]["message"]
+    generator_off, amplifier_muted = "generator output off (read back)", "amplifier muted (read back"
+    assert (generator_off in last) == (name != "generator"), last
+    assert (amplifier_muted in last) == (name != "amplifier"), last
+    if name == "amplifier":
+        assert "amplifier NOT confirmed muted" in last and "comms watchdog" in last
     deadline = time.monotonic() + 3.0  # the amplifier watchdog (2 s) covers a dead amplifier link
     while sim.world.is_driven() and time.monotonic() < deadline:
         time.sleep(0.02)

@@ -26,7 +26,7 @@ def reconstructed(request, tmp_path_factory):
         truth = sim.world.truth()
     assert out.status == "complete", out.reason
     run = load_run(out.path)
-    result = reconstruct(run, ReconSettings(form=WEAK))  # as shakerlab demo does (see rig/demo.py)
+    result = reconstruct(run, ReconSettings(form=WEAK))  # as shakerlab demo does (see workflows/demo.py)
     return out, run, result, truth
 
 

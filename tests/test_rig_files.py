@@ -86,7 +86,7 @@ def test_protocol_amplitude_over_rig_limit(tmp_path):
 
     path = tmp_path / "p.toml"
     path.write_text(_edit(DEFAULT_PROTOCOL_PATH.read_text(), "max_vpp = 5.5", "max_vpp = 9.0"))
-    with pytest.raises(UserFacingError, match=r"\[nonlinear\] max_vpp = 9 V exceeds the rig's limit max_generator_vpp = 6 V"):
+    with pytest.raises(UserFacingError, match=r"\[nonlinear\] max_vpp = 9: generator amplitude 9 Vpp exceeds limits.max_generator_vpp = 6 Vpp"):
         load_protocol(path).check_against_limits(load_config().limits)
 
 
@@ -142,10 +142,8 @@ def test_peak_frequency_refines_between_grid_points():
 def test_every_field_is_documented():
     from pathlib import Path
 
-    from rig import config
-
-    from rig import protocol
-    from rig.toml_fields import schema_doc
+    from rig import config, protocol
+    from shakerlab.toml_fields import schema_doc
 
     root = Path(__file__).resolve().parents[1]
     proto_doc = (root / "docs" / "protocol.md").read_text()

@@ -176,9 +176,10 @@ def test_default_resonance_and_truth():
 
 
 @pytest.mark.parametrize("override,needle", [
-    ({"specimen": {"k_mm": 1.0}}, "specimen.k_mm"),
-    ({"specimen": {"mass": -1.0}}, "specimen.mass"),
-    ({"sensors": {"noise_std": "loud"}}, "sensors.noise_std"),
+    ({"specimen": {"k_mm": 1.0}}, "[specimen] unknown field 'k_mm'"),
+    ({"specimen": {"mass": -1.0}}, "[specimen] mass: expected a number > 0, got -1.0"),
+    ({"sensors": {"noise_std": "loud"}}, "[sensors] noise_std: expected a number >= 0, got 'loud'"),
+    ({"specimen": {"fn_m": {"y^2": float("inf")}}}, "[specimen.fn_m] y^2: expected a number"),
     ({"bogus": {}}, "bogus"),
     ({"effects": {"higher_mode_frequency": 5000.0}}, "higher_mode_frequency"),
     ({"effects": {"contact_stiffness": 1e5}}, "contact_gap"),

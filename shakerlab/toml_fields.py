@@ -1,4 +1,8 @@
-"""Reading user TOML files (rig config, protocol) against a declared schema.
+"""Reading user TOML files (rig config, protocol, simulator config) against a declared schema.
+
+The one checker of every TOML file the user writes: ``rig.config``,
+``rig.protocol`` and ``sim_backend.config`` declare their schemas with
+:class:`Field` and call :func:`validate`.
 
 A schema is a dict ``{key: Field | dict}`` (a nested dict is a sub-table).
 :func:`load_toml` parses a file and :func:`validate` checks a table: unknown
