@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rig import analysis
+from rig import analysis, control_plans
 from rig.messages import Acquire, BeginStage, Checkpoint, EndStage, Log, Ramp, Rest, SetFrequency
 
 
@@ -22,6 +22,7 @@ class PlanContext:
         self.limits = limits
         self.resonance_hz: float | None = None
         self.nonlinear_vpp: float | None = None
+        self.nonlinear_base_m: float | None = None   # final base target of a closed-loop nonlinear stage
         self.results: dict = {}
 
 
@@ -189,15 +190,21 @@ def protocol_plan(protocol, limits: dict, ctx: PlanContext | None = None):
     ctx = ctx or PlanContext(limits)
     settle = protocol["run"]["settle_s"]
     yield Log("info", f"protocol {protocol.source}")
-    ctx.results["linear"] = yield from linear_stage(protocol["linear"], settle)
+    cp = control_plans  # stages given in base displacement targets run closed loop (rig.sine_control)
+    ctx.results["linear"] = yield from (cp.linear_stage if cp.uses_base_targets(protocol["linear"])
+                                        else linear_stage)(protocol["linear"], settle)
     yield Checkpoint()
     if protocol["resonance_search"]["enabled"]:
-        ctx.results["resonance_hz"] = yield from resonance_search(protocol["resonance_search"], settle, ctx)
+        ctx.results["resonance_hz"] = yield from (
+            cp.resonance_search if cp.uses_base_targets(protocol["resonance_search"])
+            else resonance_search)(protocol["resonance_search"], settle, ctx)
         yield Checkpoint()
-    ctx.results["nonlinear_vpp"] = yield from nonlinear_stage(protocol["nonlinear"], settle, ctx)
+    ctx.results["nonlinear_vpp"] = yield from (cp.nonlinear_stage if cp.uses_base_targets(protocol["nonlinear"])
+                                               else nonlinear_stage)(protocol["nonlinear"], settle, ctx)
     for v in protocol.validation:
         yield Checkpoint()
-        yield from validation_stage(v, settle, ctx)
+        yield from (cp.validation_stage if cp.validation_uses_base_targets(v, ctx)
+                    else validation_stage)(v, settle, ctx)
     yield Rest(0.0)
     return ctx
 

@@ -29,6 +29,7 @@ Observers are plain objects with any of these methods (all optional)::
     on_stage_end(name, status, summary)
     on_event(level, message, run_time)
     on_run_end(status, reason)
+    on_control(record)                 one closed-loop window (rig.sine_control): target, achieved, error
 """
 from __future__ import annotations
 
@@ -41,7 +42,9 @@ import numpy as np
 
 from rig.instruments import MIN_VPP, SamplesLost
 from rig.messages import Acquire, BeginStage, Checkpoint, EndStage, Log, Ramp, Rest, SetFrequency, Window
+from rig.messages import ControlSine
 from rig.safety import LimitError, Supervisor
+from rig.sine_control import SineControlExecutor
 
 
 class _Stop(Exception):
@@ -92,6 +95,7 @@ class Runner:
         self._stopping = False
         self._aborts_at_stop = 0
         self.samples_lost = 0
+        self.sine_control = SineControlExecutor(self)   # runs ControlSine messages
 
     # -- control (thread-safe; also from a signal handler) --------------------------------------
     def subscribe(self, observer) -> None:
@@ -247,6 +251,8 @@ class Runner:
             return None
         if isinstance(msg, Acquire):
             return self._acquire(msg.duration_s)
+        if isinstance(msg, ControlSine):
+            return self.sine_control.execute(msg)
         if isinstance(msg, Rest):
             self._ramp_to(0.0, self.ramp_rate)
             if msg.duration_s > 0:
