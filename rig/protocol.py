@@ -183,9 +183,12 @@ def parse_protocol(data: dict, text: str = "", source: str = "protocol.toml") ->
         v = validate(v, VALIDATION_SCHEMA, source, table)
         if (v["frequency_hz"] is None) == (v["frequency_factor"] is None):
             raise UserFacingError(f"{source}: [{table}] give exactly one of frequency_hz and frequency_factor")
-        if sum(v[k] is not None for k in ("amplitude_vpp", "amplitude_fraction", "base_amplitude_mm")) != 1:
-            raise UserFacingError(f"{source}: [{table}] give exactly one of amplitude_vpp, amplitude_fraction "
-                                  f"and base_amplitude_mm")
+        if v["base_amplitude_mm"] is not None and (v["amplitude_vpp"], v["amplitude_fraction"]) != (None, None):
+            raise UserFacingError(f"{source}: [{table}] give base_amplitude_mm or one of amplitude_vpp and "
+                                  f"amplitude_fraction, not both")
+        if v["base_amplitude_mm"] is None and (v["amplitude_vpp"] is None) == (v["amplitude_fraction"] is None):
+            raise UserFacingError(f"{source}: [{table}] give exactly one of amplitude_vpp and amplitude_fraction "
+                                  f"(or base_amplitude_mm)")
         if v["frequency_factor"] is not None and not search["enabled"]:
             raise UserFacingError(f"{source}: [{table}] frequency_factor needs the resonance search (enabled = false)")
         if v["name"] is None:

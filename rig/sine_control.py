@@ -51,6 +51,7 @@ class ControlSettings:
     window_periods: int = 2          # analysis window: at least this many whole periods ...
     min_window_s: float = 0.1        # ... and at least this long
     lock_windows: int = 3            # consecutive windows on target before the hold counts
+    deadband_db: float = 0.1         # once on target, errors within this leave the amplitude alone
     abort_error_db: float = 10.0     # after lock, an error beyond this is refused (control lost)
     min_signal_fraction: float = 0.05  # below this fraction of the target the gain is not trusted
     settle_timeout_s: float = 30.0   # refuse when not on target this long after the start
@@ -179,6 +180,8 @@ class SineController:
             self.gain = a / vpp_mean
             need = eff / self.gain
             setpoint = vpp_mean * (eff / a) ** s.loop_gain
+            if self.locked and abs(err) <= s.deadband_db:
+                setpoint = vpp_now   # steady: no dithering of the drive by the measurement noise
             if setpoint > self.max_vpp:
                 record["setpoint_vpp"] = vpp_now
                 return Decision(vpp_now, record, refused=self._refusal(need, f"measured gain {self.gain * 1e3:.4g} "
@@ -216,11 +219,13 @@ class ControlResult:
     notched: bool = False
     settle_s: float | None = None   # from the start of the message to the lock
     records: list = field(default_factory=list)
+    start_index: int = 0            # sample index when the message started
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d.pop("window")
         d.pop("records")
+        d.pop("start_index")
         return d
 
 
@@ -262,7 +267,7 @@ class SineControlExecutor:
         vpp_now = inst.vpp if inst.output else 0.0
         setpoint, refusal = ctrl.initial_setpoint(vpp_now)
         label = msg.label or "control"
-        r._notify("on_setpoint", r.index, setpoint, f, f"{label}: control base to {msg.target_m * 1e3:.4g} mm")
+        r._notify("on_setpoint", r.index, setpoint, f, f"control {label}: base to {msg.target_m * 1e3:.4g} mm")
         start_index = r.index
         records: list[dict] = []
 
@@ -272,7 +277,7 @@ class SineControlExecutor:
                 raise LimitError(reason)
             return ControlResult(window, msg.target_m, ctrl.effective, math.nan, math.nan,
                                  inst.vpp if inst.output else 0.0, refused=reason, notched=ctrl.notched,
-                                 records=records)
+                                 records=records, start_index=start_index)
 
         if refusal:
             return refuse(refusal)
@@ -323,7 +328,7 @@ class SineControlExecutor:
                     lock_index = blk.end_index
                     self.gains[f] = ctrl.gain
                     r._notify("on_setpoint", r.index, setpoint, f,
-                              f"{label}: on target {msg.target_m * 1e3:.4g} mm "
+                              f"level {label}: base on target {msg.target_m * 1e3:.4g} mm "
                               f"({(lock_index - start_index) / fs:.2f} s)")
             if ctrl.gain:
                 self.gains[f] = ctrl.gain
@@ -340,4 +345,4 @@ class SineControlExecutor:
                           f"{ctrl.target * 1e3:.4g} mm) at {f:.4g} Hz")
         return ControlResult(win, msg.target_m, ctrl.notch_min, achieved, db(achieved / ctrl.effective),
                              inst.vpp if inst.output else 0.0, notched=ctrl.notch_min < ctrl.target,
-                             settle_s=(lock_index - start_index) / fs, records=records)
+                             settle_s=(lock_index - start_index) / fs, records=records, start_index=start_index)
