@@ -89,6 +89,30 @@ class Checkpoint:
     """A safe place to pause between steps."""
 
 
+@dataclass(frozen=True)
+class ControlSine:
+    """Closed-loop sine (:mod:`rig.sine_control`): hold the base motion's fundamental at
+    ``target_m`` (peak, metres) at the current frequency, correcting the generator amplitude once
+    per analysis window; ``duration_s`` counts from the moment it is on target (within the
+    tolerance). Returns a :class:`rig.sine_control.ControlResult` whose ``window`` is the last
+    ``analysis_s`` (all of ``duration_s`` when 0).
+
+    ``max_tip_m`` / ``max_relative_m``: response ceilings (notching: the base target is lowered).
+    A correction beyond ``limits.max_generator_vpp`` is refused: ``on_refusal="stop"`` ends the
+    run safely (status tripped, the stage records why); ``"return"`` leaves the output at its
+    current (allowed) level and returns the result with ``refused`` set.
+    """
+
+    target_m: float
+    duration_s: float
+    analysis_s: float = 0.0
+    label: str = ""
+    max_tip_m: float | None = None
+    max_relative_m: float | None = None
+    on_refusal: str = "stop"
+    settle_timeout_s: float | None = None
+
+
 @dataclass
 class Window:
     """The samples an :class:`Acquire` returns."""

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from rig import analysis
+from rig import analysis, control_plans
+from rig.decisions import allowed_scale, nonlinearity_reached
 from rig.messages import Acquire, BeginStage, Checkpoint, CheckSetpoint, EndStage, Log, Ramp, Rest, SetFrequency
 
 
@@ -22,6 +23,7 @@ class PlanContext:
         self.limits = limits
         self.resonance_hz: float | None = None
         self.nonlinear_vpp: float | None = None
+        self.nonlinear_base_m: float | None = None   # final base target of a closed-loop nonlinear stage
         self.results: dict = {}
 
 
@@ -84,33 +86,6 @@ def resonance_search(p: dict, settle_s: float, ctx: PlanContext):
     }
     yield EndStage(summary)
     return f_res
-
-
-def nonlinearity_reached(p: dict, first: analysis.Response, r: analysis.Response) -> list[str]:
-    """Which stop criteria this response meets (empty list: keep raising)."""
-    reasons = []
-    if r.thd > p["thd_threshold"]:
-        reasons.append(f"THD {r.thd * 100:.1f} % > {p['thd_threshold'] * 100:g} %")
-    gain_change = r.gain / first.gain - 1.0
-    if abs(gain_change) > p["gain_change_threshold"]:
-        reasons.append(f"gain changed by {gain_change * 100:+.1f} % (threshold {p['gain_change_threshold'] * 100:g} %)")
-    if first.loss_factor > 0:
-        loss_change = r.loss_factor / first.loss_factor - 1.0
-        if abs(loss_change) > p["loss_change_threshold"]:
-            reasons.append(f"loop loss factor changed by {loss_change * 100:+.1f} % "
-                           f"(threshold {p['loss_change_threshold'] * 100:g} %)")
-    return reasons
-
-
-def allowed_scale(limits: dict, r: analysis.Response) -> tuple[float, str]:
-    """How much the amplitude may still grow before the response (extrapolated linearly)
-    reaches ``soft_limit_fraction`` of a displacement limit; and which limit that is."""
-    frac = limits["soft_limit_fraction"]
-    best, which = float("inf"), ""
-    for key, peak in (("max_base_displacement_m", r.peak_base), ("max_tip_displacement_m", r.peak_tip)):
-        if peak > 0 and frac * limits[key] / peak < best:
-            best, which = frac * limits[key] / peak, key
-    return best, which
 
 
 def nonlinear_stage(p: dict, settle_s: float, ctx: PlanContext):
@@ -200,15 +175,21 @@ def protocol_plan(protocol, limits: dict, ctx: PlanContext | None = None):
     ctx = ctx or PlanContext(limits)
     settle = protocol["run"]["settle_s"]
     yield Log("info", f"protocol {protocol.source}")
-    ctx.results["linear"] = yield from linear_stage(protocol["linear"], settle)
+    cp = control_plans  # stages given in base displacement targets run closed loop (rig.sine_control)
+    ctx.results["linear"] = yield from (cp.linear_stage if cp.uses_base_targets(protocol["linear"])
+                                        else linear_stage)(protocol["linear"], settle)
     yield Checkpoint()
     if protocol["resonance_search"]["enabled"]:
-        ctx.results["resonance_hz"] = yield from resonance_search(protocol["resonance_search"], settle, ctx)
+        ctx.results["resonance_hz"] = yield from (
+            cp.resonance_search if cp.uses_base_targets(protocol["resonance_search"])
+            else resonance_search)(protocol["resonance_search"], settle, ctx)
         yield Checkpoint()
-    ctx.results["nonlinear_vpp"] = yield from nonlinear_stage(protocol["nonlinear"], settle, ctx)
+    ctx.results["nonlinear_vpp"] = yield from (cp.nonlinear_stage if cp.uses_base_targets(protocol["nonlinear"])
+                                               else nonlinear_stage)(protocol["nonlinear"], settle, ctx)
     for v in protocol.validation:
         yield Checkpoint()
-        yield from validation_stage(v, settle, ctx)
+        yield from (cp.validation_stage if cp.validation_uses_base_targets(v, ctx)
+                    else validation_stage)(v, settle, ctx)
     yield Rest(0.0)
     return ctx
 

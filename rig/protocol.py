@@ -24,12 +24,27 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rig.safety import LimitError, Supervisor
+from rig.control_plans import base_targets, check_amplitude_fields  # volts or base targets (rig.sine_control)
 from shakerlab.errors import UserFacingError
 from shakerlab.toml_fields import Field, load_toml, validate
 
 DEFAULT_PROTOCOL_PATH = Path(__file__).with_name("default_protocol.toml")
 
 _POS = dict(min=0.0, min_exclusive=True)
+
+
+def _base_fields(what: str = "base displacement target") -> dict:
+    """Closed-loop amplitude fields (rig.sine_control): base target and response ceilings."""
+    return {
+        "base_amplitude_mm": Field("number", None, **_POS,
+                                   help=f"{what}: fundamental peak amplitude of the base motion (mm), held by "
+                                        f"the sine controller (instead of amplitude_vpp)"),
+        "max_tip_mm": Field("number", None, **_POS,
+                            help="response limit (notching): the base target is lowered to keep the tip "
+                                 "displacement's fundamental at or below this (mm)"),
+        "max_relative_mm": Field("number", None, **_POS,
+                                 help="response limit (notching) on the relative displacement y (mm)"),
+    }
 
 SCHEMA = {
     "run": {
@@ -38,8 +53,10 @@ SCHEMA = {
     },
     "linear": {
         "frequency_hz": Field("number", **_POS, help="drive frequency, away from the resonance"),
-        "amplitude_vpp": Field("number", **_POS, help="generator amplitude (V peak-to-peak)"),
+        "amplitude_vpp": Field("number", None, **_POS,
+                               help="generator amplitude (V peak-to-peak); or base_amplitude_mm"),
         "duration_s": Field("number", **_POS, help="time at the full amplitude (the ramps come on top)"),
+        **_base_fields(),
     },
     "resonance_search": {
         "enabled": Field("bool", True, help="false: skip it (then give the nonlinear frequency in Hz)"),
@@ -49,18 +66,28 @@ SCHEMA = {
         "steps": Field("int", 16, min=3, max=1000, help="coarse grid points (geometric spacing)"),
         "refine_steps": Field("int", 8, min=0, max=1000,
                               help="fine grid points between the neighbours of the coarse peak"),
-        "amplitude_vpp": Field("number", 0.1, **_POS, help="generator amplitude during the search"),
+        "amplitude_vpp": Field("number", None, **_POS,
+                               help="generator amplitude during the search (0.1 when neither this nor "
+                                    "base_amplitude_mm is given)"),
         "settle_s": Field("number", 1.0, min=0.0, help="wait after each frequency change"),
         "measure_s": Field("number", 0.5, **_POS, help="analysed window at each frequency"),
+        **_base_fields("base target held at every frequency"),
     },
     "nonlinear": {
         "frequency_hz": Field("number", None, **_POS, help="drive frequency (instead of frequency_factor)"),
         "frequency_factor": Field("number", 1.0, **_POS,
                                   help="drive frequency as a multiple of the resonance found by the search"),
-        "start_vpp": Field("number", **_POS, help="first amplitude level"),
+        "start_vpp": Field("number", None, **_POS, help="first amplitude level (or start_base_mm)"),
         "step_factor": Field("number", 1.5, min=1.0, min_exclusive=True, max=4.0,
                              help="each level is this multiple of the previous one"),
-        "max_vpp": Field("number", **_POS, help="highest amplitude level (<= limits.max_generator_vpp)"),
+        "max_vpp": Field("number", None, **_POS,
+                         help="highest amplitude level (<= limits.max_generator_vpp; or max_base_mm)"),
+        "start_base_mm": Field("number", None, **_POS,
+                               help="first level as a base displacement target (mm, fundamental peak), "
+                                    "instead of start_vpp"),
+        "max_base_mm": Field("number", None, **_POS, help="highest base displacement target (mm), instead of max_vpp"),
+        "max_tip_mm": _base_fields()["max_tip_mm"],
+        "max_relative_mm": _base_fields()["max_relative_mm"],
         "dwell_s": Field("number", 1.5, **_POS, help="time at each level"),
         "analysis_s": Field("number", 0.75, **_POS, help="last part of each dwell that is analysed"),
         "hold_s": Field("number", 2.0, min=0.0, help="extra time at the final level"),
@@ -83,6 +110,7 @@ VALIDATION_SCHEMA = {
     "amplitude_fraction": Field("number", None, **_POS,
                                 help="amplitude as a fraction of the nonlinear stage's final level"),
     "duration_s": Field("number", **_POS, help="time at the full amplitude"),
+    **_base_fields(),
 }
 
 
@@ -121,7 +149,7 @@ class Protocol:
                     checks.append((f"frequency_factor ({factor:g} x [resonance_search] {end} {search[end]:g} Hz)",
                                    factor * search[end], supervisor.check_frequency))
             fraction = values.get("amplitude_fraction")
-            if fraction is not None:
+            if fraction is not None and highest_level is not None:
                 checks.append((f"amplitude_fraction ({fraction:g} x [nonlinear] max_vpp {highest_level:g} V)",
                                fraction * highest_level, supervisor.check_amplitude))
             for key, value, check in checks:
@@ -129,6 +157,13 @@ class Protocol:
                     check(value)
                 except LimitError as exc:
                     raise UserFacingError(f"{self.source}: [{table}] {key} = {value:g}: {exc} ({config_source})") from None
+        bmax = limits["max_base_displacement_m"]
+        for table, key, value in base_targets(self):
+            if value >= bmax:
+                raise UserFacingError(
+                    f"{self.source}: [{table}] {key} = {value * 1e3:g} mm reaches the rig's limit "
+                    f"max_base_displacement_m = {bmax * 1e3:g} mm ({config_source})"
+                )
 
 
 def parse_protocol(data: dict, text: str = "", source: str = "protocol.toml") -> Protocol:
@@ -145,7 +180,7 @@ def parse_protocol(data: dict, text: str = "", source: str = "protocol.toml") ->
         raise UserFacingError(
             f"{source}: [resonance_search] stop_hz ({search['stop_hz']:g}) must exceed start_hz ({search['start_hz']:g})"
         )
-    if nl["max_vpp"] < nl["start_vpp"]:
+    if nl["max_vpp"] is not None and nl["start_vpp"] is not None and nl["max_vpp"] < nl["start_vpp"]:
         raise UserFacingError(f"{source}: [nonlinear] max_vpp ({nl['max_vpp']:g}) is below start_vpp ({nl['start_vpp']:g})")
     if nl["analysis_s"] > nl["dwell_s"]:
         raise UserFacingError(f"{source}: [nonlinear] analysis_s ({nl['analysis_s']:g}) exceeds dwell_s ({nl['dwell_s']:g})")
@@ -163,8 +198,12 @@ def parse_protocol(data: dict, text: str = "", source: str = "protocol.toml") ->
         v = validate(v, VALIDATION_SCHEMA, source, table)
         if (v["frequency_hz"] is None) == (v["frequency_factor"] is None):
             raise UserFacingError(f"{source}: [{table}] give exactly one of frequency_hz and frequency_factor")
-        if (v["amplitude_vpp"] is None) == (v["amplitude_fraction"] is None):
-            raise UserFacingError(f"{source}: [{table}] give exactly one of amplitude_vpp and amplitude_fraction")
+        if v["base_amplitude_mm"] is not None and (v["amplitude_vpp"], v["amplitude_fraction"]) != (None, None):
+            raise UserFacingError(f"{source}: [{table}] give base_amplitude_mm or one of amplitude_vpp and "
+                                  f"amplitude_fraction, not both")
+        if v["base_amplitude_mm"] is None and (v["amplitude_vpp"] is None) == (v["amplitude_fraction"] is None):
+            raise UserFacingError(f"{source}: [{table}] give exactly one of amplitude_vpp and amplitude_fraction "
+                                  f"(or base_amplitude_mm)")
         if v["frequency_factor"] is not None and not search["enabled"]:
             raise UserFacingError(f"{source}: [{table}] frequency_factor needs the resonance search (enabled = false)")
         if v["name"] is None:
@@ -178,6 +217,7 @@ def parse_protocol(data: dict, text: str = "", source: str = "protocol.toml") ->
             raise UserFacingError(f"{source}: [{table}] name: {v['name']!r} is used twice")
         names.add(v["name"])
         validation.append(v)
+    check_amplitude_fields(cfg, validation, source)
     return Protocol(cfg, validation, text, source)
 
 

@@ -1,7 +1,15 @@
 """The HDF5 recorder: a runner observer that writes the run file (see shakerlab.runfile)."""
 from __future__ import annotations
 
+import numpy as np
+
 from shakerlab.runfile.writer import RunWriter
+
+# one row per closed-loop analysis window (rig.sine_control), dataset ``control`` of the stage group
+CONTROL_FIELDS = ("sample_index", "window_n", "frequency_hz", "target_m", "effective_target_m", "achieved_m",
+                  "error_db", "vpp", "setpoint_vpp", "tip_m", "relative_m", "notched", "locked")
+CONTROL_DTYPE = np.dtype([("sample_index", "<i8"), ("window_n", "<i8")]
+                         + [(k, "<f8") for k in CONTROL_FIELDS[2:11]] + [("notched", "u1"), ("locked", "u1")])
 
 
 class Recorder:
@@ -40,6 +48,22 @@ class Recorder:
     def on_setpoint(self, index: int, vpp: float, hz: float, label: str) -> None:
         if self.stage is not None:
             self.stage.add_step(index, vpp, hz, label)
+
+    def on_control(self, record: dict) -> None:
+        """A closed-loop window: append a row to the stage's ``control`` dataset (created on first use)."""
+        if self.stage is None:
+            return
+        g = self.stage.group
+        if "control" not in g:
+            ds = g.create_dataset("control", shape=(0,), maxshape=(None,), dtype=CONTROL_DTYPE, chunks=(256,))
+            ds.attrs["units"] = ("sample_index: window end (sample number since the trigger); *_m: fundamental "
+                                 "peak amplitude, m; error_db: 20 log10(achieved / effective target); vpp: mean "
+                                 "generator amplitude over the window, V peak-to-peak")
+        ds = g["control"]
+        n = ds.shape[0]
+        ds.resize((n + 1,))
+        ds[n] = tuple(record.get(k, np.nan) for k in CONTROL_FIELDS)
+        self.writer._maybe_flush()
 
     def on_stage_end(self, name: str, status: str, summary: dict) -> None:
         if self.stage is not None:

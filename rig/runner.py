@@ -29,6 +29,7 @@ Observers are plain objects with any of these methods (all optional)::
     on_stage_end(name, status, summary)
     on_event(level, message, run_time)
     on_run_end(status, reason)
+    on_control(record)                 one closed-loop window (rig.sine_control): target, achieved, error
 """
 from __future__ import annotations
 
@@ -40,9 +41,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rig.instruments import MIN_VPP, SamplesLost
-from rig.messages import (Acquire, BeginStage, Checkpoint, CheckSetpoint, EndStage, Log, Ramp, Rest, SetFrequency,
-                          Window)
+from rig.messages import (Acquire, BeginStage, Checkpoint, CheckSetpoint, ControlSine, EndStage, Log, Ramp, Rest,
+                          SetFrequency, Window)
 from rig.safety import LimitError, Supervisor
+from rig.sine_control import SineControlExecutor
 
 
 class _Stop(Exception):
@@ -96,7 +98,9 @@ class Runner:
         self.handlers = {BeginStage: self._begin_stage, EndStage: self._end_stage,
                          SetFrequency: self._set_frequency, Ramp: self._ramp, Acquire: self._acquire_window,
                          Rest: self._rest, Log: self._log_message, Checkpoint: self._checkpoint,
-                         CheckSetpoint: self._check_setpoint}
+                         CheckSetpoint: self._check_setpoint,
+                         ControlSine: self._control_sine}
+        self.sine_control = SineControlExecutor(self)   # runs ControlSine messages
 
     # -- control (thread-safe; also from a signal handler) --------------------------------------
     def subscribe(self, observer) -> None:
@@ -273,6 +277,9 @@ class Runner:
                 self.sup.check_frequency(msg.hz)
         except LimitError as exc:
             raise LimitError(f"{msg.origin}: {exc}") from None
+
+    def _control_sine(self, msg: ControlSine):
+        return self.sine_control.execute(msg)
 
     def _checkpoint(self, msg: Checkpoint) -> None:
         if self._abort_count:

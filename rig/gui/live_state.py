@@ -125,6 +125,7 @@ class LiveData:
             self._t0 = None                       # (wall clock, rig time) at the first block
             self.state = "idle"
             self.max_faults: set = set()
+            self.control: list[tuple] = []        # closed-loop windows: (run time, target, achieved, error dB)
 
     # -- observer interface (runner thread) ----------------------------------------------------
     def on_run_start(self, info: dict) -> None:
@@ -186,6 +187,20 @@ class LiveData:
                 amp = 0.5 * float(y.max() - y.min())
                 with self._lock:
                     self.amplitudes.setdefault(block.stage, []).append((block.run_time, amp))
+
+    def on_control(self, record: dict) -> None:
+        """A closed-loop sine-control window (rig.sine_control): target against achieved."""
+        with self._lock:
+            self.control.append((record["sample_index"] / self.fs, record["effective_target_m"],
+                                 record["achieved_m"], record["error_db"]))
+
+    def control_series(self):
+        """(run time, effective base target, achieved base amplitude, error dB) arrays, or None."""
+        with self._lock:
+            if not self.control:
+                return None
+            a = np.array(self.control, float)
+        return a[:, 0], a[:, 1], a[:, 2], a[:, 3]
 
     # -- derived -----------------------------------------------------------------------------
     def _fit_linear(self) -> None:

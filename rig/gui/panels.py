@@ -13,6 +13,7 @@ INSTRUMENTS = (("generator", "signal generator"), ("amplifier", "power amplifier
                ("sensor_base", "base sensor"), ("sensor_tip", "tip sensor"))
 
 LOOP_WAITING = "Fn vs y (drawn once the linear step is known)"
+CONTROL_WAITING = "sine control: base target vs achieved (stages given in base_amplitude_mm)"
 LOOP_TITLE = "Fn = −x_tip'' − c_m y' − K_m y vs y"
 
 pg.setConfigOptions(antialias=False, background="w", foreground="k")
@@ -204,8 +205,29 @@ class LivePlots(pg.GraphicsLayoutWidget):
         self.p_amp.showGrid(x=True, y=True, alpha=0.2)
         self.p_amp.addLegend(offset=(5, 5))
         self.c_amp: dict = {}
+        # closed-loop sine control (rig.sine_control): base target against achieved, per window
+        self.p_ctrl = self.addPlot(row=2, col=0, colspan=2, title=CONTROL_WAITING)
+        self.p_ctrl.setLabel("left", "base amplitude", units="m")
+        self.p_ctrl.setLabel("bottom", "run time", units="s")
+        self.p_ctrl.showGrid(x=True, y=True, alpha=0.2)
+        self.p_ctrl.addLegend(offset=(5, 5))
+        self.c_target = self.p_ctrl.plot(pen=pg.mkPen("#7f7f7f", width=2, style=QtCore.Qt.DashLine), name="target")
+        self.c_achieved = self.p_ctrl.plot(pen=None, symbol="o", symbolSize=4, symbolBrush="#1f77b4",
+                                           symbolPen=None, name="achieved")
+
+    def show_control(self, series) -> None:
+        """``series`` = LiveData.control_series(): target (line) against achieved (points)."""
+        if series is None:
+            return
+        t, target, achieved, err = series
+        self.c_target.setData(t, target, connect="finite")
+        self.c_achieved.setData(t, achieved)
+        self.p_ctrl.setTitle(f"sine control: base target vs achieved (last window {err[-1]:+.2f} dB)")
 
     def reset(self) -> None:
+        self.c_target.setData([], [])
+        self.c_achieved.setData([], [])
+        self.p_ctrl.setTitle(CONTROL_WAITING)
         for c in (self.c_base, self.c_tip, self.c_rel, self.c_loop):
             c.setData([], [])
         for c in self.c_amp.values():

@@ -623,6 +623,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if self.frames % 5 == 0:
             for stage, (ts, amp) in live.amplitude_series().items():
                 set_series(self.plots.amplitude_curve(stage), ts, amp)
+            self.plots.show_control(live.control_series())
             self._update_status()
         self.frames += 1
         dt = time.perf_counter() - t_start
