@@ -31,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1]))
 
-NAMES = ("c_m", "k_m", "alpha_m", "gamma", "delta")
+from recon.model import PARAMETER_NAMES as NAMES  # noqa: E402
 
 
 def one(mode: str, seed: int, snr: float, fs: float, duration: float, resamples: int) -> dict:

@@ -30,6 +30,9 @@ CONVENTION = ("per unit mass: every force term is divided by the mass m; base ex
               "coefficient inv_m = 1/m")
 
 
+PARAMETER_NAMES = ("c_m", "k_m", "alpha_m", "gamma", "delta")   # the physical parameters, per unit mass
+
+
 @dataclass
 class HystereticModel:
     excitation: str
@@ -66,8 +69,8 @@ class HystereticModel:
 
     def fn_arrays(self):
         keys = list(self.fn_m)
-        pr = np.array([monomials.parse(k) for k in keys], dtype=np.int64).reshape(-1, 2)
-        return np.array([self.fn_m[k] for k in keys], float), pr[:, 0].copy(), pr[:, 1].copy()
+        p, r = monomials.exponents(keys)
+        return np.array([self.fn_m[k] for k in keys], float), p, r
 
     def fn(self, y, dy):
         out = np.zeros_like(np.asarray(y, float))
@@ -200,8 +203,16 @@ class HystereticModel:
         v_rms = float(np.sqrt(np.mean(derivatives(y, stage.dt, ch.window, ch.order, 1)[1] ** 2)))
         if abs(y0) < 5 * sigma and (abs(v0) < 0.05 * v_rms or abs(v0) < 4 * sig_v):
             return 0.0, 0.0, 0.0
-        z0 = self.balance(u[0], y0, v0, a0)
+        z0 = self.start_z(u[0], y0, v0, a0)
         return float(y0), float(v0), float(z0)
+
+    def start_z(self, u0: float, y0: float, v0: float, a0: float) -> float:
+        """z at a recorded start (y, y', y''): from the equation of motion when the model has
+        hysteresis; 0 when it has none (alpha = 0), since such a z would never decay and would act
+        as a permanent force offset."""
+        if self.alpha_m == 0.0:
+            return 0.0
+        return self.balance(u0, y0, v0, a0)
 
     def balance(self, u0: float, y0: float, v0: float, x: float) -> float:
         """g u - x - c y' - k y - fn(y, y') at one instant: the equation of motion gives z from

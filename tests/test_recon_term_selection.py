@@ -5,7 +5,8 @@ present, parameters a few percent off), polish it, and let the selection repair 
 import numpy as np
 import pytest
 
-from recon.output_error.polish import OutputError, polish
+from recon.output_error.polish import polish
+from recon.output_error.problem import OutputError
 from recon.output_error.term_selection import select_terms, stage_data
 from recon.testing.truth import sdof_run
 

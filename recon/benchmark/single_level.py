@@ -70,7 +70,7 @@ from recon.model import HystereticModel
 from recon.output_error.newmark_refine import refine as oe_refine
 from recon.regression.sparse import AutoSTLSQ, GroupedSparseSelector
 from recon.simulation import resampling
-from recon.simulation.newmark import NewmarkParameters, monomial_exponents
+from recon.simulation.newmark import NewmarkParameters
 from recon.steps.bouc_wen import estimate_delta, extract, refit
 from shakerlab import __version__
 from shakerlab.errors import UserFacingError
@@ -441,7 +441,7 @@ def hysteresis_step(rec: PeriodicRecord, lin: LinearStep, fn_terms=(), passes: i
     agent-model step's estimate), tried before the built-in ones.
     """
     names = list(fn_terms)
-    pe, re = monomial_exponents(names) if names else (np.zeros(0, int), np.zeros(0, int))
+    pe, re = monomials.exponents(names) if names else (np.zeros(0, int), np.zeros(0, int))
     # rows of the (smooth, integrated) equation: every fine sample for a periodic record (its band
     # projection needs the full grid); every upsample-th for a transient one (same information, 8x faster)
     rows = slice(None) if rec.kind == "periodic" else slice(None, None, rec.upsample)

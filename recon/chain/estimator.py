@@ -1,6 +1,6 @@
 """Multi-degree-of-freedom chains: the agent model per layer in relative coordinates.
 
-Chain (see recon/truth_mdof.py): masses x_1..x_n, element i between x_i and x_(i+1),
+Chain (see recon/chain/model.py): masses x_1..x_n, element i between x_i and x_(i+1),
 element n to the ground, y_i = x_i - x_(i+1), y_n = x_n, forces f_j on the masses.
 Summing the equations of masses 1..i, the element force of layer i appears alone:
 
@@ -30,14 +30,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+from recon.chain.model import ChainModel, ChainRun, ChainStage
 from recon.differentiation import choose_window, derivatives
 from recon.library import monomials
 from recon.library.agent import AgentLibrary, phi
 from recon.library.clustering import cluster
+from recon.output_error.problem import DIVERGED_RESIDUAL, parameter_scales
 from recon.regression.criteria import filter_correlation_length
 from recon.regression.sparse import GroupedSparseSelector
-from recon.steps.bouc_wen import NEGLIGIBLE, HysteresisParams, estimate_delta, extract, refit, term_contributions
-from recon.testing.truth_mdof import ChainModel, ChainRun, ChainStage
+from recon.steps.bouc_wen import (NEGLIGIBLE, HysteresisParams, estimate_delta,
+                                  extract, refit, term_contributions)
 from recon.validation import nrmse
 from recon.weak.path import fit_path, path_width
 from recon.weak.segments import WeakLayer, smoothed_noise
@@ -291,10 +293,7 @@ def polish_chain(model: ChainModel, stages: list, max_nfev: int = 30, n_sub: int
         return mod.fn[key[1]][key[2]] if key[0] == "fn" else getattr(mod, key[0])[key[1]]
 
     x0 = np.array([get(model, k) for k in keys], float)
-    scale = np.where(x0 != 0, np.abs(x0), 1.0)
-    for j, k in enumerate(keys):
-        if k[0] in ("gamma", "delta"):
-            scale[j] = max(abs(x0[j]), 0.1 * abs(model.gamma[k[1]] + model.delta[k[1]]))
+    scale = parameter_scales(keys, x0, lambda k: model.gamma[k[1]] + model.delta[k[1]])
 
     def build(p):
         x = x0 + p * scale
@@ -313,12 +312,12 @@ def polish_chain(model: ChainModel, stages: list, max_nfev: int = 30, n_sub: int
     def resid(p):
         m = build(p)
         if min(m.m) <= 0:
-            return np.full(n_res, 1e3)
+            return np.full(n_res, DIVERGED_RESIDUAL)
         out = []
         for st, rms in data:
             X, _, _ = m.simulate_recorded(st.t, st.f, n_sub)
             if not np.all(np.isfinite(X)):
-                return np.full(n_res, 1e3)
+                return np.full(n_res, DIVERGED_RESIDUAL)
             out.append(((X - st.x) / (rms[:, None] * np.sqrt(st.t.size))).ravel())
         return np.concatenate(out)
 

@@ -16,8 +16,9 @@ What the sensors report (the output the model is compared with):
 ``t`` in the drift term is the stage's recorded time (session time when the
 recording keeps it). Every extra is off when its parameter is 0, so an
 ``AugmentedModel`` with no extras simulates exactly like its baseline.
-The integrator is the same fixed-step RK4 as :mod:`recon.simulation.rk4` (input
-interpolated linearly between samples, sub-steps when sampling is coarse).
+The integrator is :func:`recon.simulation.rk4.simulate_extended`, the one RK4 kernel the
+plain model uses too (input interpolated linearly between samples, sub-steps when sampling
+is coarse).
 """
 from __future__ import annotations
 
@@ -28,10 +29,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from numba import njit
 
 from recon.model import HystereticModel
-from recon.simulation.rk4 import substeps
+from recon.simulation.rk4 import simulate_extended, substeps
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import BASE, Stage
 
@@ -50,84 +50,6 @@ EXTRAS = {
     "zeta2": (0.02, "-", "higher-mode damping ratio"),
     "phi2": (0.0, "m/m", "higher-mode participation in the displacement reading"),
 }
-
-
-@njit(cache=True)
-def _acc(y, v, z, q, vq, t, u, P, coef, p, r):
-    # P: g, c, k, alpha, gamma, delta, mu, v0, c2, kc, gap, side, drift, w2, zeta2
-    fn = 0.0
-    for j in range(coef.size):
-        fn += coef[j] * y ** p[j] * v ** r[j]
-    k = P[2] * (1.0 + P[12] * t)
-    f = P[1] * v + k * y + fn + z
-    if P[6] != 0.0:
-        f += P[6] * math.tanh(v / P[7])
-    if P[8] != 0.0:
-        f += P[8] * v * abs(v)
-    if P[9] != 0.0:
-        d = P[11] * y - P[10]
-        if d > 0.0:
-            f += P[11] * P[9] * d
-    gu = P[0] * u
-    acc = gu - f
-    dz = P[3] * v - P[4] * abs(v) * z - P[5] * v * abs(z)
-    aq = 0.0
-    if P[13] > 0.0:
-        aq = gu - 2.0 * P[14] * P[13] * vq - P[13] * P[13] * q
-    return acc, dz, aq
-
-
-@njit(cache=True)
-def simulate_augmented(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
-    n = u.size
-    out = np.zeros((4, n))  # y, v, z, q
-    y = y0
-    v = v0
-    z = z0
-    out[0, 0] = y0
-    out[1, 0] = v0
-    out[2, 0] = z0
-    q = 0.0
-    w = 0.0
-    h = dt / n_sub
-    for i in range(n - 1):
-        du = (u[i + 1] - u[i]) / n_sub
-        for sub in range(n_sub):
-            ta = t0 + i * dt + sub * h
-            ua = u[i] + du * sub
-            um = ua + 0.5 * du
-            a1, z1, q1 = _acc(y, v, z, q, w, ta, ua, P, coef, p, r)
-            y2 = y + 0.5 * h * v
-            v2 = v + 0.5 * h * a1
-            zz2 = z + 0.5 * h * z1
-            q2 = q + 0.5 * h * w
-            w2 = w + 0.5 * h * q1
-            a2, z2, qa2 = _acc(y2, v2, zz2, q2, w2, ta + 0.5 * h, um, P, coef, p, r)
-            y3 = y + 0.5 * h * v2
-            v3 = v + 0.5 * h * a2
-            zz3 = z + 0.5 * h * z2
-            q3 = q + 0.5 * h * w2
-            w3 = w + 0.5 * h * qa2
-            a3, z3, qa3 = _acc(y3, v3, zz3, q3, w3, ta + 0.5 * h, um, P, coef, p, r)
-            y4 = y + h * v3
-            v4 = v + h * a3
-            zz4 = z + h * z3
-            q4 = q + h * w3
-            w4 = w + h * qa3
-            a4, z4, qa4 = _acc(y4, v4, zz4, q4, w4, ta + h, ua + du, P, coef, p, r)
-            y += h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
-            v += h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-            z += h / 6.0 * (z1 + 2.0 * z2 + 2.0 * z3 + z4)
-            q += h / 6.0 * (w + 2.0 * w2 + 2.0 * w3 + w4)
-            w += h / 6.0 * (q1 + 2.0 * qa2 + 2.0 * qa3 + qa4)
-        if not (math.isfinite(y) and math.isfinite(v) and math.isfinite(z) and math.isfinite(q)):
-            out[:, i + 1:] = np.nan
-            return out
-        out[0, i + 1] = y
-        out[1, i + 1] = v
-        out[2, i + 1] = z
-        out[3, i + 1] = q
-    return out
 
 
 def shift(x: np.ndarray, delay: float, dt: float) -> np.ndarray:
@@ -190,7 +112,7 @@ class AugmentedModel:
                       self.get("c2"), self.get("kc"), self.get("gap"), 1.0 if self.get("side") >= 0 else -1.0,
                       self.get("drift"), w2, self.get("zeta2")], float)
         y0, dy0, z0 = (0.0, 0.0, 0.0) if initial is None else (float(v) for v in initial)
-        st = simulate_augmented(u, float(t[0]), dt, int(n_sub), P, coef, p, r, y0, dy0, z0)
+        st = simulate_extended(np.ascontiguousarray(u, float), float(t[0]), dt, int(n_sub), P, coef, p, r, y0, dy0, z0)
         y = st[0] + self.get("phi2") * st[3]
         scale = 1.0 + self.get("tip_scale")
         delay = self.get("delay")

@@ -28,6 +28,7 @@ from recon.diagnosis.locate import locate, stage_derivatives
 from recon.differentiation import estimate_spectrum
 from recon.estimator.pipeline import reconstruct
 from recon.model import HystereticModel
+from recon.output_error.problem import get_parameter, set_parameter
 from recon.signals import stage_signals
 from recon.steps.linear import count_lines, fit_linear
 from shakerlab.errors import UserFacingError
@@ -119,7 +120,7 @@ class Diagnosis:
 def _params_of(fr: rank.FitResult, keys) -> dict:
     out = {}
     for k in keys:
-        v = rank._get(fr.model, k)
+        v = get_parameter(fr.model, k)
         name = k.split(":", 1)[-1]
         out[name] = {"value": v, "stderr": fr.stderr.get(k)}
     return out
@@ -228,7 +229,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             fr1, keys1, sc1, b1 = fits[t["id"]]
             m = best_fr.model.copy()
             for k in keys1:
-                rank._set(m, k, rank._get(fr1.model, k))
+                set_parameter(m, k, get_parameter(fr1.model, k))
             if cand.id == "contact_stiffness":
                 m.extras["side"] = fr1.model.get("side")
             m.added = list(best_fr.model.added) + [t["id"]]

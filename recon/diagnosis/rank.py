@@ -32,6 +32,9 @@ from recon.diagnosis.locate import equation_residual
 from recon.differentiation import estimate_spectrum
 from recon.library import monomials
 from recon.model import HystereticModel
+from recon.output_error.problem import (DIVERGED_RESIDUAL, get_parameter,
+                                        parameter_scales, set_parameter)
+from recon.regression.criteria import effective_samples
 from shakerlab.run_data import BASE, Run
 
 BIC_MARGIN = 10.0
@@ -116,24 +119,6 @@ def nrmse_per_stage(am: AugmentedModel, data: list[StageData], sims=None) -> dic
 
 
 # ------------------------------------------------------------------ parameters
-def _get(am: AugmentedModel, key: str) -> float:
-    if key.startswith("fn:"):
-        return am.baseline.fn_m.get(key[3:], 0.0)
-    if key.startswith("x:"):
-        return am.get(key[2:])
-    v = getattr(am.baseline, key)
-    return float(v) if v is not None else 0.0
-
-
-def _set(am: AugmentedModel, key: str, value: float) -> None:
-    if key.startswith("fn:"):
-        am.baseline.fn_m[key[3:]] = float(value)
-    elif key.startswith("x:"):
-        am.extras[key[2:]] = float(value)
-    else:
-        setattr(am.baseline, key, float(value))
-
-
 def baseline_keys(model: HystereticModel) -> list[str]:
     keys = ["c_m", "k_m"]
     if model.alpha_m != 0.0:
@@ -163,12 +148,8 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
     t0 = time.perf_counter()
     scales = scales or {}
     bounds = bounds or {}
-    x0 = np.array([_get(am, k) for k in keys], float)
-    lam = abs(am.baseline.gamma + am.baseline.delta) or 1.0
-    sc = np.array([scales.get(k, abs(v) if v != 0 else 1.0) for k, v in zip(keys, x0)], float)
-    for i, k in enumerate(keys):
-        if k in ("gamma", "delta") and k not in scales:
-            sc[i] = max(abs(x0[i]), 0.1 * lam)
+    x0 = np.array([get_parameter(am, k) for k in keys], float)
+    sc = parameter_scales(keys, x0, am.baseline.gamma + am.baseline.delta, scales)
     lo = np.array([(bounds.get(k, (-np.inf, np.inf))[0] - x0[i]) / sc[i] for i, k in enumerate(keys)])
     hi = np.array([(bounds.get(k, (-np.inf, np.inf))[1] - x0[i]) / sc[i] for i, k in enumerate(keys)])
     lo = np.minimum(lo, -1e-12)
@@ -179,7 +160,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
     def build(p):
         m = am.copy()
         for i, k in enumerate(keys):
-            _set(m, k, x0[i] + p[i] * sc[i])
+            set_parameter(m, k, x0[i] + p[i] * sc[i])
         return m
 
     def resid(p):
@@ -190,7 +171,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
                 continue
             ys = m.simulate(d.t, d.u, d.x_in, d.initial)[0]
             if not np.all(np.isfinite(ys)):
-                return np.full(fit_n, 1e2)
+                return np.full(fit_n, DIVERGED_RESIDUAL)
             out.append((ys[d.fit] - d.y[d.fit]) * wi)
         return np.concatenate(out)
 
@@ -224,23 +205,6 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
     return FitResult(model=m, cost_fit=cost / max(len([d for d in data if d.fit.any()]), 1), mse_held=mse,
                      nrmse=nrmse_per_stage(m, data, sims), nrmse_held=nh, n_held=int(rh.size), resid_held=rh,
                      stderr=stderr, seconds=time.perf_counter() - t0)
-
-
-def effective_samples(r: np.ndarray, max_lag: int = 2000) -> float:
-    """N / (1 + 2 sum rho_k), the sum truncated at the first non-positive autocorrelation."""
-    r = np.asarray(r, float) - np.mean(r)
-    n = r.size
-    if n < 8 or not np.any(r):
-        return float(max(n, 1))
-    f = np.fft.rfft(r, 2 * n)
-    ac = np.fft.irfft(f * np.conj(f))[: min(n, max_lag)]
-    ac = ac / ac[0]
-    s = 0.0
-    for k in range(1, ac.size):
-        if ac[k] <= 0:
-            break
-        s += ac[k]
-    return float(max(n / (1.0 + 2.0 * s), 1.0))
 
 
 def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> dict:
@@ -301,7 +265,7 @@ def equation_step(am: AugmentedModel, keys: list[str], new_key: str | None, colu
     resid = float(np.linalg.norm(b - A @ coef) / (np.linalg.norm(b) or 1.0))
     m = am.copy()
     for k, c in zip(names, coef):
-        _set(m, k, _get(m, k) + c)
+        set_parameter(m, k, get_parameter(m, k) + c)
     if new_key is not None:
-        _set(m, new_key, _get(m, new_key) + coef[-1])
+        set_parameter(m, new_key, get_parameter(m, new_key) + coef[-1])
     return m, resid

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
+
 from shakerlab.errors import UserFacingError
 
 
@@ -31,6 +33,12 @@ def parse(text: str) -> tuple[int, int]:
         else:
             r += e
     return p, r
+
+
+def exponents(names) -> tuple:
+    """Exponent arrays (p, r) (int64) of the monomials ``names``, for the numba simulators."""
+    pr = np.array([parse(str(k)) for k in names], dtype=np.int64).reshape(-1, 2)
+    return pr[:, 0].copy(), pr[:, 1].copy()
 
 
 def of_degree(m: int) -> list[tuple[int, int]]:

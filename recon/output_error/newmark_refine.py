@@ -31,12 +31,13 @@ from dataclasses import replace as dc_replace
 import numpy as np
 from scipy.optimize import least_squares
 
+from recon.output_error.problem import DIVERGED_RESIDUAL
 from recon.simulation.newmark import NewmarkParameters, simulate_chain
 from shakerlab.errors import UserFacingError
 
 __all__ = ["OutputErrorResult", "refine", "refine_model", "PARAMETER_NAMES"]
 
-PARAMETER_NAMES = ("b", "c", "k", "alpha", "gamma", "delta")
+PARAMETER_NAMES = NewmarkParameters.NAMES
 
 
 def _to_vector(p: NewmarkParameters) -> tuple[np.ndarray, list[str]]:
@@ -119,7 +120,7 @@ def refine(initial, u, y, fs: float, *, periodic: bool, upsample: int = 20, n_wa
             ys = simulate_chain(params_of(x), u, fs, upsample=upsample, periodic=periodic,
                                 n_warmup_periods=n_warmup_periods)
         except FloatingPointError:
-            return np.full(y.size - discard, 1e3 * (np.std(y) + 1.0))  # unstable trial point: large cost
+            return np.full(y.size - discard, DIVERGED_RESIDUAL * (np.std(y) + 1.0))  # unstable trial point
         return ys[discard:] - y[discard:]
 
     r0 = residual(np.zeros(idx.size))

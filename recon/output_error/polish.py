@@ -8,9 +8,8 @@ recorded input from each stage's estimated start state. This uses the whole
 time history instead of a third derivative, so it removes most of the
 differentiation bias the equation-error estimates carry.
 
-:class:`OutputError` is the reusable piece (parameter vector <-> model, the
-simulated residual, optionally restricted to a mask of "fit" samples); the
-term selection by output error (recon/term_selection.py) uses it too.
+The problem itself (parameter vector <-> model, the simulated residual, optionally
+restricted to a mask of "fit" samples) is :class:`recon.output_error.problem.OutputError`.
 """
 from __future__ import annotations
 
@@ -18,75 +17,9 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from recon.model import HystereticModel
-from shakerlab.run_data import BASE
+from recon.output_error.problem import OutputError
 
-NAMES = ("c_m", "k_m", "alpha_m", "gamma", "delta")
 POLISH_FS = 2000.0   # Hz: the polish simulates at no less than this rate (faster stages are decimated)
-
-
-def _get(m: HystereticModel, k: str) -> float:
-    return m.fn_m.get(k[3:], 0.0) if k.startswith("fn:") else getattr(m, k)
-
-
-class OutputError:
-    """The output-error problem of ``model`` on ``data`` = [(t, u, y_meas[, (y0, dy0, a0)]), ...].
-
-    Parameters are ``x = x0 + p * scale``; ``extra_terms`` = {monomial: scale} adds fn terms
-    that the model does not have (coefficient 0 at p = 0). ``masks`` (one boolean array per
-    data item, or None) selects the samples the residual is taken over; the simulation always
-    runs over the whole item. The optional start (y, y', y'' at the first sample) sets the
-    initial state; z0 follows from the equation of motion for each trial parameter set."""
-
-    def __init__(self, model: HystereticModel, data: list, masks=None, extra_terms: dict | None = None):
-        self.model = model
-        self.data = data
-        self.keys = list(NAMES) + [f"fn:{k}" for k in model.fn_m] + [f"fn:{k}" for k in (extra_terms or {})
-                                                                       if k not in model.fn_m]
-        if model.excitation != BASE:
-            self.keys.append("inv_m")
-        self.x0 = np.array([_get(model, k) for k in self.keys], float)
-        lam = abs(model.gamma + model.delta) or 1.0
-        scale = np.where(np.abs(self.x0) > 0, np.abs(self.x0), 1.0)
-        for i, k in enumerate(self.keys):
-            if k in ("gamma", "delta"):
-                scale[i] = max(abs(self.x0[i]), 0.1 * lam)
-            if k.startswith("fn:") and k[3:] in (extra_terms or {}) and self.x0[i] == 0.0:
-                scale[i] = float(extra_terms[k[3:]])
-        self.scale = scale
-        self.masks = masks if masks is not None else [None] * len(data)
-        self.rms = [float(np.sqrt(np.mean((d[2] - d[2].mean()) ** 2))) or 1.0 for d in data]
-        self.n_rows = sum(int(d[2].size if m is None else np.count_nonzero(m)) for d, m in zip(data, self.masks))
-
-    def build(self, p) -> HystereticModel:
-        x = self.x0 + np.asarray(p, float) * self.scale
-        kw = {k: x[i] for i, k in enumerate(self.keys) if not k.startswith("fn:")}
-        fn = {k[3:]: x[i] for i, k in enumerate(self.keys) if k.startswith("fn:")}
-        m = self.model
-        return HystereticModel(excitation=m.excitation, fn_m=fn, provenance=m.provenance,
-                               inv_m=kw.pop("inv_m", m.inv_m), **kw)
-
-    def simulate(self, m: HystereticModel) -> list:
-        """Normalised residual (y_sim - y_meas)/rms per data item over ALL samples (None: diverged)."""
-        out = []
-        for d, r in zip(self.data, self.rms):
-            t, u, y = d[:3]
-            init = None
-            if len(d) > 3 and d[3] is not None:
-                y0, v0, a0 = d[3]
-                init = (y0, v0, m.balance(u[0], y0, v0, a0))
-            ys, _, _ = m.simulate(t, u, initial=init)
-            if not np.all(np.isfinite(ys)):
-                return None
-            out.append((ys - y) / r)
-        return out
-
-    def residual(self, p) -> np.ndarray:
-        """The fitted residual: masked samples, each item weighted by 1/sqrt(its sample count)."""
-        res = self.simulate(self.build(p))
-        if res is None:
-            return np.full(self.n_rows, 1e3)
-        return np.concatenate([(e if mk is None else e[mk]) / np.sqrt(e.size if mk is None else np.count_nonzero(mk))
-                               for e, mk in zip(res, self.masks)])
 
 
 def decimate(item: tuple, fs_target: float = POLISH_FS):

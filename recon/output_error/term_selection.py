@@ -38,7 +38,9 @@ import numpy as np
 
 from recon.library import monomials
 from recon.model import HystereticModel
-from recon.output_error.polish import POLISH_FS, OutputError, decimate, polish
+from recon.output_error.polish import POLISH_FS, decimate, polish
+from recon.output_error.problem import OutputError
+from recon.regression.criteria import bartlett_correlation_length, bic
 
 # low-order monomials offered for addition (present terms of any order may be dropped)
 CANDIDATES = ("y^2", "y*dy", "dy^2", "y^3", "y^2*dy", "y*dy^2", "dy^3")
@@ -64,18 +66,6 @@ def stage_data(model: HystereticModel, stage, fs_target: float = POLISH_FS):
 def _blocks(n: int, block: int) -> np.ndarray:
     """True on the fit blocks (even), False on the held-out blocks (odd)."""
     return (np.arange(n) // max(1, block)) % 2 == 0
-
-
-def _corr_len(e: np.ndarray, lags: int) -> float:
-    """1 + 2 sum_{k=1..lags} rho_k^2 of the residual (Bartlett)."""
-    e = e - e.mean()
-    n = e.size
-    f = np.fft.rfft(e, 2 * n)
-    ac = np.fft.irfft(f * np.conj(f))[: lags + 1]
-    if ac[0] <= 0:
-        return 1.0
-    rho = ac[1:] / ac[0]
-    return float(1.0 + 2.0 * np.sum(rho ** 2))
 
 
 def _term_scale(name: str, y: np.ndarray, dy: np.ndarray, model: HystereticModel) -> float:
@@ -104,19 +94,16 @@ def select_terms(model: HystereticModel, stage, settings: SelectionSettings | No
     ysim, dysim, _ = model.simulate(d[0], d[1], initial=None)
     history = []
 
-    def ic(rss, k, n_eff):
-        return n_eff * np.log(rss) + k * np.log(n_eff)
-
     current = model
     prob = OutputError(current, data, masks)
     e_cur = prob.simulate(current)
     if e_cur is None:
         return model, {"applied": False, "reason": "the starting model diverges on the stage"}
     e_cur = e_cur[0]
-    corr = _corr_len(e_cur, block)
+    corr = bartlett_correlation_length(e_cur, block)
     n_eff = max(2.0, held.sum() / corr)
     rss_cur = float(np.mean(e_cur[held] ** 2))
-    ic_cur = ic(rss_cur, len(current.fn_m), n_eff)
+    ic_cur = bic(rss_cur, len(current.fn_m), n_eff)
     history.append({"terms": sorted(current.fn_m), "held_out_rms": float(np.sqrt(rss_cur)), "ic": float(ic_cur)})
     tried = set()
     stale = True
@@ -169,7 +156,7 @@ def select_terms(model: HystereticModel, stage, settings: SelectionSettings | No
             p[cols] = sol
             e_pred = e0 + J @ p
             rss = float(np.mean(e_pred[held] ** 2))
-            actions.append((ic(rss, kk, n_eff), label, p, rss))
+            actions.append((bic(rss, kk, n_eff), label, p, rss))
         if not actions:
             break
         actions.sort(key=lambda a: a[0])
@@ -197,7 +184,7 @@ def select_terms(model: HystereticModel, stage, settings: SelectionSettings | No
             history.append(rec)
             continue
         rss_t = float(np.mean(e_t[0][held] ** 2))
-        ic_t = ic(rss_t, len(trial.fn_m), n_eff)
+        ic_t = bic(rss_t, len(trial.fn_m), n_eff)
         rec.update({"held_out_rms": float(np.sqrt(rss_t)), "ic": float(ic_t), "accepted": bool(ic_t < ic_cur)})
         history.append(rec)
         if ic_t < ic_cur:

@@ -57,16 +57,18 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from recon.differentiation import choose_window, derivatives, estimate_spectrum, undo_passband_loss
-from recon.estimator.pipeline import reconstruct
 from recon.determinism import single_thread_blas
+from recon.differentiation import (choose_window, derivatives,
+                                   estimate_spectrum, undo_passband_loss)
+from recon.estimator.pipeline import reconstruct
 from recon.model import HystereticModel
+from recon.output_error.problem import OutputError
+from recon.regression.criteria import decorrelation_lag
 from recon.regression.sparse import GroupedSparseSelector
 from recon.steps.bouc_wen import extract
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import BASE, Run
 
-NAMES = ("c_m", "k_m", "alpha_m", "gamma", "delta")
 METHOD = ("output-error ensemble: block wild bootstrap of the residual + redrawn input noise, "
           "linearised refit (one Gauss-Newton step per member), centred on the estimate corrected "
           "for the input differentiation filter's passband loss")
@@ -101,47 +103,6 @@ def fitted_stages(model: HystereticModel) -> list[str]:
     return [non] if hasattr(model, "stage_start") else [lin, non]
 
 
-def parameter_keys(model: HystereticModel) -> list[str]:
-    """The parameter vector of the output-error fit (same order as recon.output_error.polish)."""
-    return list(NAMES) + [f"fn:{k}" for k in model.fn_m] + (["inv_m"] if model.excitation != BASE else [])
-
-
-def _get(model: HystereticModel, key: str) -> float:
-    return model.fn_m[key[3:]] if key.startswith("fn:") else float(getattr(model, key))
-
-
-def _build(model: HystereticModel, keys: list[str], x: np.ndarray) -> HystereticModel:
-    kw = {k: float(x[i]) for i, k in enumerate(keys) if not k.startswith("fn:")}
-    fn = {k[3:]: float(x[i]) for i, k in enumerate(keys) if k.startswith("fn:")}
-    return HystereticModel(excitation=model.excitation, fn_m=fn, inv_m=kw.pop("inv_m", model.inv_m), **kw)
-
-
-def _scales(model: HystereticModel, keys: list[str], x0: np.ndarray) -> np.ndarray:
-    lam = abs(model.gamma + model.delta) or 1.0
-    scale = np.where(np.abs(x0) > 0, np.abs(x0), 1.0)
-    for i, k in enumerate(keys):
-        if k in ("gamma", "delta"):
-            scale[i] = max(abs(x0[i]), 0.1 * lam)
-    return scale
-
-
-def _start(model: HystereticModel, stage, u):
-    """(y, y', y'') at the stage's first sample when the model can start from a recorded state
-    (as the output-error polish does), else None (from rest)."""
-    if not hasattr(model, "stage_start"):
-        return None
-    return model.fit_item(stage, u)[3]
-
-
-def _simulate(m: HystereticModel, t, u, start):
-    """Simulate from rest, or from the recorded (y, y', y'') with z0 from the equation of motion
-    for this parameter set (what recon.output_error.polish does)."""
-    if start is None:
-        return m.simulate(t, u)
-    y0, v0, a0 = start
-    return m.simulate(t, u, initial=(y0, v0, m.balance(u[0], y0, v0, a0)))
-
-
 class _InputNoise:
     """Draws of the noise the stage's input u carries: white channel noise through the same
     filter as the signal (Savitzky-Golay second derivative and the passband-loss correction)."""
@@ -170,20 +131,6 @@ def input_noise_model(stage) -> _InputNoise:
     f = stage.channels["force"]
     sigma = float(estimate_spectrum(f, stage.dt).noise_std)
     return _InputNoise(sigma, f.size, stage.dt, None, None, {"channel": "force", "noise_std": sigma})
-
-
-def correlation_length(r: np.ndarray) -> int:
-    """First lag at which the residual's autocorrelation falls below 0.1 (>= 1)."""
-    r = np.asarray(r, float) - np.mean(r)
-    n = r.size
-    if n < 8 or not np.any(r):
-        return 1
-    nfft = 1 << int(np.ceil(np.log2(2 * n)))
-    f = np.fft.rfft(r, nfft)
-    acf = np.fft.irfft(f * np.conj(f), nfft)[:n]
-    acf /= acf[0]
-    below = np.flatnonzero(acf < 0.1)
-    return int(below[0]) if below.size else n
 
 
 def _block_ids(sizes: list[int], residuals: list[np.ndarray], s: UncertaintySettings):
@@ -215,18 +162,17 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
     for name in names:
         st = run.stage(name)
         u = model.stage_input(st)
-        data.append((st.t - st.t[0], u, st.y, _start(model, st, u)))
+        data.append(model.fit_item(st, u))   # (t from 0, u, y, recorded start), as the polish fits it
         noise.append(input_noise_model(st))
-    keys = parameter_keys(model)
-    x0 = np.array([_get(model, k) for k in keys], float)
-    scale = _scales(model, keys, x0)
+    prob = OutputError(model, data)
+    keys, x0, scale = prob.keys, prob.x0, prob.scale
     w = [1.0 / ((float(np.sqrt(np.mean((d[2] - d[2].mean()) ** 2))) or 1.0) * np.sqrt(d[2].size)) for d in data]
 
     def resid(x):
-        m = _build(model, keys, x)
+        m = prob.build(x, values=True)
         out = []
         for (t, u, y, start), wi in zip(data, w):
-            ys, _, _ = _simulate(m, t, u, start)
+            ys = OutputError.response(m, t, u, start)
             out.append((ys - y) * wi)
         return out
 
@@ -265,13 +211,13 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
     signs = rng.choice((-1.0, 1.0), size=(nb, s.n_resamples))
     members = x0[:, None] - (contrib @ signs) * scale[:, None]     # p x B
     if s.input_noise:
-        m0 = _build(model, keys, x0)
-        base = [_simulate(m0, t, u, start)[0] for t, u, _, start in data]
+        m0 = prob.build(x0, values=True)
+        base = [OutputError.response(m0, t, u, start) for t, u, _, start in data]
     if s.input_noise:
         for b in range(s.n_resamples):
             dr = []
             for (t, u, _, start), ys0, wi, nm in zip(data, base, w, noise):
-                ys, _, _ = _simulate(m0, t, u + nm(rng), start)
+                ys = OutputError.response(m0, t, u + nm(rng), start)
                 dr.append((ys - ys0) * wi)
             dr = np.concatenate(dr)
             if np.all(np.isfinite(dr)):
@@ -294,7 +240,7 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
         "stages": names,
         "block_samples": dict(zip(names, lengths)),
         "n_blocks": int(nb),
-        "correlation_length": {n: correlation_length(r) for n, r in zip(names, r_parts)},
+        "correlation_length": {n: decorrelation_lag(r) for n, r in zip(names, r_parts)},
         "intervals": shaped(np.stack([lo, hi], axis=1)),
         "std": shaped(sd),
         "estimate": shaped(x0),

@@ -26,10 +26,11 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from recon.library import monomials
 from recon.simulation import resampling
 from shakerlab.errors import UserFacingError
 
-__all__ = ["NewmarkParameters", "newmark_integrate", "simulate_chain", "monomial_exponents"]
+__all__ = ["NewmarkParameters", "newmark_integrate", "simulate_chain"]
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,8 @@ class NewmarkParameters:
     b: float = 1.0
     fn: tuple = ()  # ((name, coefficient), ...) kept hashable
 
+    NAMES = ("b", "c", "k", "alpha", "gamma", "delta")   # the scalar parameters, in the refinement's order
+
     @classmethod
     def from_benchmark(cls, m, c, k, alpha, beta_gamma, beta_delta):
         """From the benchmark's physical units (m [kg], c [Ns/m], k, alpha [N/m], beta*gamma, beta*delta [1/m])."""
@@ -66,30 +69,6 @@ class NewmarkParameters:
         fn = tuple(sorted((getattr(model, "fn_m", None) or {}).items()))
         return cls(c=model.c_m, k=model.k_m, alpha=model.alpha_m, gamma=model.gamma,
                    delta=model.delta, b=1.0 if inv_m is None else inv_m, fn=fn)
-
-
-def monomial_exponents(names) -> tuple[np.ndarray, np.ndarray]:
-    """Exponents (p, r) of monomials named like "y^2*dy", "y*dy^2", "dy^3"."""
-    ps, rs = [], []
-    for name in names:
-        p = r = 0
-        for factor in str(name).replace(" ", "").split("*"):
-            base, _, exp = factor.partition("^")
-            try:
-                e = int(exp) if exp else 1
-            except ValueError:
-                raise UserFacingError(f"monomial {name!r}: exponent {exp!r} is not an integer") from None
-            if base == "y":
-                p += e
-            elif base == "dy":
-                r += e
-            else:
-                raise UserFacingError(f"monomial {name!r}: unknown factor {base!r} (expected y or dy)")
-        if p + r < 1:
-            raise UserFacingError(f"monomial {name!r}: degree must be at least 1")
-        ps.append(p)
-        rs.append(r)
-    return np.asarray(ps, dtype=np.int64), np.asarray(rs, dtype=np.int64)
 
 
 @njit(cache=True)
@@ -194,7 +173,7 @@ def newmark_integrate(params: NewmarkParameters, u, h: float, y0: float = 0.0, v
         raise UserFacingError(f"newmark_integrate: step h must be positive, got {h}")
     names = [n for n, _ in params.fn]
     coef = np.asarray([v for _, v in params.fn], dtype=float)
-    pe, re = monomial_exponents(names)
+    pe, re = monomials.exponents(names)
     ys, vs, zs, worst = _integrate(u, float(h), float(params.c), float(params.k), float(params.alpha),
                                    float(params.gamma), float(params.delta), float(params.b), coef, pe, re,
                                    float(y0), float(v0), float(z0), float(a), float(b), float(c),

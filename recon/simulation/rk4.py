@@ -1,12 +1,23 @@
-"""Fast simulation of the identified SDOF hysteretic model (numba, RK4).
+"""The one RK4 integrator of the SDOF hysteretic model, with the optional extra physics.
 
-    y'' = g*u - c*y' - k*y - sum_j a_j y^p_j y'^r_j - z
-    z'  = alpha*y' - gamma*|y'|*z - delta*y'*|z|
+Per unit mass (g = 1 and u = -x_base'' under base excitation, g = 1/m and u = F
+under force excitation):
+
+    y'' = g u - c y' - k (1 + drift t) y - fn(y, y') - z
+          - mu tanh(y'/v0) - c2 y'|y'| - side kc max(side y - gap, 0)
+    z'  = alpha y' - gamma |y'| z - delta y' |z|
+    q'' = g u - 2 zeta2 w2 q' - w2^2 q          (a higher mode, only when w2 > 0)
+
+Every extra is off when its parameter is 0; with all of them off the arithmetic is
+exactly that of the plain model (the extras are subtracted after the plain terms).
+:func:`simulate_sdof` is the plain model; the diagnosis's augmented models
+(:mod:`recon.diagnosis.augmented`) pass the extras.
 
 ``u`` is sampled at the recording rate; between samples it is interpolated
 linearly (RK4 half steps use the mid-point value). When the sampling is coarse
 compared with the model's time scales, each sample interval is split into
-``n_sub`` RK4 sub-steps. Zero initial conditions unless (y0, v0, z0) are given.
+``n_sub`` RK4 sub-steps. Zero initial conditions unless (y0, v0, z0) are given;
+the higher mode always starts at rest.
 """
 from __future__ import annotations
 
@@ -15,56 +26,98 @@ import math
 import numpy as np
 from numba import njit
 
+# the layout of the parameter vector P of :func:`simulate_extended`
+P_NAMES = ("g", "c", "k", "alpha", "gamma", "delta", "mu", "v0", "c2", "kc", "gap", "side", "drift", "w2", "zeta2")
+
 
 @njit(cache=True)
-def _rhs(y, v, z, u, g, c, k, alpha, gamma, delta, coef, p, r):
+def _rhs(y, v, z, q, vq, t, u, P, coef, p, r):
     fn = 0.0
     for j in range(coef.size):
         fn += coef[j] * y ** p[j] * v ** r[j]
-    acc = g * u - c * v - k * y - fn - z
-    dz = alpha * v - gamma * abs(v) * z - delta * v * abs(z)
-    return v, acc, dz
+    k = P[2]
+    if P[12] != 0.0:
+        k = P[2] * (1.0 + P[12] * t)
+    gu = P[0] * u
+    acc = gu - P[1] * v - k * y - fn - z
+    if P[6] != 0.0:
+        acc -= P[6] * math.tanh(v / P[7])
+    if P[8] != 0.0:
+        acc -= P[8] * v * abs(v)
+    if P[9] != 0.0:
+        d = P[11] * y - P[10]
+        if d > 0.0:
+            acc -= P[11] * P[9] * d
+    dz = P[3] * v - P[4] * abs(v) * z - P[5] * v * abs(z)
+    aq = 0.0
+    if P[13] > 0.0:
+        aq = gu - 2.0 * P[14] * P[13] * vq - P[13] * P[13] * q
+    return acc, dz, aq
 
 
 @njit(cache=True)
-def simulate_sdof(u, dt, n_sub, g, c, k, alpha, gamma, delta, coef, p, r, y0=0.0, v0=0.0, z0=0.0):
+def simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
+    """States (y, y', z, q) as a (4, n) array; NaN from the first non-finite step on."""
     n = u.size
-    ys = np.zeros(n)
-    vs = np.zeros(n)
-    zs = np.zeros(n)
+    out = np.zeros((4, n))
     y = y0
     v = v0
     z = z0
-    ys[0] = y0
-    vs[0] = v0
-    zs[0] = z0
+    out[0, 0] = y0
+    out[1, 0] = v0
+    out[2, 0] = z0
+    q = 0.0
+    w = 0.0
     h = dt / n_sub
+    mode = P[13] > 0.0
     for i in range(n - 1):
-        u0 = u[i]
         du = (u[i + 1] - u[i]) / n_sub
-        for s in range(n_sub):
-            ua = u0 + du * s
+        for sub in range(n_sub):
+            ta = t0 + i * dt + sub * h
+            ua = u[i] + du * sub
             um = ua + 0.5 * du
-            ub = ua + du
-            k1y, k1v, k1z = _rhs(y, v, z, ua, g, c, k, alpha, gamma, delta, coef, p, r)
-            k2y, k2v, k2z = _rhs(y + 0.5 * h * k1y, v + 0.5 * h * k1v, z + 0.5 * h * k1z, um,
-                                 g, c, k, alpha, gamma, delta, coef, p, r)
-            k3y, k3v, k3z = _rhs(y + 0.5 * h * k2y, v + 0.5 * h * k2v, z + 0.5 * h * k2z, um,
-                                 g, c, k, alpha, gamma, delta, coef, p, r)
-            k4y, k4v, k4z = _rhs(y + h * k3y, v + h * k3v, z + h * k3z, ub,
-                                 g, c, k, alpha, gamma, delta, coef, p, r)
-            y += h / 6.0 * (k1y + 2 * k2y + 2 * k3y + k4y)
-            v += h / 6.0 * (k1v + 2 * k2v + 2 * k3v + k4v)
-            z += h / 6.0 * (k1z + 2 * k2z + 2 * k3z + k4z)
-        if not (math.isfinite(y) and math.isfinite(v) and math.isfinite(z)):
-            ys[i + 1:] = np.nan
-            vs[i + 1:] = np.nan
-            zs[i + 1:] = np.nan
-            return ys, vs, zs
-        ys[i + 1] = y
-        vs[i + 1] = v
-        zs[i + 1] = z
-    return ys, vs, zs
+            a1, z1, q1 = _rhs(y, v, z, q, w, ta, ua, P, coef, p, r)
+            y2 = y + 0.5 * h * v
+            v2 = v + 0.5 * h * a1
+            zz2 = z + 0.5 * h * z1
+            a2, z2, qa2 = _rhs(y2, v2, zz2, q + 0.5 * h * w, w + 0.5 * h * q1, ta + 0.5 * h, um, P, coef, p, r)
+            y3 = y + 0.5 * h * v2
+            v3 = v + 0.5 * h * a2
+            zz3 = z + 0.5 * h * z2
+            a3, z3, qa3 = _rhs(y3, v3, zz3, q + 0.5 * h * (w + 0.5 * h * q1), w + 0.5 * h * qa2, ta + 0.5 * h, um,
+                               P, coef, p, r)
+            y4 = y + h * v3
+            v4 = v + h * a3
+            zz4 = z + h * z3
+            a4, z4, qa4 = _rhs(y4, v4, zz4, q + h * (w + 0.5 * h * qa2), w + h * qa3, ta + h, ua + du, P, coef, p, r)
+            y += h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
+            v += h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+            z += h / 6.0 * (z1 + 2.0 * z2 + 2.0 * z3 + z4)
+            if mode:   # the higher mode's own RK4 stages (q' = w, w' = aq)
+                w2 = w + 0.5 * h * q1
+                w3 = w + 0.5 * h * qa2
+                w4 = w + h * qa3
+                q += h / 6.0 * (w + 2.0 * w2 + 2.0 * w3 + w4)
+                w += h / 6.0 * (q1 + 2.0 * qa2 + 2.0 * qa3 + qa4)
+        if not (math.isfinite(y) and math.isfinite(v) and math.isfinite(z) and math.isfinite(q)):
+            out[:, i + 1:] = np.nan
+            return out
+        out[0, i + 1] = y
+        out[1, i + 1] = v
+        out[2, i + 1] = z
+        out[3, i + 1] = q
+    return out
+
+
+def simulate_sdof(u, dt, n_sub, g, c, k, alpha, gamma, delta, coef, p, r, y0=0.0, v0=0.0, z0=0.0):
+    """The plain model (no extras): (y, y', z) arrays."""
+    P = np.zeros(len(P_NAMES))
+    P[:6] = (g, c, k, alpha, gamma, delta)
+    P[7] = 1.0
+    P[11] = 1.0
+    out = simulate_extended(np.ascontiguousarray(u, float), 0.0, float(dt), int(n_sub), P, coef, p, r,
+                            float(y0), float(v0), float(z0))
+    return out[0], out[1], out[2]
 
 
 def substeps(dt: float, k_total: float, steps_per_period: int = 64) -> int:

@@ -8,9 +8,9 @@ Element force (absolute units, N):
     z_i' = alpha_i y_i' - gamma_i |y_i'| z_i - delta_i y_i' |z_i|     (alpha_i = 0: no hysteresis)
     m_i x_i'' = f_i - E_i + E_(i-1)                                    (E_0 = 0)
 
-The integrator (numba RK4) takes the forces on the half-step grid: the ground truth
-evaluates the analytic multisine there (``fine`` steps per sample), the identified
-model interpolates the recorded forces linearly.
+The truth integrates with its own RK4 (:func:`integrate_truth`, written apart from the
+estimator's :mod:`recon.chain.model` integrator) on the half-step grid of the analytic
+multisine forces (``fine`` steps per sample).
 
 MR-damper isolator (SDOF, base excitation, per unit mass): the Spencer-Dyke
 phenomenological model is stiff (its internal Bouc-Wen element has a large
@@ -25,156 +25,60 @@ so z saturates at sqrt(A / (beta + g2)) with a rounder knee than n = 1.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 from numba import njit
 
-from recon.library import monomials
+from recon.chain.model import ChainModel, ChainRun, ChainStage
 from recon.testing.truth import Multisine
-from shakerlab.errors import UserFacingError
 from shakerlab.run_data import BASE, Run, Stage
 
 
-@dataclass
-class ChainModel:
-    """A chain of masses and hysteretic elements, absolute units (kg, N/m, N s/m, 1/m)."""
-
-    m: list
-    c: list
-    k: list
-    alpha: list
-    gamma: list
-    delta: list
-    fn: list                     # per element: {monomial name: coefficient [N ...]}
-    provenance: dict = field(default_factory=dict)
-
-    @property
-    def n(self) -> int:
-        return len(self.m)
-
-    def hysteretic(self, i: int) -> bool:
-        return self.alpha[i] != 0.0
-
-    def layer(self, i: int) -> dict:
-        """Element i per unit mass of mass i (the per-layer convention of recon.chain.estimator)."""
-        mi = self.m[i]
-        return {"c_m": self.c[i] / mi, "k_m": self.k[i] / mi, "alpha_m": self.alpha[i] / mi,
-                "gamma": self.gamma[i], "delta": self.delta[i], "inv_m": 1.0 / mi,
-                "fn_m": {k: v / mi for k, v in self.fn[i].items()},
-                "mass_ratios": [self.m[j] / mi for j in range(i)], "hysteresis": self.hysteretic(i)}
-
-    def arrays(self):
-        coef, p, r, e = [], [], [], []
-        for i, d in enumerate(self.fn):
-            for name, a in d.items():
-                pp, rr = monomials.parse(name)
-                coef.append(a); p.append(pp); r.append(rr); e.append(i)
-        f = lambda x, t=float: np.asarray(x, t)  # noqa: E731
-        return (f(self.m), f(self.c), f(self.k), f(self.alpha), f(self.gamma), f(self.delta),
-                f(coef), f(p, np.int64), f(r, np.int64), f(e, np.int64))
-
-    def simulate(self, F_half: np.ndarray, h: float, every: int):
-        """RK4 with step h; F_half (n, 2 M + 1) forces on the half-step grid of M steps.
-        Returns x (n, M // every + 1), v, z sampled every ``every`` steps."""
-        return _chain_rk4(np.ascontiguousarray(F_half, float), h, every, *self.arrays())
-
-    def simulate_recorded(self, t: np.ndarray, forces: np.ndarray, n_sub: int = 8):
-        """Response to recorded forces (n, N) sampled at t (linear interpolation), from rest."""
-        dt = float(np.median(np.diff(t)))
-        N = t.size
-        grid = np.arange(2 * (N - 1) * n_sub + 1) / (2 * n_sub)
-        F = np.vstack([np.interp(grid, np.arange(N), f) for f in forces])
-        return self.simulate(F, dt / n_sub, n_sub)
-
-
+# ------------------------------------------------------------------ the truth's own integrator
 @njit(cache=True)
-def _chain_forces(x, v, z, m, c, k, alpha, gamma, delta, coef, p, r, e, out_a, out_z, F):
-    n = m.size
-    E = np.zeros(n)
+def _truth_derivative(s, F, n, m, c, k, alpha, gamma, delta, coef, p, r, e):
+    """d/dt of the state s = [x_1..x_n, v_1..v_n, z_1..z_n] under forces F."""
+    ds = np.empty(3 * n)
+    elem = np.empty(n)
     for i in range(n):
-        if i < n - 1:
-            y = x[i] - x[i + 1]
-            dy = v[i] - v[i + 1]
-        else:
-            y = x[i]
-            dy = v[i]
-        E[i] = c[i] * dy + k[i] * y + z[i]
-        out_z[i] = alpha[i] * dy - gamma[i] * abs(dy) * z[i] - delta[i] * dy * abs(z[i])
+        y = s[i] - (s[i + 1] if i + 1 < n else 0.0)
+        dy = s[n + i] - (s[n + i + 1] if i + 1 < n else 0.0)
+        zi = s[2 * n + i]
+        f = c[i] * dy + k[i] * y + zi
         for j in range(coef.size):
             if e[j] == i:
-                E[i] += coef[j] * y ** p[j] * dy ** r[j]
+                f += coef[j] * y ** p[j] * dy ** r[j]
+        elem[i] = f
+        ds[2 * n + i] = alpha[i] * dy - gamma[i] * abs(dy) * zi - delta[i] * dy * abs(zi)
     for i in range(n):
-        prev = E[i - 1] if i > 0 else 0.0
-        out_a[i] = (F[i] - E[i] + prev) / m[i]
+        ds[i] = s[n + i]
+        ds[n + i] = (F[i] - elem[i] + (elem[i - 1] if i > 0 else 0.0)) / m[i]
+    return ds
 
 
 @njit(cache=True)
-def _chain_rk4(F_half, h, every, m, c, k, alpha, gamma, delta, coef, p, r, e):
+def _truth_integrate(F_half, h, every, m, c, k, alpha, gamma, delta, coef, p, r, e):
     n = m.size
-    M = (F_half.shape[1] - 1) // 2
-    ns = M // every + 1
-    X = np.zeros((n, ns))
-    Vv = np.zeros((n, ns))
-    Z = np.zeros((n, ns))
-    x = np.zeros(n); v = np.zeros(n); z = np.zeros(n)
-    a1 = np.zeros(n); a2 = np.zeros(n); a3 = np.zeros(n); a4 = np.zeros(n)
-    w1 = np.zeros(n); w2 = np.zeros(n); w3 = np.zeros(n); w4 = np.zeros(n)
-    for s in range(M):
-        F0 = F_half[:, 2 * s]
-        Fm = F_half[:, 2 * s + 1]
-        F1 = F_half[:, 2 * s + 2]
-        _chain_forces(x, v, z, m, c, k, alpha, gamma, delta, coef, p, r, e, a1, w1, F0)
-        v1 = v.copy()
-        _chain_forces(x + 0.5 * h * v1, v + 0.5 * h * a1, z + 0.5 * h * w1, m, c, k, alpha, gamma, delta,
-                      coef, p, r, e, a2, w2, Fm)
-        v2 = v + 0.5 * h * a1
-        _chain_forces(x + 0.5 * h * v2, v + 0.5 * h * a2, z + 0.5 * h * w2, m, c, k, alpha, gamma, delta,
-                      coef, p, r, e, a3, w3, Fm)
-        v3 = v + 0.5 * h * a2
-        _chain_forces(x + h * v3, v + h * a3, z + h * w3, m, c, k, alpha, gamma, delta,
-                      coef, p, r, e, a4, w4, F1)
-        v4 = v + h * a3
-        x = x + h / 6.0 * (v1 + 2 * v2 + 2 * v3 + v4)
-        v = v + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
-        z = z + h / 6.0 * (w1 + 2 * w2 + 2 * w3 + w4)
-        if (s + 1) % every == 0:
-            j = (s + 1) // every
-            X[:, j] = x
-            Vv[:, j] = v
-            Z[:, j] = z
-    return X, Vv, Z
+    steps = (F_half.shape[1] - 1) // 2
+    out = np.zeros((3 * n, steps // every + 1))
+    s = np.zeros(3 * n)
+    for j in range(steps):
+        f0 = F_half[:, 2 * j]
+        fm = F_half[:, 2 * j + 1]
+        d1 = _truth_derivative(s, f0, n, m, c, k, alpha, gamma, delta, coef, p, r, e)
+        d2 = _truth_derivative(s + 0.5 * h * d1, fm, n, m, c, k, alpha, gamma, delta, coef, p, r, e)
+        d3 = _truth_derivative(s + 0.5 * h * d2, fm, n, m, c, k, alpha, gamma, delta, coef, p, r, e)
+        d4 = _truth_derivative(s + h * d3, F_half[:, 2 * j + 2], n, m, c, k, alpha, gamma, delta, coef, p, r, e)
+        s = s + (h / 6.0) * (d1 + 2.0 * d2 + 2.0 * d3 + d4)
+        if (j + 1) % every == 0:
+            out[:, (j + 1) // every] = s
+    return out
 
 
-# ------------------------------------------------------------------ recorded chains
-@dataclass
-class ChainStage:
-    """One stage of a chain record: displacements x (n, N) [m] and forces f (n, N) [N]."""
-
-    name: str
-    t: np.ndarray
-    x: np.ndarray
-    f: np.ndarray
-    truth: dict = field(default_factory=dict, repr=False)
-
-    @property
-    def dt(self) -> float:
-        return float(np.median(np.diff(self.t)))
-
-    def y(self, i: int) -> np.ndarray:
-        return self.x[i] - self.x[i + 1] if i < self.x.shape[0] - 1 else self.x[i]
-
-
-@dataclass
-class ChainRun:
-    stages: dict
-    source: str = ""
-
-    def stage(self, name: str) -> ChainStage:
-
-        if name not in self.stages:
-            raise UserFacingError(f"{self.source or 'chain run'}: no stage {name!r} (stages: {', '.join(self.stages)})")
-        return self.stages[name]
+def integrate_truth(model: ChainModel, F_half: np.ndarray, h: float, every: int):
+    """The truth's response (x, v, z), each (n, M // every + 1), to forces on the half-step grid."""
+    out = _truth_integrate(np.ascontiguousarray(F_half, float), h, every, *model.arrays())
+    n = model.n
+    return out[:n], out[n:2 * n], out[2 * n:]
 
 
 def chain_stage(name: str, model: ChainModel, signals: dict, fs: float, duration: float, snr_db, rng,
@@ -188,7 +92,7 @@ def chain_stage(name: str, model: ChainModel, signals: dict, fs: float, duration
     for i, sig in signals.items():
         F_half[i] = sig.value(grid)
         f[i] = sig.value(t)
-    X, V, Z = model.simulate(F_half, 1.0 / (fs * fine), fine)
+    X, V, Z = integrate_truth(model, F_half, 1.0 / (fs * fine), fine)
 
     def noisy(a):
         if snr_db is None or not np.any(a):

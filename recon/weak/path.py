@@ -62,6 +62,7 @@ from scipy.optimize import least_squares
 
 from recon.library import monomials
 from recon.library.agent import phi
+from recon.regression.criteria import bartlett_correlation_length, bic
 from recon.regression.sparse import scaled_lstsq
 from recon.weak.segments import TestFunctions, tiled_windows
 from shakerlab.errors import UserFacingError
@@ -293,20 +294,6 @@ class PathProblem:
         return best.x
 
 
-def _corr_len(e: np.ndarray, lags: int) -> float:
-    """1 + 2 sum_k rho_k^2 (Bartlett) of the row residual: rows overlap and the noise
-    in them is filtered, so neighbouring rows are not independent."""
-    e = e - e.mean()
-    ac = np.correlate(e, e, "full")[e.size - 1:e.size + lags]
-    if ac[0] <= 0:
-        return 1.0
-    return float(1.0 + 2.0 * np.sum((ac[1:] / ac[0]) ** 2))
-
-
-def _bic(rss: float, k: int, n_eff: float) -> float:
-    return n_eff * np.log(rss) + k * np.log(n_eff)
-
-
 def stepwise(prob: PathProblem, support: np.ndarray, gamma: float, delta: float, max_steps: int = 12):
     """Stepwise choice of the fn terms with (gamma, delta) refitted for every accepted change.
 
@@ -319,8 +306,8 @@ def stepwise(prob: PathProblem, support: np.ndarray, gamma: float, delta: float,
     lead = prob.n_lead + 2
     x, rss, A0 = prob.solve(gamma, delta, support)
     # each sample lies in ROW_OVERLAP rows, and the noise in the rows is filtered on top
-    n_eff = max(2.0, prob.b.size / (ROW_OVERLAP * _corr_len(prob.b - A0 @ x, int(4 * ROW_OVERLAP))))
-    cur = _bic(rss, int(support.sum()), n_eff)
+    n_eff = max(2.0, prob.b.size / (ROW_OVERLAP * bartlett_correlation_length(prob.b - A0 @ x, int(4 * ROW_OVERLAP))))
+    cur = bic(rss, int(support.sum()), n_eff)
     history = [{"terms": [n for n, s_ in zip(prob.names, support) if s_], "bic": float(cur)}]
     tried = set()
     for _ in range(max_steps):
@@ -334,7 +321,7 @@ def stepwise(prob: PathProblem, support: np.ndarray, gamma: float, delta: float,
                 continue
             cols = np.r_[np.arange(lead), lead + np.flatnonzero(trial)]
             _, r = scaled_lstsq(A[:, cols], prob.b)
-            pred = _bic(r, int(trial.sum()), n_eff)
+            pred = bic(r, int(trial.sum()), n_eff)
             need = cur - ENTER_BIC if trial[j] else cur + LEAVE_BIC
             if pred < need:
                 scored.append((pred - need, pred, need, j, trial, key))
@@ -345,7 +332,7 @@ def stepwise(prob: PathProblem, support: np.ndarray, gamma: float, delta: float,
             lam = gamma + delta
             g2, d2 = prob.fit_hysteresis(lam, trial, starts=(delta / lam, 0.2, 0.5, 0.8))
             _, r2, _ = prob.solve(g2, d2, trial)
-            b2 = _bic(r2, int(trial.sum()), n_eff)
+            b2 = bic(r2, int(trial.sum()), n_eff)
             history.append({"action": ("add " if trial[j] else "drop ") + prob.names[j], "predicted_bic": float(pred),
                             "bic": float(b2), "accepted": bool(b2 < need)})
             if b2 < need:
