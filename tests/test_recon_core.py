@@ -85,7 +85,7 @@ def _steady_single_tone_force_run():
 
 def test_single_tone_force_excitation_is_refused():
     run = _steady_single_tone_force_run()
-    with pytest.raises(UserFacingError, match="rank-deficient.*sweep, a multisine"):
+    with pytest.raises(UserFacingError, match="cannot determine c and K.*rank-deficient.*sweep, a multisine"):
         reconstruct(run)
 
 

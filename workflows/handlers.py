@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from recon import ReconSettings, diagnose, reconstruct
+from recon.estimator.adequacy import one_line
 from recon.output_error.uncertainty import UncertaintySettings, parameter_intervals
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
@@ -42,11 +43,19 @@ def reconstruct_command(args) -> int:
     v = result.validation
     print(f"validation NRMSE on stage {v['stage']!r}: {v['nrmse']:.4g}"
           + (" (no validation stage: fitted stage)" if v.get("fitted_on_validation_stage") else ""))
-    d = result.differentiation["nonlinear"]
-    print(f"Savitzky-Golay (nonlinear stage): window {d['window']}, order {d['order']}, "
-          f"noise level {', '.join(f'{k} {v:.3g}' for k, v in d['noise_level'].items())}")
-    print(f"sparse regression: {result.sparse['n_terms']} library terms, threshold {result.sparse['threshold']:.3g}; "
-          f"linear step condition number {result.linear.condition_number:.3g}")
+    if result.adequacy:
+        print(one_line(result.adequacy))
+        fb = result.adequacy.get("fallback") or {}
+        if fb.get("used"):
+            print(f"the full model was not admissible: answering with the simpler {fb['kind']} model, chosen by "
+                  f"{fb['chosen_by']}; the inadmissible estimate is in the JSON (adequacy.fallback)")
+    d = result.differentiation.get("nonlinear")
+    if d:
+        print(f"Savitzky-Golay (nonlinear stage): window {d['window']}, order {d['order']}, "
+              f"noise level {', '.join(f'{k} {v:.3g}' for k, v in d['noise_level'].items())}")
+    if result.sparse.get("threshold") is not None:
+        print(f"sparse regression: {result.sparse['n_terms']} library terms, threshold "
+              f"{result.sparse['threshold']:.3g}; linear step condition number {result.linear.condition_number:.3g}")
     if "uncertainty" in out:
 
         print(*interval_lines(out), sep="\n")

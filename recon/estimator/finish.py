@@ -1,10 +1,10 @@
-"""The end every form shares: admissibility, output-error polish, validation."""
+"""The end every form shares: admissibility (recon.estimator.fallback.admissible), output-error polish,
+validation."""
 from __future__ import annotations
 
 import time
 
-import numpy as np
-
+from recon.estimator.fallback import admissible
 from recon.estimator.result import ReconSettings
 from recon.model import HystereticModel
 from recon.output_error.polish import polish
@@ -24,12 +24,6 @@ def validate(model: HystereticModel, run: Run, skip: tuple = ()) -> dict:
     main = names[0] if names else None
     return {"nrmse": out.get(main, float("nan")), "stage": main, "per_stage": out,
             "fitted_on_validation_stage": main == "nonlinear"}
-
-
-def admissible(model: HystereticModel) -> bool:
-    """Physically admissible Bouc-Wen model: lambda > 0, alpha > 0, K > 0, finite."""
-    vals = [model.c_m, model.k_m, model.alpha_m, model.gamma, model.delta, *model.fn_m.values()]
-    return bool(np.all(np.isfinite(vals)) and model.lam > 0 and model.alpha_m > 0 and model.K_m > 0)
 
 
 def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info: dict, timings: dict,

@@ -12,7 +12,9 @@ from dataclasses import replace
 import numpy as np
 
 from recon.determinism import single_thread_blas
-from recon.estimator.finish import admissible, validate
+from recon.estimator.adequacy import assess
+from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, held_out_stages, simpler_models
+from recon.estimator.finish import validate
 from recon.estimator.pointwise import reconstruct_pointwise
 from recon.estimator.result import ReconResult, ReconSettings
 from recon.estimator.weak_form import reconstruct_weak
@@ -20,6 +22,7 @@ from recon.model import HystereticModel
 from recon.output_error.polish import polish
 from recon.output_error.term_selection import select_terms, stage_data
 from recon.steps.bouc_wen import NEGLIGIBLE, term_contributions
+from recon.steps.linear import LinearFit
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import Run
 
@@ -37,23 +40,30 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
     linear-correction columns (e.g. the linear stage was large enough for the hysteresis to
     bias c and K), and with ``fallback_form`` that form (the weak form's path rows hold where
     the pointwise regression is noise: at 60 dB, 2 of 50 noise seeds gave a negative alpha
-    there, and the polish then ran to gamma, delta of 1e5)."""
+    there, and the polish then ran to gamma, delta of 1e5).
+
+    A pass that fails numerically (a singular matrix, an SVD that does not converge, overflow)
+    counts as failed and the next one runs. When no pass gives an admissible model, the answer
+    is the best admissible simpler model (:mod:`recon.estimator.fallback`), and the result's
+    ``adequacy`` says so; the inadmissible estimate stays there for inspection. Input errors
+    (a missing stage, a bad setting) still raise UserFacingError."""
     s = settings or ReconSettings()
-    first = _reconstruct(run, replace(s, linear_correction=False) if s.linear_correction == "auto" else s,
-                         validate_model)
-    first.settings = s
-    if _trusted(first):
-        return _revise_terms(first, run, s, validate_model)
-    candidates = [first]
+    failures = {}
+    first = _attempt("first", run, replace(s, linear_correction=False) if s.linear_correction == "auto" else s,
+                     validate_model, failures)
+    if first is not None:
+        first.settings = s
+        if _trusted(first):
+            return _finish(_revise_terms(first, run, s, validate_model, failures), run, failures)
+    candidates = [first] if first is not None else []
     passes = []
     if s.linear_correction == "auto":
         passes.append(("linear_correction", replace(s, linear_correction=True)))
     if s.fallback_form and s.fallback_form != s.form:
         passes.append((f"form={s.fallback_form}", replace(s, form=s.fallback_form, linear_correction=False)))
     for name, ps in passes:
-        try:
-            r = _reconstruct(run, ps, validate_model)
-        except UserFacingError:
+        r = _attempt(name, run, ps, validate_model, failures)
+        if r is None:
             continue
         r.settings = s
         r.hysteresis_info["pass"] = name
@@ -64,11 +74,74 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
         e = info.get("nrmse_after" if info.get("applied") else "nrmse_before", np.inf)
         return (not _trusted(r), e if np.isfinite(e) else np.inf)
 
-    best = min(candidates, key=fit_err)
-    best.hysteresis_info["passes_compared"] = ["first"] + [r.hysteresis_info["pass"] for r in candidates[1:]]
+    usable = [r for r in candidates
+              if admissible(r.model) and (not validate_model or np.isfinite(r.validation.get("nrmse", 0.0)))]
+    if not usable:
+        return _simpler(run, s, candidates, failures, validate_model)
+    best = min(usable, key=fit_err)
+    best.hysteresis_info["passes_compared"] = [("first" if r is first else r.hysteresis_info["pass"])
+                                               for r in candidates]
     best.hysteresis_info.setdefault("pass", "first")
     best.hysteresis_info["linear_correction_pass"] = best.hysteresis_info["pass"] == "linear_correction"
-    return _revise_terms(best, run, s, validate_model)
+    return _finish(_revise_terms(best, run, s, validate_model, failures), run, failures)
+
+
+def _attempt(name: str, run: Run, s: ReconSettings, validate_model: bool, failures: dict):
+    """One pass; None (and the reason in ``failures``) when it fails numerically or refuses."""
+    try:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            return _reconstruct(run, s, validate_model)
+    except UserFacingError as e:
+        if name == "first":     # an input error or the estimator's refusal reaches the user as it is
+            raise
+        failures[name] = str(e)
+    except NUMERICAL_ERRORS as e:
+        failures[name] = f"{type(e).__name__}: {e}"
+    return None
+
+
+def _finish(result: ReconResult, run: Run, failures: dict, fallback: dict | None = None) -> ReconResult:
+    if failures:
+        result.hysteresis_info["failed_passes"] = dict(failures)
+    result.adequacy = assess(result.model, result.validation, run, fallback)
+    return result
+
+
+def _simpler(run: Run, s: ReconSettings, candidates: list, failures: dict, validate_model: bool) -> ReconResult:
+    """No admissible model from any pass: the best admissible simpler model (fallback.py)."""
+    estimate = candidates[0] if candidates else None
+    lin = estimate.linear if estimate is not None else None
+    fits = simpler_models(run, s, estimate.model if estimate is not None else None, lin)
+    good = [f for f in fits if f.model is not None and np.isfinite(f.held_out_nrmse)]
+    if not good:
+        why = "; ".join(f"{k}: {v}" for k, v in failures.items()) or "every estimate was inadmissible"
+        raise UserFacingError(f"{run.source or 'run'}: reconstruct found no admissible model. The passes gave: "
+                              f"{why}. Simpler models: " + "; ".join(f"{f.kind}: {f.failed}" for f in fits)
+                              + ". Check the stages (a linear stage well below resonance, a nonlinear stage "
+                              "near it, the sensors' units and sign) or try --form weak.")
+    best = min(good, key=lambda f: f.held_out_nrmse)
+    names, held = held_out_stages(run, (s.linear_stage, s.nonlinear_stage))
+    fallback = {"used": True, "kind": best.kind, "chosen_by": "held-out NRMSE on " + ", ".join(names)
+                + ("" if held else " (no validation stage: the fitted nonlinear stage)"),
+                "candidates": [f.to_dict() for f in fits],
+                "inadmissible_estimate": (estimate.model.to_dict()["parameters"] if estimate is not None else None),
+                "failed_passes": dict(failures)}
+    best.model.provenance = {"simpler_model": best.kind, "settings": {"linear_stage": s.linear_stage,
+                                                                      "nonlinear_stage": s.nonlinear_stage}}
+    val = validate(best.model, run) if validate_model else {"nrmse": float("nan"), "stage": None}
+    if estimate is not None:
+        result = estimate
+        result.hysteresis_info = dict(estimate.hysteresis_info, inadmissible_estimate=fallback["inadmissible_estimate"])
+    else:
+        result = ReconResult(model=best.model, linear=LinearFit(best.model.c_m, best.model.K_m, best.model.inv_m,
+                                                                float("nan"), [], float("nan"), float("nan")),
+                             sparse={"threshold": None, "n_terms": 0}, library_names=[], library_coef=[],
+                             hysteresis_info={}, differentiation={}, validation=val, settings=s)
+    result.model = best.model
+    result.validation = val
+    result.settings = s
+    result.hysteresis_info["simpler_model"] = best.kind
+    return _finish(result, run, {}, fallback)
 
 
 def _trusted(r: ReconResult) -> bool:
@@ -76,7 +149,19 @@ def _trusted(r: ReconResult) -> bool:
                 and np.isfinite(r.validation.get("nrmse", 0.0)))
 
 
-def _revise_terms(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool) -> ReconResult:
+def _revise_terms(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool,
+                  failures: dict | None = None) -> ReconResult:
+    """:func:`_revise_model_terms`; a numerical failure there keeps the unrevised result."""
+    try:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            return _revise_model_terms(result, run, s, validate_model)
+    except NUMERICAL_ERRORS as e:
+        if failures is not None:
+            failures["term_revision"] = f"{type(e).__name__}: {e}"
+        return result
+
+
+def _revise_model_terms(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool) -> ReconResult:
     """Revise the fn terms of the polished model on the nonlinear stage (needs ``s.polish``):
 
     1. term selection by output error (recon/term_selection.py, with ``s.term_selection``),

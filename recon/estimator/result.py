@@ -63,6 +63,8 @@ class ReconResult:
     # the "terms" it selected; None for the weak form. recon.output_error.uncertainty.term_inclusion
     # resamples it.
     selection_problem: dict | None = field(default=None, repr=False)
+    # the verdict on the model (recon.estimator.adequacy.assess): admissible, adequate, and why
+    adequacy: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         params = self.model.to_dict()["parameters"]
@@ -78,7 +80,10 @@ class ReconResult:
                                "hysteresis": self.hysteresis_info, "sparse_regression": self.sparse},
             "settings": {"differentiation": self.differentiation, "threshold": self.sparse["threshold"],
                          "library_order": self.settings.library_order, "form": self.settings.form,
-                         "refit": self.settings.refit},
+                         "refit": self.settings.refit,
+                         **({"simpler_model": self.adequacy["fallback"]["kind"]}
+                            if (self.adequacy.get("fallback") or {}).get("used") else {})},
+            "adequacy": self.adequacy,
             "timings_s": self.timings,
             "software": {"shakerlab": __version__},
         }

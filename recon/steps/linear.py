@@ -68,12 +68,23 @@ def fit_linear(y, dy, ddy, u, excitation: str, column_noise: dict | None = None,
     # well-conditioned matrix then (a steady single tone gives cond ~ 1e3 from harmonics alone)
     single_tone = excitation != BASE and input_lines is not None and input_lines < 2 and cond > 100
     if sv[-1] / sv[0] < 10 * eps or cond > 1e8 or single_tone:
-        hint = ("under force excitation a single tone leaves 1/m, c/m and K/m undetermined: "
-                "use a sweep, a multisine, or keep the start-up transient")
-        raise UserFacingError(
-            f"stage {stage_name!r}: the linear-step excitation is rank-deficient (condition number "
-            f"{cond:.3g}, smallest singular value {sv[-1] / sv[0]:.2g} of the largest, column noise level "
-            f"{eps:.2g}, input lines {input_lines}); {hint if excitation != BASE else 'excite with a non-zero tone'}")
+        figures = (f"condition number {cond:.3g}, smallest singular value {sv[-1] / sv[0]:.2g} of the largest, "
+                   f"column noise level {eps:.2g}, input lines {input_lines}")
+        few_lines = excitation != BASE and input_lines is not None and input_lines <= 2
+        if single_tone or few_lines:     # a tone and its harmonic: the tone explains the weak direction
+            why = ("under force excitation a single tone leaves 1/m, c/m and K/m undetermined: "
+                   "use a sweep, a multisine, or keep the start-up transient")
+        elif cond > 1e8:
+            why = ("the columns y, y'" + (", u" if excitation != BASE else "") + " are linearly dependent: "
+                   + ("excite with a non-zero tone" if excitation == BASE else "the input does not move the structure "
+                      "independently of its response (check the force channel)"))
+        else:
+            why = (f"its weakest direction ({sv[-1] / sv[0]:.2g} of the largest) is within 10 times the noise the "
+                   f"columns carry ({eps:.2g}): the motion of this stage is too small against the sensor noise for "
+                   "c and K, or the noise estimate is off (averaged or band-limited records): record a larger "
+                   "linear stage")
+        raise UserFacingError(f"stage {stage_name!r}: the linear step cannot determine c and K, the excitation is "
+                              f"rank-deficient ({figures}): {why}")
     x, *_ = np.linalg.lstsq(An, b, rcond=None)
     x = x / norms
     res = b - A @ x

@@ -1,0 +1,76 @@
+"""Is the reconstructed model adequate? A verdict with the figures that decide it.
+
+The verdict is ``adequate`` when the model is admissible, its validation NRMSE is within
+``NOISE_FACTOR`` times the noise floor of the validation recording (or below
+``NRMSE_FLOOR``, whichever is larger) and it has no more fn terms than ``MAX_FN_TERMS``;
+otherwise ``inadequate``, with the reasons. The noise floor is the NRMSE a perfect model
+would score: the validation record's noise (from its spectrum's flat tail) over its rms.
+An inadequate model points to ``shakerlab diagnose``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from recon.differentiation import estimate_spectrum
+from recon.estimator.fallback import admissible
+from shakerlab.run_data import Run
+
+NOISE_FACTOR = 5.0     # validation NRMSE up to 5 x the noise floor is explained by noise and filter error
+NRMSE_FLOOR = 0.01     # below 1 % NRMSE a model is adequate whatever the noise floor
+MAX_FN_TERMS = 4       # a TMP-like law needs y^2, y^3 and at most two damping terms
+
+
+def noise_floor(run: Run, stage: str | None) -> float | None:
+    if stage is None or stage not in run.stages:
+        return None
+    st = run.stage(stage)
+    y = st.y - np.mean(st.y)
+    rms = float(np.sqrt(np.mean(y ** 2)))
+    if rms <= 0:
+        return None
+    return float(estimate_spectrum(st.y, st.dt).noise_std) / rms
+
+
+def assess(model, validation: dict, run: Run, fallback: dict | None = None) -> dict:
+    """The adequacy verdict of ``model`` (JSON-ready)."""
+    ok = admissible(model)
+    v = validation.get("nrmse")
+    v = float(v) if v is not None else float("nan")
+    floor = noise_floor(run, validation.get("stage"))
+    limit = max(NOISE_FACTOR * floor, NRMSE_FLOOR) if floor is not None else NRMSE_FLOOR
+    reasons = []
+    if not ok:
+        reasons.append("the model is not physically admissible")
+    if not math.isfinite(v):
+        reasons.append("its validation simulation diverges or was not run")
+    elif v > limit:
+        reasons.append(f"validation NRMSE {v:.3g} is above {limit:.3g} "
+                       f"(max of {NOISE_FACTOR:g} x the noise floor and {NRMSE_FLOOR:g})")
+    if len(model.fn_m) > MAX_FN_TERMS:
+        reasons.append(f"{len(model.fn_m)} fn terms, more than the {MAX_FN_TERMS} a TMP-like law needs")
+    if validation.get("fitted_on_validation_stage"):
+        reasons.append("no validation stage: the NRMSE is on the fitted nonlinear stage")
+    if fallback and fallback.get("used"):
+        reasons.append(f"the full model was not admissible; this is the simpler {fallback['kind']} model")
+    verdict = "adequate" if ok and math.isfinite(v) and v <= limit and len(model.fn_m) <= MAX_FN_TERMS \
+        and not (fallback and fallback.get("used")) else "inadequate"
+    out = {"verdict": verdict, "admissible": ok, "validation_nrmse": v, "noise_floor_nrmse": floor,
+           "nrmse_limit": limit, "fn_terms": len(model.fn_m), "reasons": reasons}
+    if verdict != "adequate":
+        out["advice"] = "run `shakerlab diagnose` on this run to locate and name what the model leaves out"
+    if fallback:
+        out["fallback"] = fallback
+    return out
+
+
+def one_line(adequacy: dict) -> str:
+    """``reconstruct``'s text line: admissibility and adequacy together."""
+    v, floor = adequacy["validation_nrmse"], adequacy.get("noise_floor_nrmse")
+    figs = f"validation NRMSE {v:.3g}" + (f", noise floor {floor:.2g}" if floor is not None else "") \
+        + f", {adequacy['fn_terms']} fn term(s)"
+    line = f"admissible: {'yes' if adequacy['admissible'] else 'NO'}; adequacy: {adequacy['verdict']} ({figs})"
+    if adequacy["verdict"] != "adequate":
+        line += f": {'; '.join(adequacy['reasons'])}; run `shakerlab diagnose`"
+    return line

@@ -1,0 +1,188 @@
+"""What reconstruct answers when the full model fails: the best admissible simpler model.
+
+When no pass of the estimator gives a physically admissible model (every estimate has
+alpha <= 0, a Bouc-Wen law that does not saturate, a negative stiffness, or a simulation
+that diverges), or when every pass failed numerically, the answer is the admissible
+model of the simplest kinds below that predicts the held-out stages best:
+
+1. ``bouc_wen_fewer_terms``: the Bouc-Wen law with only the estimate's fn terms of degree
+   <= 3, started from the estimate folded into the admissible region;
+2. ``bouc_wen``: the Bouc-Wen law without fn terms;
+3. ``equivalent_linear``: no hysteresis; stiffness and damping that change with amplitude
+   (c y' + k y + k3 y^3 + c3 y^2 y');
+4. ``linear``: c y' + k y.
+
+Each is fitted by output error on the linear and nonlinear stages (simulated from their
+recorded start states) and scored on the held-out stages (the validation stages; the
+nonlinear stage when there is none, which the result says). The inadmissible estimate
+stays in the result for inspection (``adequacy.inadmissible_estimate``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from recon.library import monomials
+from recon.model import HystereticModel
+from recon.output_error.polish import decimate
+from recon.output_error.problem import OutputError
+from recon.validation import nrmse
+from shakerlab.run_data import BASE, Run
+
+# what a failing estimator path raises: numerical breakdowns, not programming errors of
+# the caller (those raise TypeError/AttributeError/KeyError and are not caught)
+NUMERICAL_ERRORS = (np.linalg.LinAlgError, FloatingPointError, OverflowError, ZeroDivisionError, ValueError)
+
+KINDS = ("bouc_wen_fewer_terms", "bouc_wen", "equivalent_linear", "linear")
+
+
+def admissible(model: HystereticModel) -> bool:
+    """Physically admissible: finite, positive stiffness, and either a saturating Bouc-Wen law
+    (alpha > 0, gamma + delta > 0) or no hysteresis at all (alpha = gamma = delta = 0) with
+    non-negative damping."""
+    vals = [model.c_m, model.k_m, model.alpha_m, model.gamma, model.delta, *model.fn_m.values()]
+    if not np.all(np.isfinite(vals)) or not model.K_m > 0:
+        return False
+    if model.alpha_m == 0.0 and model.gamma == 0.0 and model.delta == 0.0:
+        return bool(model.c_m >= 0.0)
+    return bool(model.lam > 0 and model.alpha_m > 0)
+
+
+@dataclass
+class SimplerFit:
+    kind: str
+    model: HystereticModel | None
+    held_out_nrmse: float
+    fitted_nrmse: float
+    failed: str | None = None
+
+    def to_dict(self) -> dict:
+        d = {"kind": self.kind, "held_out_nrmse": self.held_out_nrmse, "fitted_nrmse": self.fitted_nrmse,
+             "admissible": bool(self.model is not None and admissible(self.model))}
+        if self.model is not None:
+            d["equation"] = self.model.equation()
+        if self.failed:
+            d["failed"] = self.failed
+        return d
+
+
+def held_out_stages(run: Run, fitted: tuple) -> tuple[list[str], bool]:
+    """The stages a model is scored on: the validation stages, else the fitted nonlinear one."""
+    names = [n for n in run.stages if n.startswith("validation")]
+    if names:
+        return names, True
+    return [n for n in fitted if n in run.stages][-1:], False
+
+
+def score(model: HystereticModel, run: Run, names: list[str]) -> float:
+    """Mean NRMSE of the model's simulation over ``names`` (inf if it diverges)."""
+    out = []
+    for n in names:
+        try:
+            _, ys = model.simulate_stage(run.stage(n))
+        except NUMERICAL_ERRORS:
+            return float("inf")
+        if not np.all(np.isfinite(ys)):
+            return float("inf")
+        out.append(nrmse(ys, run.stage(n).y))
+    return float(np.mean(out)) if out else float("inf")
+
+
+def _linear_start(run: Run, linear_stage: str, excitation: str, lin=None) -> tuple[float, float, float | None]:
+    """(c_m, k_m, inv_m) to start from: the linear step's values when they are usable, else the
+    resonance of the linear stage's response spectrum with 2 % damping."""
+    if lin is not None and lin.K_m > 0 and math.isfinite(lin.c_m) and math.isfinite(lin.K_m):
+        inv_m = lin.inv_m if excitation != BASE else None
+        if excitation == BASE or (inv_m is not None and inv_m > 0):
+            return max(lin.c_m, 1e-3 * math.sqrt(lin.K_m)), lin.K_m, inv_m
+    st = run.stage(linear_stage)
+    y = st.y - np.mean(st.y)
+    f = np.fft.rfftfreq(y.size, st.dt)
+    spec = np.abs(np.fft.rfft(y * np.hanning(y.size)))
+    spec[f < 0.5] = 0.0
+    fp = float(f[int(np.argmax(spec))]) or 1.0
+    k = (2 * math.pi * fp) ** 2
+    inv_m = None
+    if excitation != BASE:   # static gain: y ~ inv_m u / k at low frequency; order of magnitude only
+        u = st.channels["force"]
+        inv_m = k * float(np.std(y)) / max(float(np.std(u)), 1e-300)
+    return 0.04 * math.sqrt(k), k, inv_m
+
+
+def _fit(model: HystereticModel, data: list, free: list, max_nfev: int) -> HystereticModel:
+    prob = OutputError(model, data, free=free)
+    with np.errstate(all="ignore"):
+        sol = least_squares(prob.residual, np.zeros(len(prob.keys)), method="trf", x_scale=1.0, diff_step=1e-6,
+                            max_nfev=max_nfev, xtol=1e-10, ftol=1e-12)
+    return prob.build(sol.x)
+
+
+def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_fit=None,
+                   max_nfev: int = 60) -> list[SimplerFit]:
+    """Fit every simpler kind (module doc) and score it on the held-out stages."""
+    excitation = next(iter(run.stages.values())).excitation
+    fitted = tuple(n for n in (settings.linear_stage, settings.nonlinear_stage) if n in run.stages)
+    names, _ = held_out_stages(run, fitted)
+    c0, k0, inv0 = _linear_start(run, settings.linear_stage, excitation, linear_fit)
+    extra = ["inv_m"] if excitation != BASE else []
+    base = dict(excitation=excitation, c_m=c0, k_m=k0, alpha_m=0.0, gamma=0.0, delta=0.0,
+                inv_m=inv0, provenance={"simpler_model": True})
+    starts = {"linear": (HystereticModel(**base), ["c_m", "k_m"] + extra),
+              "equivalent_linear": (HystereticModel(**dict(base, fn_m={"y^3": 0.0, "y^2*dy": 0.0})),
+                                    ["c_m", "k_m", "fn:y^3", "fn:y^2*dy"] + extra)}
+    if estimate is not None and np.all(np.isfinite([estimate.alpha_m, estimate.gamma, estimate.delta])) \
+            and estimate.alpha_m != 0.0:
+        g, d = estimate.gamma, estimate.delta
+        if not g + d > 0:
+            g, d = abs(g), abs(d)
+        if not g + d > 0:
+            g = d = 1.0
+        alpha = abs(estimate.alpha_m)
+        hyst = dict(base, alpha_m=alpha, gamma=g, delta=d, k_m=max(k0 - alpha, 0.05 * k0))
+        few = {k: v for k, v in estimate.fn_m.items() if sum(monomials.parse(k)) <= 3 and np.isfinite(v)}
+        keys_h = ["c_m", "k_m", "alpha_m", "gamma", "delta"] + extra
+        starts["bouc_wen"] = (HystereticModel(**hyst), keys_h)
+        if few:
+            starts["bouc_wen_fewer_terms"] = (HystereticModel(**dict(hyst, fn_m=dict(few))),
+                                              keys_h + [f"fn:{k}" for k in few])
+    out = []
+    for kind in KINDS:
+        if kind not in starts:
+            continue
+        start, free = starts[kind]
+        try:
+            data = [decimate(start.fit_item(run.stage(n)))[0] for n in fitted]
+            # the fn terms start at 0 and take the scale of 1 % of the elastic force
+            m = _fit(_with_term_scales(start, data), data, free, max_nfev)
+            if not admissible(m):
+                out.append(SimplerFit(kind, m, float("inf"), float("inf"), "the fitted model is not admissible"))
+                continue
+            held = score(m, run, names)
+            fit_err = score(m, run, list(fitted))
+            out.append(SimplerFit(kind, m, held, fit_err, None if math.isfinite(held) else "its simulation diverges"))
+        except NUMERICAL_ERRORS as e:
+            out.append(SimplerFit(kind, None, float("inf"), float("inf"), f"{type(e).__name__}: {e}"))
+    return out
+
+
+def _with_term_scales(model: HystereticModel, data: list) -> HystereticModel:
+    """fn terms that start at 0 start at 1 % of the elastic force at the stage's rms motion, so
+    the output-error scaling (the start value's size) is meaningful."""
+    zero = [k for k, v in model.fn_m.items() if v == 0.0]
+    if not zero:
+        return model
+    y = data[-1][2]
+    y_rms = float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0
+    dt = float(data[-1][0][1] - data[-1][0][0])
+    v_rms = float(np.sqrt(np.mean(np.diff(y) ** 2))) / dt or 1.0
+    fn = dict(model.fn_m)
+    for k in zero:
+        p, r = monomials.parse(k)
+        fn[k] = 0.01 * abs(model.K_m) * y_rms / (y_rms ** p * v_rms ** r)
+    m = HystereticModel.from_dict(model.to_dict())
+    m.fn_m = fn
+    m.provenance = model.provenance
+    return m
