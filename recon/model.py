@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,7 +41,7 @@ def signed(value: float, term: str) -> str:
 
 def finite_number(value, field_name: str) -> float:
     """``value`` as a float if it is a finite JSON number; otherwise a UserFacingError naming the field."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise UserFacingError(f"model JSON: field {field_name!r} is {value!r}, expected a number")
     try:
         out = float(value)
