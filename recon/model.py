@@ -9,6 +9,8 @@ and ``g = inv_m = 1/m`` and ``u = force`` under force excitation (``y = x``).
 from __future__ import annotations
 
 import json
+import math
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,6 +20,7 @@ from recon.differentiation import choose_window, derivatives, undo_passband_loss
 from recon.library import monomials
 from recon.simulation.rk4 import simulate_sdof, substeps
 from shakerlab.errors import UserFacingError
+from shakerlab.output_files import check_output, write_text
 from shakerlab.run_data import BASE, FORCE, Stage
 
 UNITS = {
@@ -25,12 +28,31 @@ UNITS = {
     "inv_m": "1/kg", "fn_m": "term y^p*dy^r has coefficient units m^(1-p-r) s^(r-2)",
     "y": "m", "dy": "m/s", "z": "m/s^2 (restoring force per unit mass)",
 }
+MAX_TERM_DEGREE = 12     # highest p + r of an fn term read from a model JSON
 CONVENTION = ("per unit mass: every force term is divided by the mass m; base excitation "
               "y = x_tip - x_base, u = -x_base''; force excitation y = x, u = force [N] with "
               "coefficient inv_m = 1/m")
 
 
 PARAMETER_NAMES = ("c_m", "k_m", "alpha_m", "gamma", "delta")   # the physical parameters, per unit mass
+
+
+def signed(value: float, term: str) -> str:
+    """`` + 3 y`` or `` - 3 y``: a coefficient and its term with the sign folded into the operator."""
+    return f" {'-' if value < 0 else '+'} {abs(value):.6g}{term}"
+
+
+def finite_number(value, field_name: str) -> float:
+    """``value`` as a float if it is a finite JSON number; otherwise a UserFacingError naming the field."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise UserFacingError(f"model JSON: field {field_name!r} is {value!r}, expected a number")
+    try:
+        out = float(value)
+    except OverflowError:
+        out = math.inf
+    if not math.isfinite(out):
+        raise UserFacingError(f"model JSON: field {field_name!r} is {value!r}, expected a finite number")
+    return out
 
 
 @dataclass
@@ -81,12 +103,14 @@ class HystereticModel:
 
     # ---------------------------------------------------------------- printing
     def equation(self) -> str:
-        lhs = "y'' + {:.6g} y' + {:.6g} y".format(self.c_m, self.k_m)
+        """The equation as text, each coefficient printed with its sign folded into the operator
+        ("+ -" never appears: ``y' - 3 y`` rather than ``y' + -3 y``)."""
+        lhs = f"y''{signed(self.c_m, ' y' + chr(39))}{signed(self.k_m, ' y')}"
         for k, a in self.fn_m.items():
-            lhs += f" {'+' if a >= 0 else '-'} {abs(a):.6g} {k.replace('dy', 'y`').replace('`', chr(39))}"
+            lhs += signed(a, " " + k.replace("dy", "y`").replace("`", chr(39)))
         rhs = "-x_base''" if self.excitation == BASE else f"{self.inv_m:.6g} F"
-        zeq = (f"z' = {self.alpha_m:.6g} y' - {self.gamma:.6g} |y'| z "
-               f"{'-' if self.delta >= 0 else '+'} {abs(self.delta):.6g} y' |z|")
+        zeq = (f"z' = {self.alpha_m:.6g} y'{signed(-self.gamma, ' |y' + chr(39) + '| z')}"
+               f"{signed(-self.delta, ' y' + chr(39) + ' |z|')}")
         return f"{lhs} + z = {rhs}\n{zeq}"
 
     def __str__(self) -> str:
@@ -110,25 +134,55 @@ class HystereticModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> "HystereticModel":
-        try:
-            p = d["parameters"]
-            return cls(excitation=d["excitation"], c_m=float(p["c_m"]), k_m=float(p["k_m"]),
-                       alpha_m=float(p["alpha_m"]), gamma=float(p["gamma"]), delta=float(p["delta"]),
-                       fn_m=dict(p.get("fn_m", {})), inv_m=p.get("inv_m"),
-                       provenance=d.get("provenance", {}))
-        except KeyError as exc:
-            raise UserFacingError(f"model JSON lacks field {exc}") from None
+        """The model of a dict as :meth:`to_dict` writes it; every field is checked (a finite number
+        where a number is expected) and a bad one is named in a UserFacingError."""
+        if not isinstance(d, dict):
+            raise UserFacingError(f"model JSON must be an object, got {type(d).__name__}")
+        p = d.get("parameters")
+        if "parameters" not in d or "excitation" not in d:
+            raise UserFacingError(f"model JSON lacks field {'parameters' if 'parameters' not in d else 'excitation'!r}")
+        if not isinstance(p, dict):
+            raise UserFacingError(f"model JSON: field 'parameters' must be an object, got {type(p).__name__}")
+        if not isinstance(d["excitation"], str):
+            raise UserFacingError(f"model JSON: field 'excitation' must be 'base' or 'force', got {d['excitation']!r}")
+        for key in ("c_m", "k_m", "alpha_m", "gamma", "delta"):
+            if key not in p:
+                raise UserFacingError(f"model JSON lacks field 'parameters.{key}'")
+        values = {key: finite_number(p[key], f"parameters.{key}") for key in ("c_m", "k_m", "alpha_m", "gamma", "delta")}
+        fn = p.get("fn_m", {})
+        if not isinstance(fn, dict):
+            raise UserFacingError(f"model JSON: field 'parameters.fn_m' must be an object of term: coefficient, "
+                                  f"got {type(fn).__name__}")
+        fn_m = {}
+        for term, a in fn.items():
+            where = f"parameters.fn_m[{term!r}]"
+            try:
+                deg = sum(monomials.parse(term))
+            except UserFacingError as exc:
+                raise UserFacingError(f"model JSON: field {where}: {exc}") from None
+            if deg > MAX_TERM_DEGREE:
+                raise UserFacingError(f"model JSON: field {where}: degree {deg} above {MAX_TERM_DEGREE}")
+            fn_m[term] = finite_number(a, where)
+        inv_m = p.get("inv_m")
+        if inv_m is not None or d["excitation"] == FORCE:
+            inv_m = finite_number(inv_m, "parameters.inv_m")
+        provenance = d.get("provenance", {})
+        return cls(excitation=d["excitation"], fn_m=fn_m, inv_m=inv_m,
+                   provenance=provenance if isinstance(provenance, dict) else {}, **values)
 
     @classmethod
     def from_json(cls, text: str) -> "HystereticModel":
         try:
             d = json.loads(text)
-        except json.JSONDecodeError as exc:
+        except (json.JSONDecodeError, RecursionError) as exc:
             raise UserFacingError(f"model JSON is not valid JSON ({exc})") from None
         return cls.from_dict(d)
 
-    def save(self, path) -> None:
-        Path(path).write_text(self.to_json())
+    def save(self, path, overwrite: bool = False) -> None:
+        """Write the model JSON through a temporary file: an existing file is replaced only with
+        ``overwrite``, and never when it is an HDF5 file (a run file)."""
+        check_output(path, overwrite=overwrite, option="model", never_hdf5=True)
+        write_text(path, self.to_json(), overwrite=overwrite, never_hdf5=True)
 
     @classmethod
     def load(cls, path) -> "HystereticModel":
@@ -136,7 +190,9 @@ class HystereticModel:
         if not path.exists():
             raise UserFacingError(f"{path}: no such model file")
         try:
-            return cls.from_json(path.read_text())
+            return cls.from_json(path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError) as exc:
+            raise UserFacingError(f"{path}: cannot read the model file ({exc})") from None
         except UserFacingError as exc:
             raise UserFacingError(f"{path}: {exc}") from None
 

@@ -4,6 +4,7 @@ Kept import-light: the handlers import the heavy modules.
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from rig.gui import register_gui  # the operator window (rig/gui/); import-light
@@ -40,10 +41,14 @@ def _acquire(args) -> int:
     from rig.protocol import load_protocol  # heavy: numpy, h5py, Qt; loaded when the command runs
     from rig.session import EXIT_CODES, acquire, simulated_rig  # heavy: numpy, h5py, Qt; loaded when the command runs
     from shakerlab.errors import UserFacingError  # heavy: numpy, h5py, Qt; loaded when the command runs
+    from shakerlab.output_files import check_output, refuse_partial  # heavy: numpy, h5py, Qt; loaded when the command runs
 
+    if not math.isfinite(args.sim_speed) or args.sim_speed < 0:
+        raise UserFacingError(f"--sim-speed must be a finite number >= 0 (0: as fast as possible), "
+                              f"got {args.sim_speed!r}")
     protocol = load_protocol(args.protocol)
-    if args.output.exists() and not args.force:
-        raise UserFacingError(f"{args.output}: file exists (choose another -o name, or --force)")
+    check_output(args.output, overwrite=args.force, what="run file")
+    refuse_partial(args.output)
     progress = ConsoleProgress(quiet=args.quiet)
     if args.config is not None:
         config = load_config(args.config)
@@ -52,8 +57,6 @@ def _acquire(args) -> int:
             outcome = acquire(config, protocol, args.output, overwrite=args.force, observers=[progress],
                               on_runner=hook)
     else:
-        if args.sim_speed < 0:
-            raise UserFacingError(f"--sim-speed must be >= 0, got {args.sim_speed:g}")
         speed = None if args.sim_speed == 0 else args.sim_speed
         config = load_config(None)
         protocol.check_against_limits(config.limits, config.source)

@@ -48,11 +48,15 @@ def print_summary(outcome, stream=None) -> None:
     p()
     p(f"run {outcome.status}" + (f": {outcome.reason}" if outcome.reason else ""))
     p(f"  file          {outcome.path}")
+    if getattr(outcome, "file_note", ""):
+        p(f"                {outcome.file_note}")
     p(f"  acquired      {outcome.n_samples} samples per channel, {outcome.run_time_s:.1f} s of rig time "
       f"in {outcome.wall_time_s:.1f} s wall time; samples lost: {outcome.samples_lost}")
     pk = outcome.peaks
     p(f"  peaks         base {pk.get('x_base', 0) * 1e3:.3f} mm, tip {pk.get('x_tip', 0) * 1e3:.3f} mm, "
       f"amplifier current {pk.get('current', 0):.3f} A")
+    if outcome.path is None:
+        return
     try:
         info = read_info(outcome.path)
     except Exception as exc:  # noqa: BLE001 - the summary must not hide the run's own result

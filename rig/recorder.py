@@ -25,6 +25,7 @@ class Recorder:
         self.path = self.writer.path
         self.fs = fs
         self.stage = None
+        self.discarded = False      # a run that recorded nothing did not replace the existing file
 
     def on_run_start(self, info: dict) -> None:
         w = self.writer
@@ -74,6 +75,12 @@ class Recorder:
         self.writer.log(level, message, run_time=run_time)
 
     def on_run_end(self, status: str, reason: str) -> None:
+        if status != "complete" and self.writer.n_recorded() == 0 and self.path.exists():
+            # stopped before a single sample: the file would hold nothing but the error, and the
+            # existing file it would replace (--force) may hold a whole run
+            self.writer.discard()
+            self.discarded = True
+            return
         if reason:
             self.writer.set_attrs(end_reason=reason)
         self.writer.close(status)

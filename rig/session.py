@@ -41,6 +41,7 @@ def acquire(config: RigConfig, protocol: Protocol, output: str | Path, *, lockst
         raise UserFacingError(f"{config.source}: cannot reach the instruments ({type(exc).__name__}: {exc}); "
                               f"check the addresses and that the instruments are on") from None
     try:
+        check_device_settings(config, inst)
         recorder = Recorder(output, overwrite=overwrite, flush_interval=config.acquisition["flush_interval_s"],
                             fs=inst.fs)
     except Exception:
@@ -59,7 +60,47 @@ def acquire(config: RigConfig, protocol: Protocol, output: str | Path, *, lockst
         inst.close()
     outcome.path = Path(output)
     outcome.context = ctx
+    outcome.file_note = check_recording(recorder, outcome)
     return outcome
+
+
+def check_device_settings(config: RigConfig, inst: RigInstruments) -> None:
+    """The settings the instruments themselves bound, read from the connected devices: refused before
+    the run file is created and before anything is driven."""
+    amp = config.data["amplifier"]
+    with inst.amp_lock:
+        max_gain, max_current = inst.amp.max_gain, inst.amp.max_current_limit
+    if amp["gain"] > max_gain:
+        raise UserFacingError(f"{config.source}: [amplifier] gain: {amp['gain']:g} exceeds the amplifier's own "
+                              f"maximum {max_gain:g} (read from the device); nothing was driven, no file written")
+    if amp["current_limit_a"] > max_current:
+        raise UserFacingError(f"{config.source}: [amplifier] current_limit_a: {amp['current_limit_a']:g} A exceeds "
+                              f"the amplifier's own maximum {max_current:g} A (read from the device); nothing was "
+                              f"driven, no file written")
+
+
+def check_recording(recorder: Recorder, outcome: RunOutcome) -> str:
+    """After the run: was the file closed, read back whole and renamed into place? Returns a note for
+    the summary and turns a complete run whose file failed the check into an error."""
+    w = recorder.writer
+    if recorder.discarded:
+        outcome.path = None
+        return (f"nothing recorded: {w.path} was left as it was" if w.path.exists()
+                else "nothing recorded, no file written")
+    if w.file.id.valid:      # on_run_end did not close it (an observer error while stopping)
+        try:
+            w.close(outcome.status)
+        except Exception as exc:  # noqa: BLE001 - reported below; the data stays in the partial file
+            w.problems.append(f"cannot be closed ({type(exc).__name__}: {exc})")
+    if w.renamed and not w.problems:
+        return f"checked: {w.n_recorded()} samples per channel read back from {w.path}"
+    outcome.path = w.partial
+    problem = "; ".join(w.problems) or "not renamed into place"
+    if outcome.status == "complete":
+        outcome.status = "error"
+        outcome.reason = f"the run file failed its check after closing: {problem}"
+    return (f"the run file failed its check ({problem}); the recorded data is in {w.partial} "
+            f"(`shakerlab import --recover {w.partial} -o {w.path}`)")
 
 
 @contextlib.contextmanager

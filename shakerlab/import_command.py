@@ -6,7 +6,11 @@ Lines starting with ``#`` and blank lines are skipped. Every bad value is
 reported with its file, line and column.
 
 ``shakerlab import --recover CRASHED.h5 -o COPY.h5`` copies an interrupted run
-file into a new, cleanly closed one (see ``shakerlab.runfile.results.recover_copy``).
+file into a new, cleanly closed one (see ``shakerlab.runfile.results.recover_copy``);
+the input is never modified, and ``-o`` may not name it, even with ``--force``.
+The output is written through a temporary file under the output lock
+(``shakerlab.output_files``): an existing file is replaced only when the new one is
+complete, and never while another shakerlab process writes it.
 """
 from __future__ import annotations
 
@@ -137,9 +141,7 @@ def _handle(args) -> int:
     if args.recover is not None:
         if any(getattr(args, s) for s in STAGE_OPTIONS):
             raise UserFacingError("--recover copies a run file; do not combine it with --linear/--nonlinear/--validation")
-        if args.force and args.output.exists():
-            args.output.unlink()
-        recover_copy(args.recover, args.output)
+        recover_copy(args.recover, args.output, overwrite=args.force)
         print(f"wrote {args.output} (clean copy of {args.recover})")
         return 0
     files = {s: getattr(args, s) for s in STAGE_OPTIONS if getattr(args, s) is not None}

@@ -1,8 +1,11 @@
 """Property-based tests (Hypothesis): the TOML loaders and the simulated servers' line parsers take
 any input without a traceback (only UserFacingError / the protocol's own error replies) and without
-hanging; and a protocol the rig accepts never yields a setpoint beyond the rig's limits.
+hanging; a model JSON loads or is refused naming the file, and no file is changed; and a protocol the rig
+accepts never yields a setpoint beyond the rig's limits.
 
 Bounded: a few hundred examples in all, socket/pty reads time out after 2 s (a hang fails)."""
+import json
+import math
 import os
 import re
 import select
@@ -178,6 +181,54 @@ SENSOR_LINES = st.one_of(st.builds(lambda c, a: f"{c},{a}" if a else c, st.sampl
                                    SENSOR_ARGS).map(str.encode),
                          st.binary(max_size=80))
 ERROR_ENTRY = re.compile(rb'^[+-]\d+,"[\t -~]*"$')  # printable ASCII (tabs allowed, as the driver does)
+
+
+# ---- model JSON (recon.model, recon.diagnosis.augmented) -------------------------------------------------
+
+MODEL_BASE = {"kind": "shakerlab.recon.HystereticModel", "excitation": "base",
+              "parameters": {"c_m": 1.5, "k_m": 900.0, "alpha_m": 300.0, "gamma": 40.0, "delta": 20.0,
+                             "fn_m": {"y^3": 2e7, "y^2*dy": -5.0}}}
+
+
+@FAST
+@given(data=st.data())
+def test_model_json_loads_or_names_the_field_and_changes_no_file(tmp_path_factory, data):
+    """Any mutation of a model JSON (values of any type, NaN, missing or extra fields, bad terms): the
+    loaders accept it or raise UserFacingError naming the file; the file is never changed, and saving
+    over it without overwrite, or over a run file even with it, is refused."""
+    from recon.diagnosis.augmented import AugmentedModel
+    from recon.model import HystereticModel
+
+    d = tmp_path_factory.mktemp("model")
+    doc = {k: (dict(v) if isinstance(v, dict) else v) for k, v in MODEL_BASE.items()}
+    doc["parameters"] = mutated({"p": dict(MODEL_BASE["parameters"])}, data)["p"] \
+        if data.draw(st.booleans()) else doc["parameters"]
+    doc = mutated(doc, data) if data.draw(st.booleans()) else doc
+    if data.draw(st.booleans()):
+        doc = {"kind": "shakerlab.recon.AugmentedModel", "baseline": doc,
+               "extras": data.draw(st.dictionaries(st.sampled_from(["mu", "c2", "bogus"]), VALUES, max_size=2))}
+    text = json.dumps(doc, allow_nan=True, default=str)
+    path = d / "m.json"
+    path.write_text(text)
+    for loader in (HystereticModel.load, AugmentedModel.load):
+        try:
+            model = loader(path)
+        except UserFacingError as exc:
+            event("refused")
+            assert str(path) in str(exc)
+            continue
+        event("accepted")
+        params = model.to_dict()["parameters"] if isinstance(model, HystereticModel) else \
+            model.baseline.to_dict()["parameters"]
+        assert all(math.isfinite(v) for k, v in params.items() if k != "fn_m" and v is not None)
+        with pytest.raises(UserFacingError, match="file exists"):
+            model.save(path)
+        run = d / "run.h5"
+        run.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\0" * 64)
+        with pytest.raises(UserFacingError, match="never overwritten"):
+            model.save(run, overwrite=True)
+        assert run.read_bytes() == b"\x89HDF\r\n\x1a\n" + b"\0" * 64
+    assert path.read_text() == text
 
 
 @pytest.fixture(scope="module")

@@ -48,7 +48,7 @@ def test_reconstruct_bad_input(tmp_path, capsys):
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip")
     assert main(["reconstruct", str(bad), "--json"]) == 2
-    assert "not a readable .npz" in capsys.readouterr().err
+    assert "bad.npz: not a shakerlab run file" in capsys.readouterr().err  # issue 15 item 15
 
 
 def test_reconstruct_weak_form_at_40db(tmp_path, capsys):

@@ -112,6 +112,7 @@ while True:
 
 def test_sigkill_leaves_a_readable_file(tmp_path):
     path = tmp_path / "crash.h5"
+    partial = tmp_path / "crash.h5.partial"   # recorded under this name until closed
     proc = subprocess.Popen([sys.executable, "-c", WRITER, str(path)], stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline().strip() == "ready"
@@ -119,21 +120,27 @@ def test_sigkill_leaves_a_readable_file(tmp_path):
     finally:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
-    run = read_run(path)  # opens directly, no h5clear
+    assert not path.exists()
+    with pytest.raises(UserFacingError, match=r"crash\.h5\.partial holds its recording.*--recover"):
+        read_run(path)  # the message says where the data is
+    run = read_run(partial)  # opens directly, no h5clear
     x_tip = run.stage("linear").channels["x_tip"]
     assert x_tip.size >= 3000
     np.testing.assert_array_equal(x_tip, np.arange(x_tip.size))  # consistent up to the last flush
     assert run.attrs["clean_close"] is False
     assert run.attrs["status"] == "running"
     with pytest.raises(UserFacingError, match="not closed cleanly.*--recover"):
-        open_for_results(path)
+        open_for_results(partial)
     with pytest.raises(UserFacingError, match="not closed cleanly"):
-        add_result(path, "reconstruction", {})
-    copy = recover_copy(path, tmp_path / "copy.h5")
+        add_result(partial, "reconstruction", {})
+    # a new recording under the same name refuses while the partial file is there
+    with pytest.raises(UserFacingError, match="interrupted recording.*--recover"):
+        RunWriter(path)
+    copy = recover_copy(partial, path)         # recovered under the run's own name
     assert read_info(copy)["status"] == "recovered"
     assert read_info(copy)["stages"]["linear"]["status"] == "interrupted"
     assert add_result(copy, "reconstruction", {"ok": True})
     np.testing.assert_array_equal(load_run(copy).stage("linear").channels["x_tip"], x_tip)
     assert "recovered copy" in read_events(copy)[-1]["message"]
     # the crashed original was never modified
-    assert read_run(path).attrs["clean_close"] is False
+    assert read_run(partial).attrs["clean_close"] is False

@@ -95,7 +95,8 @@ def test_sigkill_mid_stage_watchdog_mutes_and_file_opens(tmp_path, realtime_sim)
 
     with PowerAmplifier(sim.addresses["amplifier"]) as amp:
         assert amp.faults.watchdog  # it was the watchdog that muted the output
-    run = read_run(out)  # opens directly
+    assert not out.exists()  # recorded as run.h5.partial until closed: the crash left it there
+    run = read_run(out.with_name("run.h5.partial"))  # opens directly
     assert run.attrs["clean_close"] is False and run.attrs["status"] == "running"
     lin = run.stage("linear")
     assert lin.t.size >= 0.4 * 10000  # the data up to the last flush (>= 0.4 s of the 1 s since begin)

@@ -34,6 +34,8 @@ def register(subparsers) -> None:
     p.add_argument("--library-order", metavar="Q", type=int, default=5,
                    help="highest monomial degree of fn (default 5)")
     p.add_argument("--save-model", metavar="PATH", help="write the identified model as JSON to PATH")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing --save-model file or --plots files (never a run file)")
     p.add_argument("--no-polish", action="store_true", help="skip the output-error polish (equation-error estimate only)")
     p.add_argument("--form", choices=("joint", "weak", "ab"), default="joint",
                    help="nonlinear step: pointwise agent model on AB and CD (joint, default), the weak form "
@@ -57,7 +59,10 @@ def register_reprocessing(subparsers) -> None:
                     "into the run file (entry/results/reconstruction_NNN) unless the same settings are stored.",
     )
     p.add_argument("run", metavar="RUN", help="run file (.h5; .npz works but holds no results)")
-    p.add_argument("-o", "--output", metavar="DIR", required=True, help="report directory (created)")
+    p.add_argument("-o", "--output", metavar="DIR", required=True,
+                   help="report directory (created; an existing non-empty one needs --force)")
+    p.add_argument("--force", action="store_true",
+                   help="write into an existing report directory (its report files are replaced, others kept)")
     _common_recon_options(p)
     p.add_argument("--no-write-back", action="store_true", help="do not write the result into the run file")
     p.add_argument("--term-models", metavar="N", type=int, default=0,
@@ -114,6 +119,8 @@ def register_diagnosis(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object (machine-readable)")
     p.add_argument("--report", metavar="DIR", help="write PNG figures and diagnosis.json to DIR")
     p.add_argument("--save-model", metavar="PATH", help="write the augmented model as JSON to PATH")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing --save-model file or --report files (never a run file)")
     p.set_defaults(handler=_handler("diagnose_command"))
 
 

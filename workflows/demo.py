@@ -21,9 +21,10 @@ from rig.session import EXIT_CODES
 from rig.console import ConsoleProgress, print_summary, sigint_aborts
 from rig.protocol import load_protocol
 from rig.session import acquire, simulated_rig
-from workflows.figures import plt, write_validation_plots
+from workflows.figures import plt, savefig, write_validation_plots
 from shakerlab.runfile.reader import load_run, read_info
 from shakerlab.jsonsafe import clean
+from shakerlab.output_files import check_directory, write_text
 from shakerlab.runfile.results import store_result
 from sim_backend.config import DEFAULT_CONFIG_PATH
 
@@ -68,8 +69,7 @@ def _plots(outdir: Path, run, info: dict, result) -> list[str]:
     axes[-1, 0].set_xlabel("t since stage start [s]")
     axes[0, 0].legend(loc="upper right", fontsize=8)
     fig.tight_layout()
-    fig.savefig(outdir / "stages.png", dpi=80)
-    plt.close(fig)
+    savefig(fig, outdir / "stages.png", dpi=80)
     files.append("stages.png")
 
     search = info["stages"].get("resonance_search", {}).get("summary", {})
@@ -85,8 +85,7 @@ def _plots(outdir: Path, run, info: dict, result) -> list[str]:
         ax.legend()
         ax.set_title("resonance search (stepped sine)")
         fig.tight_layout()
-        fig.savefig(outdir / "resonance.png", dpi=80)
-        plt.close(fig)
+        savefig(fig, outdir / "resonance.png", dpi=80)
         files.append("resonance.png")
 
     levels = info["stages"].get("nonlinear", {}).get("summary", {}).get("levels", [])
@@ -101,8 +100,7 @@ def _plots(outdir: Path, run, info: dict, result) -> list[str]:
         ax[1].set_ylabel("loop loss factor")
         fig.suptitle("nonlinear stage: response per amplitude level")
         fig.tight_layout()
-        fig.savefig(outdir / "levels.png", dpi=80)
-        plt.close(fig)
+        savefig(fig, outdir / "levels.png", dpi=80)
         files.append("levels.png")
 
     if result is not None:
@@ -115,7 +113,7 @@ def _plots(outdir: Path, run, info: dict, result) -> list[str]:
 def run_demo(outdir: Path, *, realtime: bool = False, protocol_path=None, seed: int = 0, quiet: bool = False) -> int:
 
     t0 = time.monotonic()
-    outdir = Path(outdir)
+    outdir = check_directory(outdir, option="-o")
     outdir.mkdir(parents=True, exist_ok=True)
     path = outdir / "run.h5"
     protocol = load_protocol(protocol_path)
@@ -154,7 +152,7 @@ def run_demo(outdir: Path, *, realtime: bool = False, protocol_path=None, seed: 
     store_result(path, "reconstruction", clean({**d, "truth": truth, "comparison": rows}), text=str(result.model))
     info = read_info(path)
     figs = _plots(outdir, run, info, result)
-    (outdir / "result.json").write_text(json.dumps(clean({"reconstruction": d, "truth": truth, "comparison": rows}), indent=2))
+    write_text(outdir / "result.json", json.dumps(clean({"reconstruction": d, "truth": truth, "comparison": rows}), indent=2))
     _report(outdir, outcome, info, result, d, rows, figs, t_rec)
     print(f"\nreport: {outdir / 'report.md'} (run file {path}); total {time.monotonic() - t0:.1f} s")
     return 0
@@ -183,4 +181,4 @@ def _report(outdir, outcome, info, result, d, rows, figs, t_rec) -> None:
     for r in rows:
         lines.append(f"| {r['name']} | {r['identified']:.5g} | {r['true']:.5g} | {_err_text(r)} |")
     lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs] + [""]
-    (outdir / "report.md").write_text("\n".join(lines))
+    write_text(outdir / "report.md", "\n".join(lines))

@@ -10,8 +10,9 @@ from scipy.signal import welch
 
 from recon.diagnosis import rank
 from recon.diagnosis.locate import equation_residual, stage_derivatives
-from workflows.figures import plt
+from workflows.figures import plt, savefig
 from shakerlab.jsonsafe import clean
+from shakerlab.output_files import write_text
 
 
 def write_report(diag, run, outdir: Path) -> list[Path]:
@@ -46,8 +47,7 @@ def write_report(diag, run, outdir: Path) -> list[Path]:
         ax.legend(loc="upper right", fontsize=7)
     fig.tight_layout()
     p = outdir / "overlays_and_spectra.png"
-    fig.savefig(p, dpi=80)
-    plt.close(fig)
+    savefig(fig, p, dpi=80)
     paths.append(p)
     # restoring-force residual surfaces over (y, y'), before and after
     derivs = stage_derivatives(run, data)
@@ -72,8 +72,7 @@ def write_report(diag, run, outdir: Path) -> list[Path]:
         ax.set_title(f"restoring-force residual: {title}")
     fig.tight_layout()
     p = outdir / "restoring_force_residual.png"
-    fig.savefig(p, dpi=80)
-    plt.close(fig)
+    savefig(fig, p, dpi=80)
     paths.append(p)
     # NRMSE per stage
     fig, ax = plt.subplots(figsize=(6, 3.5))
@@ -88,10 +87,9 @@ def write_report(diag, run, outdir: Path) -> list[Path]:
     ax.legend(fontsize=7)
     fig.tight_layout()
     p = outdir / "nrmse_per_stage.png"
-    fig.savefig(p, dpi=80)
-    plt.close(fig)
+    savefig(fig, p, dpi=80)
     paths.append(p)
     p = outdir / "diagnosis.json"
-    p.write_text(json.dumps(clean(diag.to_dict()), indent=1))
+    write_text(p, json.dumps(clean(diag.to_dict()), indent=1))
     paths.append(p)
     return paths

@@ -9,13 +9,24 @@ matplotlib.use("Agg")  # files only, never a window: before pyplot is imported
 import matplotlib.pyplot as plt  # noqa: E402
 
 from recon.validation import hysteretic_force_from_data  # noqa: E402
+from shakerlab.output_files import atomic_output  # noqa: E402
+
+
+def savefig(fig, path, dpi: int = 90) -> Path:
+    """Save ``fig`` as ``path`` through a temporary file (an existing file is replaced only by a
+    complete one) and close it."""
+    path = Path(path)
+    try:
+        with atomic_output(path) as tmp:
+            fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
+    finally:
+        plt.close(fig)
+    return path
 
 
 def save(fig, path: Path, dpi: int = 90) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return path
+    return savefig(fig, path, dpi=dpi)
 
 
 def plot_overlay(path, t, y_meas, y_sim, z_meas=None, z_sim=None, title=""):
@@ -37,9 +48,7 @@ def plot_overlay(path, t, y_meas, y_sim, z_meas=None, z_sim=None, title=""):
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return savefig(fig, path, dpi=90)
 
 
 def write_validation_plots(result, run, outdir):

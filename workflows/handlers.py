@@ -11,12 +11,14 @@ from recon.estimator.adequacy import one_line
 from recon.output_error.uncertainty import UncertaintySettings, parameter_intervals
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
+from shakerlab.output_files import check_directory, check_output
 from shakerlab.runfile.reader import load_run
 from workflows.batch import (BatchSettings, TextProgress, diagnosis_available, expand, format_table, run_batch,
                              run_loop, write_csv)
 from workflows.demo import run_demo
 from workflows.diagnosis_report import write_report
 from workflows.figures import write_validation_plots
+from workflows.plausibility import warnings_for
 from workflows.report import StepProgress, interval_lines, make_report
 
 
@@ -24,22 +26,26 @@ def reconstruct_command(args) -> int:
 
     if args.library_order < 2 or args.library_order > 8:
         raise UserFacingError(f"--library-order must be between 2 and 8, got {args.library_order}")
+    check_outputs(args)
     run = load_run(args.run)
     result = reconstruct(run, ReconSettings(library_order=args.library_order, polish=not args.no_polish,
                                             form=getattr(args, "form", "joint")))
     out = result.to_dict()
+    out["warnings"] = warnings_for(run, result)
     if getattr(args, "uncertainty", False):
 
         out["uncertainty"] = parameter_intervals(result.model, run)
     if args.plots:
         out["plots"] = [str(p) for p in write_validation_plots(result, run, Path(args.plots))]
     if args.save_model:
-        result.model.save(args.save_model)
+        result.model.save(args.save_model, overwrite=getattr(args, "force", False))
     if args.json:
         print(json.dumps(clean(out)))
         return 0
     print(f"{run.source}: {result.model.excitation} excitation, per unit mass")
     print(result.model.equation())
+    for w in out["warnings"]:
+        print(f"warning: {w}")
     v = result.validation
     print(f"validation NRMSE on stage {v['stage']!r}: {v['nrmse']:.4g}"
           + (" (no validation stage: fitted stage)" if v.get("fitted_on_validation_stage") else ""))
@@ -64,6 +70,17 @@ def reconstruct_command(args) -> int:
     return 0
 
 
+def check_outputs(args) -> None:
+    """The output paths of reconstruct and diagnose, checked before anything is computed."""
+    force = getattr(args, "force", False)
+    if getattr(args, "save_model", None):
+        check_output(args.save_model, overwrite=force, option="--save-model", never_hdf5=True, what="model JSON")
+    for option in ("plots", "report"):
+        value = getattr(args, option, None)
+        if isinstance(value, (str, Path)) and value:
+            check_directory(value, option=f"--{option}")
+
+
 def _recon_settings(args) -> dict:
 
     if args.library_order < 2 or args.library_order > 8:
@@ -86,11 +103,13 @@ def report_command(args) -> int:
     d = make_report(args.run, args.output, settings=ReconSettings(**rs), uncertainty=not args.no_uncertainty,
                     uncertainty_settings=UncertaintySettings(n_resamples=args.resamples),
                     write_back=not args.no_write_back, progress=StepProgress(enabled=not args.json),
-                    term_models=_term_models(args))
+                    term_models=_term_models(args), overwrite=args.force)
     if args.json:
         print(json.dumps(d))
         return 0
     print(d["equation"])
+    for w in d.get("warnings", []):
+        print(f"warning: {w}")
     v = d["validation"]
     print(f"validation NRMSE on stage {v['stage']!r}: {v['nrmse']:.4g}" if v.get("nrmse") is not None
           else "validation: simulation diverged")
@@ -131,19 +150,23 @@ def reprocess_command(args) -> int:
 
 def diagnose_command(args) -> int:
 
+    check_outputs(args)
     run = load_run(args.run)
     d = diagnose(run, baseline=args.baseline)
     out = d.to_dict()
+    out["warnings"] = warnings_for(run)
     if args.report:
 
         out["report"] = [str(p) for p in write_report(d, run, Path(args.report))]
     if args.save_model:
-        d.best.save(args.save_model)
+        d.best.save(args.save_model, overwrite=getattr(args, "force", False))
     if args.json:
         print(json.dumps(clean(out)))
         return 0
     print(f"{run.source}: baseline ({d.baseline_kind})")
     print(out["baseline"])
+    for w in out["warnings"]:
+        print(f"warning: {w}")
     fb, fa = out["fit_before"]["nrmse"], out["fit_after"]["nrmse"]
     for stage in fb:
         print(f"  NRMSE {stage:12s} before {fb[stage]:.4g}  refit {out['fit_before']['refit_nrmse'][stage]:.4g}"

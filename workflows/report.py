@@ -21,8 +21,12 @@ is an ``.npz``, or it was not closed cleanly (the report says which).
 from __future__ import annotations
 
 import base64
+import contextlib
 import html
 import json
+import os
+import secrets
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -36,13 +40,15 @@ from recon.output_error.uncertainty import (UncertaintySettings, parameter_inter
                                             term_inclusion)
 from recon.signals import stage_signals
 from recon.validation import nrmse
-from workflows.figures import plt
+from workflows.figures import plt, savefig
 from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.runfile.reader import load_run
 from shakerlab.jsonsafe import clean
+from shakerlab.output_files import OutputLock, check_directory, write_text
 from shakerlab.runfile.results import store_result
 from workflows.batch import RESULT_KIND, settings_hash
+from workflows.plausibility import warnings_for
 
 CLUSTER_COLOURS = {1: ("tab:red", "AB (h = +1)"), -1: ("tab:blue", "CD (h = -1)"), 0: ("0.6", "BC/DA (h = 0)")}
 
@@ -81,9 +87,7 @@ class StepProgress:
 
 def _save(fig, path: Path) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return savefig(fig, path, dpi=90)
 
 
 def fig_stages(run, path: Path) -> Path:
@@ -357,20 +361,28 @@ def _img(figures: dict, key: str) -> str:
 
 
 def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncertainty_settings=None,
-                write_back: bool = True, progress: StepProgress | None = None, term_models: int = 0) -> dict:
+                write_back: bool = True, progress: StepProgress | None = None, term_models: int = 0,
+                overwrite: bool = False) -> dict:
     """Reconstruct ``run_path`` and write the report into ``outdir``; returns the result JSON
-    (with ``uncertainty`` and ``report``: the files written and where the result went)."""
+    (with ``uncertainty`` and ``report``: the files written and where the result went).
+
+    The report is built in a temporary directory next to ``outdir`` and moved into place when
+    complete (a new ``outdir`` is renamed into place whole; into an existing one, with
+    ``overwrite``, each report file replaces its namesake). Only then is the result written back
+    into the run file; if that cannot be done (the file is being written by another process, was
+    not closed cleanly, ...) the report says so and stays complete."""
 
     progress = progress or StepProgress(enabled=False)
     run_path = Path(run_path)
-    outdir = Path(outdir)
-    if outdir.exists() and not outdir.is_dir():
-        raise UserFacingError(f"-o {outdir}: exists and is not a directory")
+    outdir = check_directory(outdir, option="-o")
+    if outdir.is_dir() and any(outdir.iterdir()) and not overwrite:
+        raise UserFacingError(f"-o {outdir}: the directory exists and is not empty (an earlier report?); "
+                              f"--force replaces its report files (other files are kept), or choose another -o")
     settings = settings or ReconSettings()
     timings = {}
     run = load_run(run_path)
     try:
-        outdir.mkdir(parents=True, exist_ok=True)
+        outdir.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserFacingError(f"-o {outdir}: cannot create the report directory ({exc})") from None
     t = time.perf_counter()
@@ -383,6 +395,7 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
             result = reconstruct(run, settings)
     timings["reconstruct"] = time.perf_counter() - t
     d = result.to_dict()
+    d["warnings"] = warnings_for(run, result)
     if term_models > 0:
 
         t = time.perf_counter()
@@ -395,35 +408,65 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
         with progress.step("parameter intervals"):
             d["uncertainty"] = parameter_intervals(result.model, run, uncertainty_settings or UncertaintySettings())
         timings["uncertainty"] = time.perf_counter() - t
-    t = time.perf_counter()
-    figures = {}
-    with progress.step("figures"):
-        figures["stages"] = fig_stages(run, outdir / "stages.png")
-        figures["restoring_force"] = fig_restoring_force(result, run, outdir / "restoring_force.png")
-        sims = simulated_stages(result, run)
-        for p in fig_validation(sims, result, outdir / "validation.png"):
-            figures[p.stem] = p
-        figures["loops"] = fig_loops(result, run, outdir / "loops.png")
-        figures["residual"] = fig_residual(sims, outdir / "residual.png")
-    timings["figures"] = time.perf_counter() - t
-    job = {"recon": settings.to_dict(), "uncertainty": uncertainty,
-           "uncertainty_settings": (uncertainty_settings.to_dict() if uncertainty_settings else {}),
-           "term_models": int(term_models)}
-    digest = settings_hash(job)
-    d["reprocess"] = {"settings_hash": digest, "settings": job, "software": f"shakerlab {__version__}"}
-    written = None
+    staging = outdir.with_name(f".{outdir.name}.{secrets.token_hex(4)}.tmp")
+    try:
+        staging.mkdir()
+    except OSError as exc:
+        raise UserFacingError(f"-o {outdir}: cannot create a directory next to it ({exc})") from None
+    try:
+        t = time.perf_counter()
+        figures = {}
+        with progress.step("figures"):
+            figures["stages"] = fig_stages(run, staging / "stages.png")
+            figures["restoring_force"] = fig_restoring_force(result, run, staging / "restoring_force.png")
+            sims = simulated_stages(result, run)
+            for p in fig_validation(sims, result, staging / "validation.png"):
+                figures[p.stem] = p
+            figures["loops"] = fig_loops(result, run, staging / "loops.png")
+            figures["residual"] = fig_residual(sims, staging / "residual.png")
+        timings["figures"] = time.perf_counter() - t
+        job = {"recon": settings.to_dict(), "uncertainty": uncertainty,
+               "uncertainty_settings": (uncertainty_settings.to_dict() if uncertainty_settings else {}),
+               "term_models": int(term_models)}
+        digest = settings_hash(job)
+        d["reprocess"] = {"settings_hash": digest, "settings": job, "software": f"shakerlab {__version__}"}
+        info = {"created": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+                "timings_s": {**result.timings, **timings}, "polish": _polish_text(result.model.provenance)}
+        pending = ("Result not written into the run file (--no-write-back)." if not write_back else
+                   "Result not yet written into the run file (the report is written first).")
+        _write_report_files(staging, run, d, figures, info, outdir, None, pending)
+        with OutputLock(outdir):
+            _publish(staging, outdir)
+        figures = {k: outdir / Path(v).name for k, v in figures.items()}
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     if not write_back:
-        note = "Result not written into the run file (--no-write-back)."
-    else:
-        written, note = store_result(run_path, RESULT_KIND, clean(d), text=str(result.model), settings_hash=digest)
-        note = f"Result {note}."
-    info = {"created": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "write_back": note,
-            "timings_s": {**result.timings, **timings}, "polish": _polish_text(result.model.provenance)}
+        return clean(d)
+    written, note = store_result(run_path, RESULT_KIND, clean(d), text=str(result.model), settings_hash=digest)
+    return _write_report_files(outdir, run, d, figures, info, outdir, written, f"Result {note}.")
+
+
+def _write_report_files(where: Path, run, d: dict, figures: dict, info: dict, outdir: Path, written, note: str) -> dict:
+    """index.html and result.json into ``where`` (each through a temporary file); returns the result JSON."""
+    info = {**info, "write_back": note}
     d["report"] = {"directory": str(outdir), "html": str(outdir / "index.html"),
-                   "figures": {k: str(v) for k, v in figures.items()}, "result_group": written, "note": note}
-    (outdir / "index.html").write_text(render_html(run, clean(d), figures, info), encoding="utf-8")
-    (outdir / "result.json").write_text(json.dumps(clean(d), indent=2))
+                   "figures": {k: str(outdir / Path(v).name) for k, v in figures.items()}, "result_group": written,
+                   "note": note}
+    write_text(where / "index.html", render_html(run, clean(d), figures, info))
+    write_text(where / "result.json", json.dumps(clean(d), indent=2))
     return clean(d)
+
+
+def _publish(staging: Path, outdir: Path) -> None:
+    """Move the complete report from ``staging`` into ``outdir``: the whole directory when ``outdir``
+    does not exist, else file by file (each ``os.replace`` atomic; other files of ``outdir`` stay)."""
+    if not outdir.exists():
+        with contextlib.suppress(OSError):
+            os.rename(staging, outdir)
+            return
+    outdir.mkdir(exist_ok=True)
+    for f in sorted(staging.iterdir()):
+        os.replace(f, outdir / f.name)
 
 
 def interval_lines(d: dict) -> list[str]:

@@ -30,9 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.model import HystereticModel
+from recon.model import HystereticModel, finite_number
 from recon.simulation.rk4 import simulate_extended, substeps
 from shakerlab.errors import UserFacingError
+from shakerlab.output_files import check_output, write_text
 from shakerlab.run_data import BASE, Stage
 
 EXTRAS = {
@@ -169,12 +170,23 @@ class AugmentedModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> "AugmentedModel":
+        if not isinstance(d, dict):
+            raise UserFacingError(f"model JSON must be an object, got {type(d).__name__}")
         if d.get("kind") == "shakerlab.recon.HystereticModel":
             return cls(HystereticModel.from_dict(d))
-        try:
-            return cls(HystereticModel.from_dict(d["baseline"]), dict(d.get("extras", {})), list(d.get("added", [])))
-        except KeyError as exc:
-            raise UserFacingError(f"augmented model JSON lacks field {exc}") from None
+        if "baseline" not in d:
+            raise UserFacingError("augmented model JSON lacks field 'baseline'")
+        extras, added = d.get("extras", {}), d.get("added", [])
+        if not isinstance(extras, dict):
+            raise UserFacingError(f"model JSON: field 'extras' must be an object, got {type(extras).__name__}")
+        extras = dict(extras)
+        for k, v in extras.items():
+            if k not in EXTRAS:
+                raise UserFacingError(f"model JSON: field 'extras.{k}' is not a known extra ({', '.join(EXTRAS)})")
+            extras[k] = finite_number(v, f"extras.{k}")
+        if not isinstance(added, list) or not all(isinstance(a, str) for a in added):
+            raise UserFacingError(f"model JSON: field 'added' must be a list of names, got {added!r}")
+        return cls(HystereticModel.from_dict(d["baseline"]), dict(extras), list(added))
 
     @classmethod
     def load(cls, path) -> "AugmentedModel":
@@ -182,11 +194,15 @@ class AugmentedModel:
         if not path.exists():
             raise UserFacingError(f"{path}: no such model file")
         try:
-            return cls.from_dict(json.loads(path.read_text()))
-        except json.JSONDecodeError as exc:
+            return cls.from_dict(json.loads(path.read_text(encoding="utf-8")))
+        except (json.JSONDecodeError, RecursionError) as exc:
             raise UserFacingError(f"{path}: model JSON is not valid JSON ({exc})") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise UserFacingError(f"{path}: cannot read the model file ({exc})") from None
         except UserFacingError as exc:
             raise UserFacingError(f"{path}: {exc}") from None
 
-    def save(self, path) -> None:
-        Path(path).write_text(self.to_json())
+    def save(self, path, overwrite: bool = False) -> None:
+        """Written as HystereticModel.save: through a temporary file, never over a run file."""
+        check_output(path, overwrite=overwrite, option="model", never_hdf5=True)
+        write_text(path, self.to_json(), overwrite=overwrite, never_hdf5=True)

@@ -171,13 +171,15 @@ class CompressedFolds:
         self.R = np.vstack(self.Rf)
         self.d = np.concatenate(self.df)
         self.n_folds = n_folds
+        # rows of each fold's R in the stack (a fold with fewer rows than columns has a shorter R)
+        self.offsets = np.cumsum([0] + [R.shape[0] for R in self.Rf])
 
     def cv(self, support: np.ndarray) -> np.ndarray:
         """Held-out relative squared residual of LS on ``support``, one value per fold."""
-        p = self.p
         e = np.empty(self.n_folds)
+        off = self.offsets
         for i in range(self.n_folds):
-            keep = np.r_[0:i * p, (i + 1) * p:self.R.shape[0]]
+            keep = np.r_[0:off[i], off[i + 1]:self.R.shape[0]]
             x = _solve(self.R[keep], self.d[keep], support)
             r = self.df[i] - self.Rf[i] @ x
             e[i] = (float(r @ r) + self.ef[i]) / self.bbf[i]

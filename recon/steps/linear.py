@@ -9,7 +9,7 @@ at one frequency, three columns for two directions).
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -27,9 +27,24 @@ class LinearFit:
     noise_floor: float          # relative column perturbation expected from noise
     r2: float
     input_lines: int | None = None
+    warnings: list = field(default_factory=list)    # plausibility: see :func:`plausibility_warnings`
+
+    def __post_init__(self):
+        self.warnings = list(self.warnings) + [w for w in plausibility_warnings(self.c_m, self.K_m)
+                                               if w not in self.warnings]
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def plausibility_warnings(c_m: float, K_m: float) -> list[str]:
+    """A passive specimen has positive damping and stiffness. Negative ones fit a response that moves
+    against its input, as when the base and tip channels are exchanged (y = x_base - x_tip)."""
+    bad = [f"{name} = {v:.4g}" for name, v in (("c_m", c_m), ("K_m", K_m)) if v < 0]
+    if not bad:
+        return []
+    return [f"linear step: negative {' and '.join(bad)} (a passive specimen has positive damping and "
+            f"stiffness): are base and tip swapped?"]
 
 
 def count_lines(freqs: np.ndarray, df: float) -> int:

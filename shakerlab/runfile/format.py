@@ -20,7 +20,8 @@ reference is ``docs/recording-format.md``)::
       events          compound: wall_time, run_time, level, message
       results/        NXcollection  one group per reprocessing (reconstruction_000, ...)
 
-Crash safety: the file is written with the default libver (never SWMR),
+Crash safety: the file is recorded as ``RUN.h5.partial`` and renamed to ``RUN.h5`` when it is
+closed (``shakerlab.output_files``); it is written with the default libver (never SWMR),
 datasets are chunked and resizable and the writer flushes at least every
 ``flush_interval`` seconds, so a SIGKILL or power loss leaves a file that
 opens directly and holds everything up to the last flush. ``clean_close`` is
@@ -81,6 +82,10 @@ def event_dtype():
 def open_read(path: str | Path):
     path = Path(path)
     if not path.exists():
+        partial = path.with_name(path.name + ".partial")
+        if partial.exists():
+            raise UserFacingError(f"{path}: no such file; {partial} holds its recording, interrupted (or still "
+                                  f"running): `shakerlab import --recover {partial} -o {path}` makes the run file")
         raise UserFacingError(f"{path}: no such file")
     try:
         f = h5py.File(path, "r")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,34 @@ import numpy as np
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import BASE, CHANNELS, FORCE, Run, Stage
 from shakerlab.runfile.format import open_read, stage_order, text
+
+
+def dataset(group, key: str, path) -> np.ndarray:
+    """``group[key][:]``, or a UserFacingError naming the file and the dataset (missing or unreadable)."""
+    where = f"{group.name.rstrip('/')}/{key}"
+    if key not in group:
+        raise UserFacingError(f"{path}: dataset {where} is missing (damaged or edited run file)")
+    try:
+        return group[key][:]
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
+        raise UserFacingError(f"{path}: dataset {where} cannot be read ({exc}); the file is damaged") from None
+
+
+def json_attr(obj, key: str, path) -> dict:
+    """A JSON attribute (``settings_json``, ``summary_json``) as a dict, or a UserFacingError naming it."""
+    raw = text(obj.attrs.get(key, "{}"))
+    try:
+        value = json.loads(raw)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise UserFacingError(f"{path}: attribute {key!r} of {obj.name} is not valid JSON ({exc})") from None
+    if not isinstance(value, dict):
+        raise UserFacingError(f"{path}: attribute {key!r} of {obj.name} is not a JSON object "
+                              f"(got {type(value).__name__})")
+    return value
+
+
+def damaged(path, exc: Exception) -> UserFacingError:
+    return UserFacingError(f"{path}: the run file is damaged and cannot be read ({type(exc).__name__}: {exc})")
 
 
 def read_run(path: str | Path, stages: list[str] | None = None) -> Run:
@@ -22,6 +51,13 @@ def read_run(path: str | Path, stages: list[str] | None = None) -> Run:
     refused with a message naming the first one.
     """
     path = Path(path)
+    try:
+        return _read_run(path, stages)
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
+        raise damaged(path, exc) from None
+
+
+def _read_run(path: Path, stages: list[str] | None) -> Run:
     with open_read(path) as f:
         entry = f["entry"]
         out: dict[str, Stage] = {}
@@ -34,28 +70,35 @@ def read_run(path: str | Path, stages: list[str] | None = None) -> Run:
         for name in names:
             g = entry["stages"][name]
             excitation = text(g.attrs.get("excitation", "base"))
-            n = int(g["time"].shape[0])
-            if n < 2:
+            if excitation not in CHANNELS:
+                raise UserFacingError(f"{path}: stage {name!r} has excitation {excitation!r}, expected one of "
+                                      f"{', '.join(sorted(CHANNELS))}")
+            t = dataset(g, "time", path)
+            if t.size < 2:
                 continue  # a stage interrupted before its first block holds nothing to analyse
-            channels = {ch: g[ch][:] for ch in CHANNELS[excitation]}
+            channels = {ch: dataset(g, ch, path) for ch in CHANNELS[excitation]}
+            for ch, v in channels.items():
+                if v.shape != t.shape:
+                    raise UserFacingError(f"{path}: stage {name!r}: dataset {ch!r} holds {v.size} samples, "
+                                          f"'time' {t.size}; the file is damaged")
             for ch in CHANNELS[excitation]:
-                flags = g[f"flags_{ch}"][:]
+                flags = dataset(g, f"flags_{ch}", path)
                 if flags.any():
                     i = int(np.flatnonzero(flags)[0])
                     raise UserFacingError(
                         f"{path}: stage {name!r} channel {ch!r} has {int(np.count_nonzero(flags))} flagged "
                         f"sample(s) (sensor out of range or signal loss), first at sample {i}"
                     )
-            settings = json.loads(text(g.attrs.get("settings_json", "{}")))
+            settings = json_attr(g, "settings_json", path)
             settings["status"] = text(g.attrs.get("status", ""))
             settings["t0"] = float(g.attrs.get("t0", 0.0))
-            settings["summary"] = json.loads(text(g.attrs.get("summary_json", "{}")))
+            settings["summary"] = json_attr(g, "summary_json", path)
             settings["steps"] = [
                 {"sample_index": int(r["sample_index"]), "amplitude_vpp": float(r["amplitude_vpp"]),
                  "frequency_hz": float(r["frequency_hz"]), "label": text(r["label"])}
-                for r in g["steps"][:]
+                for r in (dataset(g, "steps", path) if "steps" in g else [])
             ]
-            out[name] = Stage(name=name, t=g["time"][:], channels=channels, excitation=excitation,
+            out[name] = Stage(name=name, t=t, channels=channels, excitation=excitation,
                               settings=settings)
         attrs = {k: text(v) if isinstance(v, bytes) else (v.item() if isinstance(v, np.generic) else v)
                  for k, v in entry.attrs.items()}
@@ -78,6 +121,13 @@ def read_events(path: str | Path) -> list[dict]:
 
 def read_info(path: str | Path) -> dict:
     """Run-level metadata: attributes, instruments, config texts, stage summaries, results."""
+    try:
+        return _read_info(path)
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
+        raise damaged(path, exc) from None
+
+
+def _read_info(path: str | Path) -> dict:
     with open_read(path) as f:
         entry = f["entry"]
         info = {
@@ -93,7 +143,7 @@ def read_info(path: str | Path) -> dict:
             info["instruments"][name] = {
                 "identity": text(g.attrs.get("identity", "")),
                 "address": text(g.attrs.get("address", "")),
-                "settings": json.loads(text(g.attrs.get("settings_json", "{}"))),
+                "settings": json_attr(g, "settings_json", path),
             }
         for name in stage_order(f):
             g = entry["stages"][name]
@@ -102,8 +152,8 @@ def read_info(path: str | Path) -> dict:
                 "n_samples": int(g["time"].shape[0]),
                 "fs": float(g.attrs.get("fs", 0.0)),
                 "t0": float(g.attrs.get("t0", 0.0)),
-                "settings": json.loads(text(g.attrs.get("settings_json", "{}"))),
-                "summary": json.loads(text(g.attrs.get("summary_json", "{}"))),
+                "settings": json_attr(g, "settings_json", path),
+                "summary": json_attr(g, "summary_json", path),
             }
         return info
 
@@ -115,17 +165,23 @@ def load_npz(path: str | Path) -> Run:
     ``force, x`` (force excitation).
     """
     path = Path(path)
+    if not zipfile.is_zipfile(path):
+        raise UserFacingError(f"{path}: not a shakerlab run file (an .npz run is a zip archive of arrays "
+                              f"made by numpy.savez; this file is not one)")
     try:
         data = np.load(path, allow_pickle=False)
+        grouped: dict[str, dict[str, np.ndarray]] = {}
+        for key in data.files:
+            for sep in ("/", "_"):
+                stage, _, channel = key.partition(sep)
+                if channel in ("t", "x_base", "x_tip", "force", "x"):
+                    grouped.setdefault(stage, {})[channel] = np.asarray(data[key], dtype=float)
+                    break
     except Exception as exc:  # noqa: BLE001 - any unreadable file is the user's problem
-        raise UserFacingError(f"{path}: not a readable .npz file ({exc})") from None
-    grouped: dict[str, dict[str, np.ndarray]] = {}
-    for key in data.files:
-        for sep in ("/", "_"):
-            stage, _, channel = key.partition(sep)
-            if channel in ("t", "x_base", "x_tip", "force", "x"):
-                grouped.setdefault(stage, {})[channel] = data[key]
-                break
+        reason = ("holds Python objects, which are never loaded" if "pickle" in str(exc)
+                  else f"{type(exc).__name__}: {exc}")
+        raise UserFacingError(f"{path}: not a shakerlab run file (not a readable .npz of numeric arrays: "
+                              f"{reason})") from None
     if not grouped:
         raise UserFacingError(f"{path}: no stage arrays (expected names like 'linear/t', 'linear/x_tip')")
     stages = {}

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
@@ -11,6 +12,7 @@ import numpy as np
 from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
+from shakerlab.output_files import OutputLock, partial_path, refuse_partial
 from shakerlab.run_data import CHANNELS
 from shakerlab.runfile.format import (CHUNK, FORMAT, FORMAT_VERSION, LEVELS, event_dtype, now_iso, set_scalar_attrs,
                                       step_dtype, str_dtype)
@@ -91,18 +93,37 @@ class RunWriter:
     """Writes one run file. Use as a context manager or call :meth:`close`.
 
     ``RunWriter(path)`` refuses to overwrite an existing file unless
-    ``overwrite=True``.
+    ``overwrite=True``. The file is written as ``path.partial`` (crash safe,
+    flushed as it grows) under the output lock of ``path``
+    (:mod:`shakerlab.output_files`) and renamed to ``path`` by :meth:`close`
+    after it was reopened and its sample counts checked; an existing ``path``
+    is untouched until then. Leaving the ``with`` block by an exception, or
+    :meth:`discard`, deletes the partial file and keeps ``path`` as it was. A
+    crash leaves ``path.partial`` (recover it with ``shakerlab import
+    --recover``).
     """
 
     def __init__(self, path: str | Path, *, overwrite: bool = False, flush_interval: float = 0.5,
                  attrs: dict | None = None):
         self.path = Path(path)
+        self.partial = partial_path(self.path)
+        self.problems: list[str] = []      # what the check after closing found (empty: the file is whole)
+        self.renamed = False
+        self.overwrite = overwrite
+        if self.path.is_dir():
+            raise UserFacingError(f"{self.path}: is a directory, expected a run file name")
         if self.path.exists() and not overwrite:
             raise UserFacingError(f"{self.path}: file exists (choose another -o name or delete it)")
+        self._lock = OutputLock(self.path).acquire()
         try:
-            self.file = h5py.File(self.path, "w")  # default libver, never SWMR
-        except OSError as exc:
-            raise UserFacingError(f"{self.path}: cannot create the run file ({exc})") from None
+            refuse_partial(self.path)
+            try:
+                self.file = h5py.File(self.partial, "x")  # default libver, never SWMR
+            except (OSError, ValueError) as exc:
+                raise UserFacingError(f"{self.path}: cannot create the run file {self.partial} ({exc})") from None
+        except BaseException:
+            self._lock.release()
+            raise
         self.flush_interval = float(flush_interval)
         self._last_flush = time.monotonic()
         self._t_start = time.time()
@@ -132,8 +153,10 @@ class RunWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        if self.file.id.valid:
-            self.close("complete" if exc_type is None else "error")
+        if exc_type is not None:
+            self.discard()
+        elif self.file.id.valid:
+            self.close("complete")
 
     # -- metadata ------------------------------------------------------------
     def set_attrs(self, **attrs) -> None:
@@ -216,15 +239,70 @@ class RunWriter:
         self._last_flush = time.monotonic()
 
     def close(self, status: str = "complete") -> None:
-        """Close every open stage, write the end status and mark the file cleanly closed."""
+        """Close every open stage, write the end status, mark the file cleanly closed, check it and
+        rename it into place. ``problems`` lists what the check found (then the file stays at
+        ``partial``)."""
         if not self.file.id.valid:
             return
-        for sw in self.stages.values():
-            if not sw.closed:
-                sw.close(status="interrupted" if status != "complete" else "complete")
-        entry = self.file["entry"]
-        entry.attrs["status"] = status
-        entry.attrs["end_time"] = now_iso()
-        self.file.attrs["clean_close"] = True
-        self.file.flush()
-        self.file.close()
+        try:
+            for sw in self.stages.values():
+                if not sw.closed:
+                    sw.close(status="interrupted" if status != "complete" else "complete")
+            entry = self.file["entry"]
+            entry.attrs["status"] = status
+            entry.attrs["end_time"] = now_iso()
+            self.file.attrs["clean_close"] = True
+            self.file.flush()
+            self.file.close()
+            self.problems = self.verify()
+            if not self.problems:
+                self._rename()
+        finally:
+            self._lock.release()
+
+    def verify(self) -> list[str]:
+        """Reopen the closed file read-only and compare it with what was written: every stage's
+        datasets hold the samples appended, the events are all there, the file is marked clean."""
+        problems = []
+        try:
+            with h5py.File(self.partial, "r") as f:
+                if not bool(f.attrs.get("clean_close", False)):
+                    problems.append("not marked as cleanly closed")
+                n_ev = f["entry/events"].shape[0]
+                if n_ev != self.n_events:
+                    problems.append(f"{n_ev} events stored, {self.n_events} written")
+                for name, sw in self.stages.items():
+                    g = f[f"entry/stages/{name}"]
+                    for key in ("sample_index", "time", *sw.channels, *(f"flags_{c}" for c in sw.channels)):
+                        n = g[key].shape[0]
+                        if n != sw.n_samples:
+                            problems.append(f"stage {name!r} dataset {key!r}: {n} samples stored, "
+                                            f"{sw.n_samples} written")
+        except (OSError, KeyError) as exc:
+            problems.append(f"cannot be read back ({exc})")
+        return problems
+
+    def _rename(self) -> None:
+        try:
+            if self.overwrite:
+                os.replace(self.partial, self.path)
+            else:  # never replace a file that appeared meanwhile: link fails if the name exists
+                os.link(self.partial, self.path)
+                self.partial.unlink()
+        except OSError as exc:
+            self.problems.append(f"cannot be renamed to {self.path} ({exc.strerror}); the run is in {self.partial}")
+            return
+        self.renamed = True
+
+    def discard(self) -> None:
+        """Close and delete the partial file; ``path`` keeps whatever it held before."""
+        try:
+            if self.file.id.valid:
+                self.file.close()
+            self.partial.unlink(missing_ok=True)
+        finally:
+            self._lock.release()
+
+    def n_recorded(self) -> int:
+        """Samples appended over all stages."""
+        return sum(sw.n_samples for sw in self.stages.values())
