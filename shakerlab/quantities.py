@@ -12,8 +12,9 @@ removed, fitted by least squares with a Hann weight over the stage. The line is 
 integration cannot know: the unknown start value (a constant) and a constant sensor offset (a
 linear drift after one integration). Acceleration is integrated twice, the line removed
 after each, so a constant accelerometer offset goes too. The Hann weight keeps the motion
-out of the fit: an unweighted line takes a share ~ 1/(2 pi f T) of a tone out of the
-motion (1.5 % of a 5 Hz tone over 10 s, measured), the weighted one a share ~ (1/(2 pi f T))^3.
+out of the fit better than an unweighted one (measured on a 5 Hz tone over 10 s: the
+displacement error falls from 1.5 % to 0.4 % of its rms in the 10 s linear stage of the
+ground truth; over 10 periods the line leaks 0.25 % of the amplitude at the record's ends).
 What stays is the integrated noise, a random walk (:func:`integrated_noise_rms`), and any
 real drift of the structure's rest position, which a velocity sensor does not see.
 tests/test_quantities.py measures the removal's effect on the identified parameters.

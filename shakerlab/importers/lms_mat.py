@@ -45,11 +45,13 @@ def read_signals(path: str | Path) -> list[Signal]:
             t0 = float(np.ravel(xv["start_value"][0, 0])[0])
             inc = float(np.ravel(xv["increment"][0, 0])[0])
             count = int(np.ravel(xv["number_of_values"][0, 0])[0])
-            values = np.asarray(yv["values"][0, 0], float)
+            values = np.asarray(yv["values"], float)
         except (KeyError, ValueError, IndexError, TypeError) as exc:
             raise UserFacingError(f"{path}: channel {name!r}: unreadable time axis or values ({exc})") from None
         if not inc > 0:
             raise UserFacingError(f"{path}: channel {name!r}: time increment {inc!r} is not positive")
+        if values.ndim != 2 and values.ndim != 1:
+            raise UserFacingError(f"{path}: channel {name!r}: values of shape {values.shape}, expected N or N x k")
         if values.ndim == 2 and 1 in values.shape:
             values = values.ravel()
         columns = [(name, values)] if values.ndim == 1 else [(f"{name}[{j}]", values[:, j])

@@ -49,7 +49,7 @@ def check(sig, resample: bool = False, fs: float | None = None):
         return np.arange(n) * dt, 1.0 / dt, info, None
     what = (f"a gap of {steps[k]:.6g} s (about {steps[k] / med - 1:.0f} sample(s) missing)" if gap else
             f"a time step of {steps[k]:.6g} s")
-    prec = float(quantum.max()) if quantum.any() else 0.0
+    prec = float(np.median(quantum)) if quantum.any() else 0.0
     msg = (f"{sig.source}: {sig.where(k + 1)}: {what} where the median step is {med:.6g} s; the sampling is "
            f"not uniform (jitter {100 * jitter:.3g} % of a step, largest deviation from a uniform grid "
            f"{np.abs(resid).max():.3g} s{f', time printed to {prec:.3g} s' if prec else ''})")
