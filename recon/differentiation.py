@@ -18,6 +18,7 @@ channel of the stage, so that y, y', y'', y''' come from one local polynomial.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 
@@ -112,13 +113,16 @@ def predicted_mse(window: int, order: int, deriv: int, dt: float, spectra: list[
 
 
 def choose_window(channels: dict[str, np.ndarray], dt: float, deriv: int = 3, window: int | None = None,
-                  order: int | None = None, for_regression: bool = True) -> DiffChoice:
+                  order: int | None = None, for_regression: bool = True,
+                  coefficients=filter_coefficients) -> DiffChoice:
     """Pick the Savitzky-Golay (window, order) minimising the predicted error of ``deriv``.
 
     ``for_regression``: the derivatives feed a least-squares regression over all N
     samples, which averages the (zero-mean) noise down by ~1/N but passes the filter's
     bias through in full, and amplifies it along the nearly collinear library directions.
     The criterion is then bias^2 + noise^2/N instead of the pointwise bias^2 + noise^2.
+    ``coefficients(window, order, deriv, dt)``: the filter judged (:func:`stable_coefficients`
+    for :func:`stable_derivatives`).
     """
     spectra = {name: estimate_spectrum(x, dt) for name, x in channels.items()}
     if window is not None:
@@ -155,7 +159,7 @@ def choose_window(channels: dict[str, np.ndarray], dt: float, deriv: int = 3, wi
             win = int(win)
             if win <= order or win > max_win:
                 continue
-            c = filter_coefficients(win, order, deriv, float(dt))
+            c = coefficients(win, order, deriv, float(dt))
             half = win // 2
             noise = noise_var * float(c @ c)
             bias = 0.0
@@ -178,6 +182,46 @@ def choose_window(channels: dict[str, np.ndarray], dt: float, deriv: int = 3, wi
 def derivatives(x: np.ndarray, dt: float, window: int, order: int, max_deriv: int = 3) -> list[np.ndarray]:
     """[x_smooth, x', ..., x^(max_deriv)] with one Savitzky-Golay filter."""
     return [savgol_filter(x, window, order, deriv=d, delta=dt, mode="interp") for d in range(max_deriv + 1)]
+
+
+@lru_cache(maxsize=4096)
+def stable_coefficients(window: int, order: int, deriv: int, dt: float) -> np.ndarray:
+    """Savitzky-Golay coefficients (``use='dot'``, centre point) from the least-squares fit on the
+    abscissa scaled to [-1, 1]. scipy's ``savgol_coeffs`` fits on the raw sample offsets and
+    loses its accuracy for long windows (order 7: the smoothing coefficients of a 189-sample
+    window sum to 1e-6 instead of 1 with scipy 1.17), which the window choice of a velocity or
+    acceleration channel (fewer derivatives, longer windows) reaches."""
+    half = window // 2
+    x = np.arange(-half, half + 1) / half
+    pinv = np.linalg.pinv(np.vander(x, order + 1, increasing=True))
+    return pinv[deriv] * math.factorial(deriv) / (half * dt) ** deriv
+
+
+def stable_derivatives(x: np.ndarray, dt: float, window: int, order: int, max_deriv: int) -> list[np.ndarray]:
+    """[x_smooth, x', ..., x^(max_deriv)] with :func:`stable_coefficients`; the first and last
+    ``window // 2`` samples from the polynomial fitted to the first and last window (as
+    ``savgol_filter(mode='interp')``)."""
+    x = np.asarray(x, float)
+    half = window // 2
+    n = x.size
+    if n < window:
+        raise UserFacingError(f"Savitzky-Golay window {window} is longer than the record ({n} samples)")
+    xs = np.arange(-half, half + 1) / half
+    pinv = np.linalg.pinv(np.vander(xs, order + 1, increasing=True))
+    out = []
+    for d in range(max_deriv + 1):
+        c = stable_coefficients(window, order, d, float(dt))
+        y = np.empty(n)
+        y[half:n - half] = np.correlate(x, c, mode="valid")
+        # edges: derivative d of the polynomial fitted to the end window, at the edge points
+        dpoly = np.zeros((window, order + 1))
+        for p in range(d, order + 1):
+            dpoly[:, p] = math.perm(p, d) * xs ** (p - d)
+        scale = 1.0 / (half * dt) ** d
+        y[:half] = (dpoly[:half] @ (pinv @ x[:window])) * scale
+        y[n - half:] = (dpoly[half + 1:] @ (pinv @ x[n - window:])) * scale
+        out.append(y)
+    return out
 
 
 def derivative_gain(window: int, order: int, deriv: int, dt: float, f) -> np.ndarray:

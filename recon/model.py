@@ -19,8 +19,10 @@ import numpy as np
 from recon.differentiation import choose_window, derivatives, undo_passband_loss
 from recon.library import monomials
 from recon.simulation.rk4 import simulate_sdof, substeps
+from recon.signals import measured_base_input
 from shakerlab.errors import UserFacingError
 from shakerlab.output_files import check_output, write_text
+from shakerlab.quantities import DISPLACEMENT
 from shakerlab.run_data import BASE, FORCE, Stage
 
 UNITS = {
@@ -225,6 +227,8 @@ class HystereticModel:
             raise UserFacingError(f"stage {stage.name!r} is {stage.excitation} excitation, model is {self.excitation}")
         if self.excitation == FORCE:
             return stage.channels["force"]
+        if stage.quantities.get("x_base", DISPLACEMENT) != DISPLACEMENT:
+            return measured_base_input(stage)       # from the base velocity or acceleration itself
 
         # u = -x_base'' by a Savitzky-Golay second derivative, with the filter's known passband
         # loss undone (0.08 % at a 12.5 Hz drive with a 109-sample window at 2 kHz; left in, the

@@ -1,4 +1,13 @@
-"""Stage signals: the smoothed motion, its derivatives and the model input of one recorded stage."""
+"""Stage signals: the smoothed motion, its derivatives and the model input of one recorded stage.
+
+Each motion channel is differentiated from the quantity its sensor measured, so that every
+column takes the fewest numerical derivatives: from velocity, y' is the smoothed recording,
+y'' its first derivative and y''' its second; from acceleration, y'' is the smoothed
+recording. The columns below the measured quantity (y from velocity; y and y' from
+acceleration) are integrals of the recording (line removed after each integration:
+shakerlab/quantities.py), smoothed by the same filter. A displacement-only stage takes the
+original path unchanged.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -6,7 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import savgol_coeffs
 
-from recon.differentiation import choose_window, derivatives, estimate_spectrum
+from recon.differentiation import (choose_window, derivatives, estimate_spectrum, stable_coefficients,
+                                   stable_derivatives, undo_passband_loss)
+from shakerlab.quantities import DISPLACEMENT, ORDER, channel_name, integrate, integrated_noise_rms
 from shakerlab.run_data import BASE, Stage
 
 
@@ -23,6 +34,8 @@ class StageSignals:
 
 def stage_signals(stage: Stage, deriv: int, window: int | None = None, order: int | None = None,
                   for_regression: bool = True) -> StageSignals:
+    if any(q != DISPLACEMENT for q in stage.quantities.values()):
+        return measured_signals(stage, deriv, window, order, for_regression)
     dt = stage.dt
     if stage.excitation == BASE:
         xb, xt = stage.channels["x_base"], stage.channels["x_tip"]
@@ -54,3 +67,87 @@ def stage_signals(stage: Stage, deriv: int, window: int | None = None, order: in
     sl = slice(half, stage.t.size - half)
     return StageSignals(t=stage.t[sl], y=[a[sl] for a in yd], u=[a[sl] for a in u],
                         choice=ch.to_dict(), column_noise=cn)
+
+
+def channel_derivatives(stage: Stage, role: str, deriv: int, window: int, order: int) -> list:
+    """[x, x', ..., x^(deriv)] of one motion role: Savitzky-Golay derivatives of the measured
+    quantity from its own order up, the smoothed integrals below it (numerically stable
+    Savitzky-Golay coefficients: the windows here are longer, recon.differentiation)."""
+    q = stage.quantities[role]
+    k = ORDER[q]
+    measured = stage.channels[role] if k == 0 else stage.measured[channel_name(role, q)]
+    lower = integrate(measured, stage.dt, q)[:-1]         # displacement, velocity, ... below q
+    out = [stable_derivatives(lower[d], stage.dt, window, order, 0)[0] for d in range(min(k, deriv + 1))]
+    if deriv >= k:
+        out += stable_derivatives(measured, stage.dt, window, order, deriv - k)
+    return out
+
+
+def measured_signals(stage: Stage, deriv: int, window: int | None, order: int | None,
+                     for_regression: bool) -> StageSignals:
+    """:func:`stage_signals` of a stage with a velocity or acceleration channel."""
+    dt = stage.dt
+    n = stage.t.size
+    roles = ("x_tip", "x_base") if stage.excitation == BASE else ("x",)
+    k = {r: ORDER[stage.quantities[r]] for r in roles}
+    name = {r: channel_name(r, stage.quantities[r]) for r in roles}
+    raw = {r: stage.channels[r] if k[r] == 0 else stage.measured[name[r]] for r in roles}
+    kmin = min(k.values())
+    # one window for every channel, chosen for the channel(s) that need the most derivatives
+    ch = choose_window({name[r]: raw[r] for r in roles if k[r] == kmin}, dt, deriv=max(deriv - kmin, 0),
+                       window=window, order=order, for_regression=for_regression,
+                       coefficients=stable_coefficients)
+    for r in roles:
+        if name[r] not in ch.noise_level:
+            ch.noise_level[name[r]] = estimate_spectrum(raw[r], dt).noise_std
+    if stage.excitation == BASE:
+        d = {r: channel_derivatives(stage, r, max(deriv, 2), ch.window, ch.order) for r in roles}
+        yd = [d["x_tip"][i] - d["x_base"][i] for i in range(deriv + 1)]
+        u = [-d["x_base"][2]] + ([-d["x_base"][3]] if deriv >= 3 else [])
+    else:
+        yd = channel_derivatives(stage, "x", deriv, ch.window, ch.order)
+        f = stage.channels["force"]
+        ch.noise_level["force"] = estimate_spectrum(f, dt).noise_std
+        fd = stable_derivatives(f, dt, ch.window, ch.order, 1)
+        u = [fd[0], fd[1]]
+    # expected rms error of each filtered column: a channel's white noise through the filter at
+    # and above its measured order, its integrated noise (shakerlab.quantities) below it
+    cn = {}
+    for dd, colname in ((0, "y"), (1, "dy"), (2, "ddy")):
+        var = 0.0
+        for r in roles:
+            sigma = ch.noise_level[name[r]]
+            if dd >= k[r]:
+                c = stable_coefficients(ch.window, ch.order, dd - k[r], dt)
+                var += float(sigma * sigma * (c @ c))
+            else:
+                var += integrated_noise_rms(sigma, dt, n, k[r] - dd) ** 2
+        cn[colname] = float(np.sqrt(var))
+    if stage.excitation == BASE:
+        c0 = stable_coefficients(ch.window, ch.order, max(2 - k["x_base"], 0), dt)
+        cn["u"] = ch.noise_level[name["x_base"]] * float(np.sqrt(c0 @ c0))
+    else:
+        c0 = stable_coefficients(ch.window, ch.order, 0, dt)
+        cn["u"] = ch.noise_level["force"] * float(np.sqrt(c0 @ c0))
+    choice = ch.to_dict()
+    choice["quantities"] = dict(stage.quantities)
+    half = ch.window // 2
+    sl = slice(half, n - half)
+    return StageSignals(t=stage.t[sl], y=[a[sl] for a in yd], u=[a[sl] for a in u],
+                        choice=choice, column_noise=cn)
+
+
+def measured_base_input(stage: Stage) -> np.ndarray:
+    """u = -x_base'' of a base-excited stage whose base sensor reports velocity or acceleration:
+    one Savitzky-Golay derivative of the velocity, or the smoothed acceleration with the
+    filter's passband loss undone (the counterpart of ``HystereticModel.stage_input`` for a
+    displacement sensor; the integrated displacement is never differentiated back)."""
+    q = stage.quantities["x_base"]
+    k = ORDER[q]
+    raw = stage.measured[channel_name("x_base", q)]
+    ch = choose_window({channel_name("x_base", q): raw}, stage.dt, deriv=2 - k, for_regression=False,
+                       coefficients=stable_coefficients)
+    acc = stable_derivatives(raw, stage.dt, ch.window, ch.order, 2 - k)[2 - k]
+    if k == 2:
+        acc = undo_passband_loss(acc, stage.dt, ch.window, ch.order, deriv=0)
+    return -acc

@@ -1,9 +1,13 @@
 """``shakerlab import``: turn recordings from other systems into a shakerlab run file.
 
 One CSV file per stage with a header line, either ``t,x_base,x_tip`` (base
-excitation, SI units: s, m, m) or ``t,force,x`` (force excitation: s, N, m).
-Lines starting with ``#`` and blank lines are skipped. Every bad value is
-reported with its file, line and column.
+excitation, SI units: s, m, m) or ``t,force,x`` (force excitation: s, N, m); a motion
+column may be velocity or acceleration (``v_tip``, ``a_base``, ``v`` ...). Lines starting
+with ``#`` and blank lines are skipped. Every bad value is reported with its file, line and
+column. Lab formats (LMS Test.Lab .mat, NI .tdms, UFF .uff/.unv) and CSVs with other
+headers are read through a channel map (``--map ROLE=CHANNEL[:QUANTITY]``); readers in
+``shakerlab/importers/``. The time base is checked (``shakerlab.importers.timebase``):
+jitter and gaps are refused unless ``--resample``; ``--fs`` declares the rate.
 
 ``shakerlab import --recover CRASHED.h5 -o COPY.h5`` copies an interrupted run
 file into a new, cleanly closed one (see ``shakerlab.runfile.results.recover_copy``);
@@ -17,20 +21,33 @@ from __future__ import annotations
 from pathlib import Path
 
 STAGE_OPTIONS = ("linear", "nonlinear", "validation")
-HEADERS = {("t", "x_base", "x_tip"): "base", ("t", "force", "x"): "force"}
+MAT_SUFFIXES = {".mat": "lms_mat", ".tdms": "tdms", ".uff": "uff58", ".unv": "uff58", ".csv": "csv_file",
+                ".txt": "csv_file"}
 
 
 def register(subparsers) -> None:
     """Add ``import`` to the ``shakerlab`` parser."""
     p = subparsers.add_parser(
         "import",
-        help="convert CSV recordings (one file per stage) into a shakerlab run file",
-        description="Convert CSV recordings into a shakerlab HDF5 run file. Each CSV has a header "
-        "'t,x_base,x_tip' (base excitation, SI units) or 't,force,x' (force excitation).",
+        help="convert recordings (CSV, LMS .mat, TDMS, UFF; one stage per option) into a shakerlab run file",
+        description="Convert recordings into a shakerlab HDF5 run file. A CSV has a header "
+        "'t,x_base,x_tip' (base excitation, SI units) or 't,force,x' (force excitation); a motion column may "
+        "be velocity or acceleration (v_tip, a_base, v, a). Other files (.mat LMS Test.Lab, .tdms, .uff/.unv "
+        "dataset 58) and other CSV headers need a channel map (--map). See docs/recording-format.md.",
     )
     p.add_argument("-o", "--output", required=True, type=Path, help="run file to write (.h5)")
     for stage in STAGE_OPTIONS:
-        p.add_argument(f"--{stage}", type=Path, metavar="CSV", help=f"CSV file of the {stage} stage")
+        p.add_argument(f"--{stage}", type=Path, nargs="+", metavar="FILE",
+                       help=f"file(s) of the {stage} stage (several files: their channels are pooled)")
+    p.add_argument("--map", action="append", metavar="ROLE=CHANNEL[:Q]", default=None,
+                   help="channel for a role: t, force, x_base, x_tip, x; Q = x|v|a (displacement, velocity, "
+                        "acceleration), e.g. --map x=Time_Laser__X:v --map force=Time_Shaker__X")
+    p.add_argument("--map-file", type=Path, metavar="TOML", help="the channel map as a [map] table")
+    p.add_argument("--fs", type=float, metavar="HZ",
+                   help="sampling rate: for files without a time base, or overriding the file's; with "
+                        "--resample, the rate to resample to")
+    p.add_argument("--resample", action="store_true",
+                   help="interpolate (cubic) unevenly sampled records onto a uniform grid instead of refusing them")
     p.add_argument("--recover", type=Path, metavar="RUN.h5",
                    help="instead: copy an interrupted run file into a cleanly closed one")
     p.add_argument("--force", action="store_true", help="overwrite the output file")
@@ -42,94 +59,185 @@ def read_csv(path: str | Path):
 
     Raises UserFacingError naming the file, line and column of the first bad value.
     """
+    from shakerlab.importers import csv_file  # heavy: numpy; loaded when the command runs
+
+    header, data, _, _ = csv_file.parse(path)
+    return csv_file.HEADERS[header], {name: data[:, i] for i, name in enumerate(header)}
+
+
+def _signals(path: Path, time_column):
+    import importlib  # lazy: the reader of one format
+
+    module = MAT_SUFFIXES.get(path.suffix.lower())
+    from shakerlab.errors import UserFacingError  # heavy: loaded when the command runs
+
+    if module is None:
+        raise UserFacingError(f"{path}: unknown file type {path.suffix!r} (expected one of "
+                              f"{', '.join(sorted(MAT_SUFFIXES))})")
+    reader = importlib.import_module(f"shakerlab.importers.{module}")
+    if module == "csv_file":
+        return reader.read_signals(path, time_column)
+    return reader.read_signals(path)
+
+
+def _stage_from_map(files: list[Path], mapping: dict):
+    """(excitation, {role: Signal}, {role: quantity}, time Signal or None) of one stage."""
+    from shakerlab.errors import UserFacingError  # heavy: loaded when the command runs
+
+    time_column = mapping["t"][0] if "t" in mapping else "t"
+    pool: dict = {}
+    for f in files:
+        tc = time_column
+        if Path(f).suffix.lower() in (".csv", ".txt"):
+            from shakerlab.importers.csv_file import parse  # heavy: numpy; loaded when the command runs
+
+            header = parse(f, any_header=True)[0]
+            tc = time_column if time_column in header else None
+        for sig in _signals(Path(f), tc):
+            if sig.name in pool and pool[sig.name].source != sig.source:
+                raise UserFacingError(f"channel {sig.name!r} is in both {pool[sig.name].source} and {sig.source}")
+            pool[sig.name] = sig
+    roles, quantities = {}, {}
+    for role, (channel, quantity) in mapping.items():
+        if role == "t":
+            continue
+        if channel not in pool:
+            raise UserFacingError(f"--map {role}={channel}: no channel {channel!r} in {', '.join(map(str, files))} "
+                                  f"(channels: {', '.join(sorted(pool))})")
+        roles[role] = pool[channel]
+        if role != "force":
+            quantities[role] = quantity or pool[channel].quantity or "displacement"
+    time_sig = None
+    if "t" in mapping:
+        name = mapping["t"][0]
+        if name in pool:
+            time_sig = pool[name]
+        elif not any(s.time is not None for s in roles.values()):
+            raise UserFacingError(f"--map t={name}: no channel {name!r} (channels: {', '.join(sorted(pool))})")
+    excitation = "force" if "force" in roles else "base"
+    return excitation, roles, quantities, time_sig
+
+
+def _time_base(stage: str, roles: dict, time_sig, fs, resample):
+    """(t from 0, fs, info, resample_from) common to a stage's role signals."""
+    import numpy as np  # heavy: numpy, h5py; loaded when the command runs
+
+    from shakerlab.errors import UserFacingError  # heavy: loaded when the command runs
+    from shakerlab.importers import timebase  # heavy: numpy; loaded when the command runs
+    from shakerlab.importers.signal import Signal  # heavy: numpy; loaded when the command runs
+
+    sigs = list(roles.values())
+    n = {s.values.size for s in sigs}
+    if len(n) > 1:
+        desc = ", ".join(f"{s.name} ({s.source}) {s.values.size}" for s in sigs)
+        raise UserFacingError(f"stage {stage!r}: the channels differ in length: {desc} samples")
+    n = n.pop()
+    if time_sig is not None:
+        sigs = [Signal(name=time_sig.name, values=time_sig.values, source=time_sig.source,
+                       time=time_sig.values, lines=time_sig.lines)]
+    explicit = [s for s in sigs if s.time is not None]
+    if explicit:
+        ref = explicit[0]
+        for s in explicit[1:]:
+            if s.time is not ref.time and not np.array_equal(s.time, ref.time):
+                raise UserFacingError(f"stage {stage!r}: {ref.name} and {s.name} have different time columns")
+        if ref.time.size != n:
+            raise UserFacingError(f"stage {stage!r}: time channel {ref.name} has {ref.time.size} samples, "
+                                  f"the channels {n}")
+        t, rate, info, t_from = timebase.check(ref, resample=resample, fs=fs)
+        return t, rate, dict(info, source_t0=float(ref.time[0])), t_from
+    rates = [s for s in sigs if s.dt is not None]
+    if not rates:
+        if fs is None:
+            raise UserFacingError(f"stage {stage!r}: {', '.join(s.name for s in sigs)} carry no time base: "
+                                  f"give the sampling rate with --fs (or map a time channel with --map t=NAME)")
+        return np.arange(n) / fs, float(fs), {"time_base": f"declared --fs {fs:g} Hz"}, None
+    ref = rates[0]
+    for s in rates[1:]:
+        if abs(s.dt - ref.dt) > 1e-9 * ref.dt or abs(s.t0 - ref.t0) > 0.5 * ref.dt:
+            raise UserFacingError(f"stage {stage!r}: {ref.name} ({ref.source}: start {ref.t0:g} s, step "
+                                  f"{ref.dt:.9g} s) and {s.name} ({s.source}: start {s.t0:g} s, step {s.dt:.9g} s) "
+                                  f"are not on one time base")
+    info = {"sampling_jitter": 0.0, "source_t0": ref.t0}
+    if fs is not None and abs(fs * ref.dt - 1.0) > 1e-9:
+        if resample:
+            grid = np.arange(int(np.floor((n - 1) * ref.dt * fs + 1e-9)) + 1) / fs
+            info["time_base"] = f"resampled (cubic) from {1 / ref.dt:.9g} Hz to {fs:g} Hz (--resample)"
+            return grid, float(fs), info, np.arange(n) * ref.dt
+        info["time_base"] = f"declared --fs {fs:g} Hz (the file says {1 / ref.dt:.9g} Hz)"
+        return np.arange(n) / fs, float(fs), info, None
+    return np.arange(n) * ref.dt, 1.0 / ref.dt, info, None
+
+
+def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False, mapping: dict | None = None,
+               fs: float | None = None, resample: bool = False) -> Path:
+    """Write a run file from ``{stage name: file path or list of paths}``; return the output path.
+
+    Without ``mapping`` every file is a shakerlab CSV (header names the roles); with it, the
+    files of a stage (any supported format) are pooled and the map picks the roles."""
     import numpy as np  # heavy: numpy, h5py; loaded when the command runs
 
     from shakerlab.errors import UserFacingError  # heavy: numpy, h5py; loaded when the command runs
-
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise UserFacingError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserFacingError(f"{path}: cannot read as a text CSV file ({exc})") from None
-    lines = text.splitlines()
-    header = None
-    rows: list[list[float]] = []
-    for lineno, line in enumerate(lines, start=1):
-        stripped = line.strip()
-        if not stripped or stripped.startswith("#"):
-            continue
-        fields = [f.strip() for f in stripped.split(",")]
-        if header is None:
-            header = tuple(f.lower() for f in fields)
-            if header not in HEADERS:
-                raise UserFacingError(
-                    f"{path}: line {lineno}: header is {stripped!r}; expected 't,x_base,x_tip' "
-                    f"(base excitation) or 't,force,x' (force excitation)"
-                )
-            continue
-        if len(fields) != len(header):
-            raise UserFacingError(
-                f"{path}: line {lineno}: {len(fields)} column(s), the header has {len(header)} ({','.join(header)})"
-            )
-        row = []
-        for col, (name, field) in enumerate(zip(header, fields), start=1):
-            try:
-                value = float(field)
-            except ValueError:
-                raise UserFacingError(
-                    f"{path}: line {lineno}, column {col} ({name}): {field!r} is not a number"
-                ) from None
-            if not np.isfinite(value):
-                raise UserFacingError(f"{path}: line {lineno}, column {col} ({name}): value {field!r} is not finite")
-            row.append(value)
-        if rows and row[0] <= rows[-1][0]:
-            raise UserFacingError(
-                f"{path}: line {lineno}, column 1 (t): time {fields[0]} does not increase "
-                f"(previous {rows[-1][0]!r})"
-            )
-        rows.append(row)
-    if header is None:
-        raise UserFacingError(f"{path}: empty file (expected a header 't,x_base,x_tip' or 't,force,x')")
-    if len(rows) < 2:
-        raise UserFacingError(f"{path}: needs at least 2 data lines, found {len(rows)}")
-    data = np.asarray(rows, dtype=float)
-    return HEADERS[header], {name: data[:, i] for i, name in enumerate(header)}
-
-
-def import_csv(output: str | Path, stage_files: dict[str, str | Path], *, overwrite: bool = False) -> Path:
-    """Write a run file from ``{stage name: CSV path}``; return the output path."""
-    import numpy as np  # heavy: numpy, h5py; loaded when the command runs
-
-    from shakerlab.errors import UserFacingError  # heavy: numpy, h5py; loaded when the command runs
+    from shakerlab.importers import csv_file, timebase  # heavy: numpy; loaded when the command runs
+    from shakerlab.quantities import channel_name, parse_channel  # heavy: numpy; loaded when the command runs
     from shakerlab.runfile.writer import RunWriter  # heavy: numpy, h5py; loaded when the command runs
 
     if not stage_files:
         raise UserFacingError("nothing to import: give at least one of --linear, --nonlinear, --validation")
+    if fs is not None and not (np.isfinite(fs) and fs > 0):
+        raise UserFacingError(f"--fs {fs!r}: the sampling rate must be a positive number of Hz")
     parsed = {}
-    for stage, csv_path in stage_files.items():
-        parsed[stage] = (csv_path, *read_csv(csv_path))
-    kinds = {kind for _, kind, _ in parsed.values()}
+    for stage, files in stage_files.items():
+        files = [Path(f) for f in (files if isinstance(files, (list, tuple)) else [files])]
+        if mapping:
+            kind, roles, quantities, time_sig = _stage_from_map(files, mapping)
+        else:
+            if len(files) != 1 or files[0].suffix.lower() not in (".csv", ".txt", ""):
+                raise UserFacingError(f"--{stage} {' '.join(map(str, files))}: without --map, one shakerlab CSV "
+                                      f"per stage; map the channels of other files with --map ROLE=CHANNEL[:Q]")
+            header, data, lines, quanta = csv_file.parse(files[0])
+            kind = csv_file.HEADERS[header]
+            from shakerlab.importers.signal import Signal  # heavy: numpy; loaded when the command runs
+
+            tsig = Signal(name="t", values=data[:, 0], source=str(files[0]), time=data[:, 0], quantum=quanta,
+                          lines=lines)
+            roles, quantities = {}, {}
+            for i, name in enumerate(header[1:], start=1):
+                role, q = parse_channel(name) or (name, None)
+                roles[role] = Signal(name=name, values=data[:, i], source=str(files[0]), time=tsig.time,
+                                     quantum=quanta, lines=lines)
+                if q is not None:
+                    quantities[role] = q
+            time_sig = None
+        t, rate, info, t_from = _time_base(stage, roles, time_sig, fs, resample)
+        values = {}
+        for role, sig in roles.items():
+            name = channel_name(role, quantities[role]) if role in quantities else role
+            values[name] = sig.values if t_from is None else timebase.interpolate(sig.values, t_from, t)
+        parsed[stage] = (files, kind, t, rate, info, values, quantities)
+    kinds = {p[1] for p in parsed.values()}
     if len(kinds) > 1:
-        desc = ", ".join(f"{p} is {k} excitation" for p, k, _ in parsed.values())
+        desc = ", ".join(f"{' '.join(map(str, p[0]))} is {p[1]} excitation" for p in parsed.values())
         raise UserFacingError(f"the stage files mix excitation kinds ({desc}); one run has one kind")
     output = Path(output)
     with RunWriter(output, overwrite=overwrite, attrs={"source": "import"}) as writer:
-        writer.log("info", f"imported with shakerlab import from {len(parsed)} CSV file(s)")
-        for stage, (csv_path, kind, cols) in parsed.items():
-            t = cols["t"]
-            dt = np.diff(t)
-            fs = 1.0 / float(np.median(dt))
-            jitter = float(np.max(np.abs(dt - np.median(dt))) / np.median(dt))
-            settings = {"source_file": str(Path(csv_path).resolve()), "source_t0": float(t[0]),
-                        "sampling_jitter": jitter}
-            sw = writer.begin_stage(stage, fs=fs, excitation=kind, settings=settings)
-            channels = [c for c in cols if c != "t"]
-            sw.append(0, {c: cols[c] for c in channels}, time_s=t - t[0])
+        writer.log("info", f"imported with shakerlab import from {len(parsed)} stage file set(s)"
+                   if mapping else f"imported with shakerlab import from {len(parsed)} CSV file(s)")
+        for stage, (files, kind, t, rate, info, values, quantities) in parsed.items():
+            src = [str(Path(f).resolve()) for f in files]
+            settings = {"source_file": src[0] if len(src) == 1 else src, "source_t0": info.pop("source_t0", None)}
+            if settings["source_t0"] is None:
+                settings.pop("source_t0")
+            settings.update(info)
+            if mapping:
+                settings["channel_map"] = {r: f"{c}:{q}" if q else c for r, (c, q) in mapping.items()}
+            sw = writer.begin_stage(stage, fs=rate, excitation=kind, settings=settings,
+                                    quantities={r: q for r, q in quantities.items() if q != "displacement"})
+            sw.append(0, values, time_s=t)
             sw.close("complete", summary={"n_samples": int(t.size), "duration_s": float(t[-1] - t[0])})
-            writer.log("info", f"stage {stage!r}: {t.size} samples from {csv_path} ({kind} excitation, "
-                               f"fs {fs:.6g} Hz)")
+            qs = ", ".join(f"{r} {q}" for r, q in quantities.items() if q != "displacement")
+            writer.log("info", f"stage {stage!r}: {t.size} samples from {', '.join(map(str, files))} ({kind} "
+                               f"excitation{', ' + qs if qs else ''}, fs {rate:.6g} Hz)")
     return output
 
 
@@ -144,8 +252,12 @@ def _handle(args) -> int:
         recover_copy(args.recover, args.output, overwrite=args.force)
         print(f"wrote {args.output} (clean copy of {args.recover})")
         return 0
+    from shakerlab.importers import mapping  # heavy: loaded when the command runs
+
     files = {s: getattr(args, s) for s in STAGE_OPTIONS if getattr(args, s) is not None}
-    out = import_csv(args.output, files, overwrite=args.force)
+    cmap = mapping.parse(args.map, args.map_file)
+    out = import_csv(args.output, files, overwrite=args.force, mapping=cmap or None, fs=args.fs,
+                     resample=args.resample)
     info = read_info(out)
     for name, st in info["stages"].items():
         print(f"{name}: {st['n_samples']} samples at {st['fs']:.6g} Hz")

@@ -9,6 +9,13 @@ A *run* is a set of *stages* (the protocol's steps: ``linear``, ``nonlinear``,
 - force excitation (other labs, the Bouc-Wen benchmark): ``force`` [N] and
   ``x`` [m]; ``y = x`` and ``u = force`` (so ``1/m`` is identified).
 
+Motion channels may be recorded as velocity or acceleration instead of displacement
+(``v_tip``, ``a_base``, ``v`` ...; :mod:`shakerlab.quantities`). A stage then keeps the
+recorded channels in ``measured`` and their quantities in ``quantities`` (role -> quantity),
+and ``channels`` holds the displacement of every role, integrated from the recorded quantity
+where it was not recorded as displacement: code that works in displacement reads
+``channels`` as before, the signal stage (``recon.signals``) reads ``measured``.
+
 File formats (``.h5`` run files, ``.npz``) are read by :func:`load_run`.
 """
 from __future__ import annotations
@@ -18,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shakerlab.errors import UserFacingError
+from shakerlab.quantities import DISPLACEMENT, PREFIX, channel_name, integrate, parse_channel
 
 BASE = "base"
 FORCE = "force"
@@ -26,13 +34,20 @@ CHANNELS = {BASE: ("x_base", "x_tip"), FORCE: ("force", "x")}
 
 @dataclass
 class Stage:
-    """One stage of a run: channels sampled on a common time base ``t`` [s]."""
+    """One stage of a run: channels sampled on a common time base ``t`` [s].
+
+    ``channels`` may name a motion channel in any quantity (``x_tip``, ``v_tip``, ``a_tip``);
+    after construction ``channels`` holds the displacement of every role, ``measured`` the
+    channels recorded as velocity or acceleration and ``quantities`` the recorded quantity of
+    every motion role (module docstring)."""
 
     name: str
     t: np.ndarray
     channels: dict[str, np.ndarray]
     excitation: str = BASE
     settings: dict = field(default_factory=dict)
+    measured: dict = field(default_factory=dict)
+    quantities: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.excitation not in CHANNELS:
@@ -40,7 +55,8 @@ class Stage:
                 f"stage {self.name!r}: excitation must be 'base' or 'force', got {self.excitation!r}"
             )
         self.t = np.asarray(self.t, dtype=float)
-        missing = [c for c in CHANNELS[self.excitation] if c not in self.channels]
+        self._split_quantities()
+        missing = [c for c in CHANNELS[self.excitation] if c not in self.channels and c not in self.quantities]
         if missing:
             raise UserFacingError(
                 f"stage {self.name!r} ({self.excitation} excitation) lacks channel(s) {', '.join(missing)}"
@@ -59,6 +75,47 @@ class Stage:
             self.channels[name] = values
         if self.t.size < 2 or np.any(np.diff(self.t) <= 0):
             raise UserFacingError(f"stage {self.name!r}: time must increase strictly")
+        for role, quantity in self.quantities.items():
+            if quantity != DISPLACEMENT:
+                self.measured[channel_name(role, quantity)] = self.channels.pop(channel_name(role, quantity))
+                self.channels[role] = integrate(self.measured[channel_name(role, quantity)], self.dt, quantity)[0]
+
+    def _split_quantities(self) -> None:
+        """Fill ``quantities`` from the channel names; one quantity per role."""
+        self.channels = dict(self.channels)
+        self.channels.update(self.measured)        # a Stage rebuilt from another's recorded channels
+        self.measured = {}
+        found: dict[str, list[str]] = {}
+        for name in self.channels:
+            parsed = parse_channel(name)
+            if parsed is not None:
+                found.setdefault(parsed[0], []).append(name)
+        roles = [r for r in CHANNELS[self.excitation] if r != "force"]
+        for role in roles:
+            names = found.get(role, [])
+            if len(names) > 1:
+                raise UserFacingError(
+                    f"stage {self.name!r}: {' and '.join(sorted(names))} measure the same point; give one of them"
+                )
+            if names:
+                self.quantities[role] = parse_channel(names[0])[1]
+        missing = [r for r in roles if r not in self.quantities]
+        if missing:
+            # the displacement names first (the message of a displacement-only stage is unchanged)
+            names = [channel_name(r, DISPLACEMENT) for r in CHANNELS[self.excitation]
+                     if r not in self.quantities and r not in self.channels]
+            others = ", ".join("|".join(channel_name(r, q) for q in PREFIX) for r in missing)
+            raise UserFacingError(f"stage {self.name!r} ({self.excitation} excitation) lacks channel(s) "
+                                  f"{', '.join(names)} (a motion channel may be {others})")
+
+    def recorded(self) -> dict[str, np.ndarray]:
+        """The channels as recorded (displacement roles as they are, the others in their quantity)."""
+        out = {}
+        for name, values in self.channels.items():
+            q = self.quantities.get(name, DISPLACEMENT)
+            out[channel_name(name, q) if q != DISPLACEMENT else name] = (
+                values if q == DISPLACEMENT else self.measured[channel_name(name, q)])
+        return out
 
     @property
     def dt(self) -> float:

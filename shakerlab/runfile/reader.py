@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from shakerlab.errors import UserFacingError
+from shakerlab.quantities import PREFIX, channel_name, parse_channel
 from shakerlab.run_data import BASE, CHANNELS, FORCE, Run, Stage
 from shakerlab.runfile.format import open_read, stage_order, text
 
@@ -76,12 +77,13 @@ def _read_run(path: Path, stages: list[str] | None) -> Run:
             t = dataset(g, "time", path)
             if t.size < 2:
                 continue  # a stage interrupted before its first block holds nothing to analyse
-            channels = {ch: dataset(g, ch, path) for ch in CHANNELS[excitation]}
+            stored = [stored_channel(g, role) for role in CHANNELS[excitation]]   # missing: dataset() names it
+            channels = {ch: dataset(g, ch, path) for ch in stored}
             for ch, v in channels.items():
                 if v.shape != t.shape:
                     raise UserFacingError(f"{path}: stage {name!r}: dataset {ch!r} holds {v.size} samples, "
                                           f"'time' {t.size}; the file is damaged")
-            for ch in CHANNELS[excitation]:
+            for ch in stored:
                 flags = dataset(g, f"flags_{ch}", path)
                 if flags.any():
                     i = int(np.flatnonzero(flags)[0])
@@ -107,6 +109,18 @@ def _read_run(path: Path, stages: list[str] | None) -> Run:
     if not out:
         raise UserFacingError(f"{path}: the run file holds no recorded samples")
     return Run(stages=out, attrs=attrs, source=str(path))
+
+
+def stored_channel(group, role: str) -> str:
+    """The dataset holding ``role`` in a stage group: ``x_tip``, or ``v_tip`` / ``a_tip`` when the
+    sensor reported velocity or acceleration."""
+    if role == "force":
+        return role
+    for q in PREFIX:
+        name = channel_name(role, q)
+        if name in group:
+            return name
+    return role      # missing: the caller's KeyError names the displacement channel
 
 
 def read_events(path: str | Path) -> list[dict]:
@@ -162,7 +176,8 @@ def load_npz(path: str | Path) -> Run:
     """Read an ``.npz`` run: arrays named ``<stage>/<channel>`` or ``<stage>_<channel>``.
 
     Channels per stage: ``t`` plus ``x_base, x_tip`` (base excitation) or
-    ``force, x`` (force excitation).
+    ``force, x`` (force excitation); a motion channel may be velocity or acceleration
+    (``v_tip``, ``a_base``, ``v``, ...).
     """
     path = Path(path)
     if not zipfile.is_zipfile(path):
@@ -174,7 +189,7 @@ def load_npz(path: str | Path) -> Run:
         for key in data.files:
             for sep in ("/", "_"):
                 stage, _, channel = key.partition(sep)
-                if channel in ("t", "x_base", "x_tip", "force", "x"):
+                if channel == "t" or channel == "force" or parse_channel(channel) is not None:
                     grouped.setdefault(stage, {})[channel] = np.asarray(data[key], dtype=float)
                     break
     except Exception as exc:  # noqa: BLE001 - any unreadable file is the user's problem
@@ -198,7 +213,7 @@ def save_npz(run: Run, path: str | Path) -> None:
     arrays = {}
     for name, st in run.stages.items():
         arrays[f"{name}/t"] = st.t
-        for ch, v in st.channels.items():
+        for ch, v in st.recorded().items():
             arrays[f"{name}/{ch}"] = v
     np.savez(path, **arrays)
 

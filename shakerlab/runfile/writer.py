@@ -13,6 +13,7 @@ from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
 from shakerlab.output_files import OutputLock, partial_path, refuse_partial
+from shakerlab.quantities import DISPLACEMENT, QUANTITIES, UNITS, channel_name
 from shakerlab.run_data import CHANNELS
 from shakerlab.runfile.format import (CHUNK, FORMAT, FORMAT_VERSION, LEVELS, event_dtype, now_iso, set_scalar_attrs,
                                       step_dtype, str_dtype)
@@ -198,14 +199,26 @@ class RunWriter:
 
     # -- stages ----------------------------------------------------------------
     def begin_stage(self, name: str, *, fs: float, excitation: str = "base", start_index: int = 0,
-                    settings: dict | None = None) -> StageWriter:
-        """Create ``entry/stages/<name>`` and return its :class:`StageWriter`."""
+                    settings: dict | None = None, quantities: dict | None = None) -> StageWriter:
+        """Create ``entry/stages/<name>`` and return its :class:`StageWriter`.
+
+        ``quantities`` maps a motion role (``x_base``, ``x_tip``, ``x``) to the quantity its
+        sensor reports (default displacement); the channel is then named by its quantity
+        (``v_tip``) and carries ``quantity`` and ``units`` attributes."""
         if excitation not in CHANNELS:
             raise ValueError(f"excitation must be one of {sorted(CHANNELS)}")
+        quantities = dict(quantities or {})
+        bad = {r: q for r, q in quantities.items() if r not in CHANNELS[excitation] or r == "force"
+               or q not in QUANTITIES}
+        if bad:
+            raise ValueError(f"quantities {bad}: roles are {CHANNELS[excitation]} (not force), "
+                             f"quantities {QUANTITIES}")
         stages = self.file["entry/stages"]
         if name in stages:
             raise ValueError(f"stage {name!r} already recorded in {self.path}")
-        channels = CHANNELS[excitation]
+        channels = tuple(channel_name(r, quantities[r]) if quantities.get(r, DISPLACEMENT) != DISPLACEMENT else r
+                         for r in CHANNELS[excitation])
+        role_of = dict(zip(channels, CHANNELS[excitation]))
         g = stages.create_group(name)
         g.attrs.update({
             "NX_class": "NXdata", "signal": channels[1], "axes": "time", "excitation": excitation,
@@ -218,7 +231,13 @@ class RunWriter:
         t.attrs["units"] = "s"
         for ch in channels:
             d = g.create_dataset(ch, shape=(0,), maxshape=(None,), dtype="<f8", chunks=(CHUNK,))
-            d.attrs["units"] = "N" if ch == "force" else "m"
+            if ch == "force":
+                d.attrs["units"] = "N"
+            else:
+                q = quantities.get(role_of[ch], DISPLACEMENT)
+                d.attrs["units"] = UNITS[q]
+                if q != DISPLACEMENT:     # displacement-only stages keep the version-1 attributes
+                    d.attrs["quantity"] = q
             g.create_dataset(f"flags_{ch}", shape=(0,), maxshape=(None,), dtype="u1", chunks=(CHUNK,))
         g.create_dataset("steps", shape=(0,), maxshape=(None,), dtype=step_dtype(), chunks=(64,))
         order = json.loads(stages.attrs["order"])
