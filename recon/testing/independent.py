@@ -63,7 +63,7 @@ def random_system(rng, hysteresis: bool | None = True, quadratic: bool | None = 
     Scales: f_n log-uniform in ``fn_range``; damping ratio 0.5-3 %; the design amplitude
     Y (peak relative displacement of the nonlinear stage) 0.5-5 mm x sqrt(10 Hz / f_n);
     Bouc-Wen alpha 20-60 % of the small-amplitude stiffness, lambda = gamma + delta =
-    1-4 / Y, split with both, negative delta or negative gamma; k2 = +-(3-15 %) K / Y;
+    1-4 / Y, split with both positive or delta negative (gamma > 0 always: see below); k2 = +-(3-15 %) K / Y;
     k3 = (5-30 %) K / Y^2."""
     m = float(math.exp(rng.uniform(math.log(0.05), math.log(0.5))))
     f_n = float(math.exp(rng.uniform(math.log(fn_range[0]), math.log(fn_range[1]))))
@@ -78,18 +78,21 @@ def random_system(rng, hysteresis: bool | None = True, quadratic: bool | None = 
     if hysteresis:
         a = float(rng.uniform(0.2, 0.6)) * K
         lam = float(rng.uniform(1.0, 4.0)) / Y
-        u = rng.random()
-        if u < 0.6:
+        # gamma < 0 is left out: with gamma + delta > 0 the unloading slope alpha + (gamma - delta) z
+        # turns negative before z reaches alpha / (gamma + delta) and z then grows without bound
+        if rng.random() < 0.65:
             kind, rho = "gamma>0,delta>0", rng.uniform(0.05, 0.95)
-        elif u < 0.85:
-            kind, rho = "delta<0", rng.uniform(-0.6, -0.05)
         else:
-            kind, rho = "gamma<0", rng.uniform(1.05, 1.3)
+            kind, rho = "delta<0", rng.uniform(-0.6, -0.05)
         sys_.update(alpha=a, k=K - a, gamma=float((1 - rho) * lam), delta=float(rho * lam), bw_kind=kind)
-    if quadratic:
-        sys_["k2"] = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.03, 0.15)) * K / Y
     if cubic:
         sys_["k3"] = float(rng.uniform(0.05, 0.3)) * K / Y ** 2
+    if quadratic:
+        sys_["k2"] = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.03, 0.15)) * K / Y
+        if not cubic:
+            # without a cubic term a quadratic spring lets the mass escape beyond y = k / |k2|
+            # (k: the stiffness left once the hysteresis saturates): keep that beyond 12 Y
+            sys_["k2"] = math.copysign(min(abs(sys_["k2"]), sys_["k"] / (12 * Y)), sys_["k2"])
     return sys_
 
 
@@ -359,7 +362,10 @@ class _Sim:
     def probe(self, segs_fn, measure=lambda t, y: float(np.max(np.abs(y)))):
         """Simulate a trial stage from the current state without keeping it; returns measure(t, y)."""
         segs = segs_fn(self.t)
-        sols, _ = _integrate(self.s, self.eff, self.exc, segs, self.x, self.f_max)
+        try:
+            sols, _ = _integrate(self.s, self.eff, self.exc, segs, self.x, self.f_max)
+        except FloatingPointError:      # the trial diverged: None (the caller lowers the drive)
+            return None
         t = np.arange(segs[0].t0, segs[-1].t1, 1.0 / self.fs)
         st, _ = _evaluate(segs, sols, t)
         return measure(t, st[0])
@@ -404,6 +410,8 @@ def _calibrate(sim, f, Y, amp0, ramp_periods=5, periods=40):
         return float(np.max(tail)), float(-np.min(tail))
 
     pk = sim.probe(lambda t0: ramped_tone(t0, f, amp0, hold, ramp), meas)
+    if pk is None:
+        return 0.2 * amp0, (Y, Y)
     scale = float(np.clip(Y / max(max(pk), 1e-15), 0.2, 5.0))
     return amp0 * scale, (pk[0] * scale, pk[1] * scale)
 
@@ -509,7 +517,13 @@ def _chirp_stage(t0, f0, f1, amp, T, ramp, phase):
 
 def _scale_to_peak(sim, make, amp0, Y, lo=0.6, hi=1.6):
     """Amplitude for which the stage ``make(t0, amp)`` peaks at ~Y (at most one rescale)."""
-    pk = sim.probe(lambda t0: make(t0, amp0))
+    for _ in range(3):
+        pk = sim.probe(lambda t0: make(t0, amp0))
+        if pk is not None:
+            break
+        amp0 *= 0.3                    # the trial diverged: lower the drive and try again
+    else:
+        return amp0
     if lo * Y <= pk <= hi * Y:
         return amp0
     return amp0 * float(np.clip(Y / max(pk, 1e-15), 0.1, 10.0))
