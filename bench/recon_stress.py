@@ -2,9 +2,11 @@
 generator (issue 18). See recon_accuracy.py's docstring for the design; this module holds it."""
 from __future__ import annotations
 
+import faulthandler
 import json
 import math
 import multiprocessing as mp
+import sys
 import time
 import traceback
 import warnings
@@ -16,6 +18,7 @@ from recon import ReconSettings, reconstruct
 from recon.testing import independent as ind
 
 SNRS = (80.0, 60.0, 50.0, 40.0)
+STUCK_S = 240.0
 
 
 def stress_system(seed: int, protocols=("paper", "rig")) -> tuple[dict, str, float]:
@@ -45,14 +48,20 @@ def run_seed(task) -> list[dict]:
                "truth": rec["truth"], "samples": n_samples, "sim_seconds": t_sim}
         run = to_run(ind.add_noise(rec, snr, seed))
         t1 = time.perf_counter()
+        # a reconstruct that runs for minutes: dump where it is (stderr), once
+        faulthandler.dump_traceback_later(STUCK_S, exit=False, file=sys.stderr)
+        print(f"  seed {seed} {snr:g} dB: reconstruct ...", file=sys.stderr, flush=True)
         try:
             res = reconstruct(run, ReconSettings())
         except Exception as exc:  # noqa: BLE001
+            faulthandler.cancel_dump_traceback_later()
             row.update(status="failed", error=f"{type(exc).__name__}: {exc}"[:400],
                        trace=traceback.format_exc(limit=3)[-800:], seconds=time.perf_counter() - t1)
             rows.append(row)
             continue
+        faulthandler.cancel_dump_traceback_later()
         row["seconds"] = time.perf_counter() - t1
+        print(f"  seed {seed} {snr:g} dB: {row['seconds']:.1f} s", file=sys.stderr, flush=True)
         sc = score(res.model, rec["truth"])
         val = res.validation.get("nrmse", float("nan"))
         if not (isinstance(val, float) and math.isfinite(val)):
