@@ -4,6 +4,13 @@
     python bench/diagnose.py --quick    # 1 seed per effect, strength 1 (the "concealed" level)
     python bench/diagnose.py --strength 0.1 0.3 --snr 50   # weaker effects, noisier sensors
     python bench/diagnose.py --rig      # on the simulated rig's own physics (sim_backend, in-process)
+    python bench/diagnose.py --stress --n 200 --workers 2 --jsonl diag.jsonl   # independent generator (issue 13)
+
+--stress: recordings of recon/testing/independent.py (no code shared with recon): random
+systems, protocols (paper, rig, sweep, multisine), sample rates, SNR and effect strengths,
+each diagnosed as `shakerlab diagnose RUN.h5` does by default; confusion table, right-first
+share, false alarms on clean recordings, held-out NRMSE after against the baseline as given
+and the null model (bench/diagnose_stress.py).
 
 Each recording (recon.testing.concealed: base excitation, 1 kHz, 3 x 4 s stages, 70 dB)
 has one catalog effect concealed; the diagnosis runs blind against the truth's model without
@@ -34,7 +41,15 @@ def main(argv=None) -> int:
                     help="effect strength drawn uniformly in [LO, HI] (1 = concealed level; default 0.5 1.5)")
     ap.add_argument("--rig", action="store_true",
                     help="recordings from sim_backend.physics in-process (shaker + amplifier, 10 kHz read at 1 kHz)")
+    ap.add_argument("--stress", action="store_true", help="independent generator's stress table (issue 13)")
+    ap.add_argument("--n", type=int, default=200, help="--stress: recordings (default 200)")
+    ap.add_argument("--first", type=int, default=0, help="--stress: first recording index")
+    ap.add_argument("--workers", type=int, default=1, help="--stress: worker processes (at most 2)")
+    ap.add_argument("--jsonl", default=None, help="--stress: one JSON row per recording")
     args = ap.parse_args(argv)
+    if args.stress:
+        import diagnose_stress  # bench/diagnose_stress.py
+        return diagnose_stress.main(args)
     if args.rig:
         return rig_table(args)
     n = 1 if args.quick else args.seeds

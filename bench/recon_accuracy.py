@@ -4,6 +4,16 @@ MR-damper examples at SNR 80/60/40/30 dB, pointwise vs weak form.
     python bench/recon_accuracy.py            # full table (several minutes on 2 busy cores)
     python bench/recon_accuracy.py --quick    # 80 and 40 dB, shorter chain records
     python bench/recon_accuracy.py --systems SDOF --snr 40 --seeds 8   # the 40 dB aim over 8 noise seeds
+    python bench/recon_accuracy.py --stress --seeds 50 --workers 2 --jsonl stress.jsonl   # issue 18
+
+--stress: recordings from the independent generator (recon/testing/independent.py, no code
+shared with recon), random TMP-like systems (f_n 5-60 Hz, y^2/y^3 on or off, Bouc-Wen with
+gamma, delta of either sign and gamma + delta > 0), the paper's protocol (even seeds) and the
+rig's protocol (odd seeds), fs log-uniform 1-10 kHz; seed i = system i with noise seed i, the
+same recording at every SNR. Default reconstruct (the CLI's settings). Per SNR: share with the
+exact terms, median and 95th percentile of the worst parameter error, share within 2 % / 5 %
+with the exact terms, share inadmissible (alpha <= 0, gamma + delta <= 0, K <= 0, non-finite,
+or a validation simulation that diverges) and share failed (reconstruct raised).
 
 Columns: max and median relative parameter error [%] (every per-unit-mass parameter and
 fn coefficient of the truth; for chains every layer, mass ratios excluded), spurious and
@@ -123,10 +133,19 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="80 and 40 dB only, 5 s chain records")
     ap.add_argument("--systems", default="SDOF,two-layer,five-layer,MR isolator")
     ap.add_argument("--snr", default=None, help="comma-separated SNRs in dB (default 80,60,40,30)")
-    ap.add_argument("--seeds", type=int, default=1, help="noise seeds per row (0..N-1): the row reports the worst "
+    ap.add_argument("--seeds", type=int, default=None, help="noise seeds per row (0..N-1): the row reports the worst "
                                                           "seed, the median of the per-seed maxima, and how many seeds "
-                                                          "are within 5 %% with the exact pattern")
+                                                          "are within 5 %% with the exact pattern (default 1; --stress: 50)")
+    ap.add_argument("--stress", action="store_true", help="the independent generator's stress table (issue 18)")
+    ap.add_argument("--workers", type=int, default=1, help="--stress: worker processes (at most 2 on a shared machine)")
+    ap.add_argument("--jsonl", default=None, help="--stress: write one JSON row per run to this file")
+    ap.add_argument("--first-seed", type=int, default=0, help="--stress: seeds first-seed .. first-seed+seeds-1")
+    ap.add_argument("--protocols", default="paper,rig", help="--stress: protocols, alternated over the seeds")
     a = ap.parse_args(argv)
+    if a.stress:
+        import recon_stress  # noqa: E402  (bench/recon_stress.py: the --stress table)
+        return recon_stress.main(a)
+    a.seeds = a.seeds or 1
     snrs = [float(s) for s in a.snr.split(",")] if a.snr else ([80.0, 40.0] if a.quick else [80.0, 60.0, 40.0, 30.0])
     warnings.filterwarnings("ignore")
     print("| system | SNR dB | form | max err % | median err % | spurious | missed | seeds exact and <= 5 % "

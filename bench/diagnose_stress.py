@@ -1,0 +1,182 @@
+"""`python bench/diagnose.py --stress`: the diagnosis on recordings of the independent generator
+(issue 13).
+
+Recording i (reproducible from i alone): a random TMP-like system (f_n 5-60 Hz, y^2, y^3 and
+Bouc-Wen each on or off, (gamma, delta) of either sign), a random protocol (paper, rig, sweep,
+multisine), fs log-uniform 1-10 kHz, SNR uniform 40-80 dB (half of them quantised), one
+concealed effect taken in turn from "none" (twice per cycle) and every catalog id the
+generator implements, at a strength uniform in 0.3-1.5 of its nominal scale.
+
+Baseline: what `shakerlab diagnose RUN.h5` does by default ("paper": reconstruct, then
+diagnose against it) for "none" and the physical effects; for the model-term effects
+(cubic_stiffness, quadratic_stiffness, hysteresis) the truth without that term, as a user's
+saved model (`--baseline MODEL.json`): a paper baseline would contain the term already.
+"""
+from __future__ import annotations
+
+import collections
+import json
+import math
+import multiprocessing as mp
+import time
+import traceback
+import warnings
+
+import numpy as np
+
+from independent_run import model_of, to_run
+from recon import diagnose
+from recon.diagnosis.catalog import CATALOG
+from recon.testing import independent as ind
+
+
+def effect_cycle() -> list[str]:
+    ids = [e for e in ind.PHYSICAL_EFFECTS + ind.STRUCTURAL_EFFECTS if e in CATALOG]
+    return ["none", "none"] + ids
+
+
+def draw(i: int) -> dict:
+    """The recording parameters of stress recording i."""
+    rng = np.random.default_rng([i, 13])
+    cyc = effect_cycle()
+    return {"index": i, "system": ind.random_system(rng, hysteresis=None),
+            "protocol": str(rng.choice(ind.PROTOCOLS)),
+            "fs": float(np.round(math.exp(rng.uniform(math.log(1000.0), math.log(10000.0))))),
+            "snr": float(np.round(rng.uniform(40.0, 80.0), 1)),
+            "quantisation": float(rng.uniform(0.2, 1.0)) if rng.random() < 0.5 else None,
+            "effect": cyc[i % len(cyc)], "strength": float(rng.uniform(0.3, 1.5))}
+
+
+def _ambiguous_ids(out: dict) -> list[str] | None:
+    """The ids of an 'ambiguous' answer, if the diagnosis JSON has such a key (issue 13)."""
+    amb = out.get("ambiguous")
+    if not amb:
+        return None
+    ids = []
+    for a in amb if isinstance(amb, list) else [amb]:
+        if isinstance(a, str):
+            ids.append(a)
+        elif isinstance(a, dict):
+            for k in ("id", "ids", "candidates"):
+                v = a.get(k)
+                ids += [v] if isinstance(v, str) else [x if isinstance(x, str) else x.get("id") for x in (v or [])]
+    return [x for x in ids if x]
+
+
+def run_one(i: int) -> dict:
+    warnings.filterwarnings("ignore")
+    d = draw(i)
+    row = {k: v for k, v in d.items()}
+    t0 = time.perf_counter()
+    try:
+        rec = ind.simulate(d["system"], d["protocol"], d["fs"], d["effect"], d["strength"], seed=i)
+        rec = ind.add_noise(rec, d["snr"], i, d["quantisation"])
+    except Exception as exc:  # noqa: BLE001
+        row.update(status="generator failed", error=f"{type(exc).__name__}: {exc}")
+        return row
+    row["sim_seconds"] = time.perf_counter() - t0
+    row["effect_parameters"] = rec["effect_parameters"]
+    row["truth"] = rec["truth"]
+    row["samples"] = sum(int(s["t"].size) for s in rec["stages"].values())
+    baseline = model_of(rec["baseline"]) if "baseline" in rec else "paper"
+    row["baseline"] = "paper" if baseline == "paper" else "truth without the term"
+    t1 = time.perf_counter()
+    try:
+        out = diagnose(to_run(rec), baseline=baseline).to_dict()
+    except Exception as exc:  # noqa: BLE001 - a raised diagnosis is a row
+        row.update(status="failed", error=f"{type(exc).__name__}: {exc}"[:400],
+                   trace=traceback.format_exc(limit=4)[-800:], seconds=time.perf_counter() - t1)
+        return row
+    row["seconds"] = time.perf_counter() - t1
+    ids = [m["id"] for m in out["missing_physics"]]
+    amb = _ambiguous_ids(out)
+    first = "ambiguous" if amb else (ids[0] if ids else "none")
+    true = d["effect"]
+    fb, fa = out["fit_before"], out["fit_after"]
+    given_key = next((k for k in fb if "held" in k and "given" in k), None)
+    held_stages = [s for s in fb["nrmse"] if s.startswith("validation")]
+    given = fb[given_key] if given_key else (fb["nrmse"][held_stages[0]] if len(held_stages) == 1 else None)
+    row.update(status="ok", named=ids, ambiguous=amb, first=first,
+               right=(first == true) if true != "none" and not amb else (bool(amb) and true in amb) if amb
+               else first == "none",
+               held_out={"as_given": given, "null": fb.get("held_out_nrmse"), "after": fa.get("held_out_nrmse")},
+               parameters={m["id"]: {k: v["value"] for k, v in m["parameters"].items()}
+                           for m in out["missing_physics"]},
+               result=out["result"])
+    h = row["held_out"]
+    if ids:
+        row["after_beats_both"] = bool(h["after"] is not None and h["null"] is not None and h["as_given"] is not None
+                                       and h["after"] < h["null"] and h["after"] < h["as_given"])
+    return row
+
+
+def report(rows: list[dict]) -> list[str]:
+    ok = [r for r in rows if r["status"] == "ok"]
+    cols = sorted({r["first"] for r in ok} - {"none", "ambiguous"})
+    cols = cols + ["none", "ambiguous", "error"]
+    trues = [e for e in effect_cycle() if e != "none" or True]
+    trues = list(dict.fromkeys(trues))
+    out = ["| true \\ named first | n | " + " | ".join(cols) + " | right first |",
+           "| --- | --- | " + " | ".join("---" for _ in cols) + " | --- |"]
+    for t in trues:
+        rs = [r for r in rows if r["effect"] == t]
+        if not rs:
+            continue
+        c = collections.Counter("error" if r["status"] != "ok" else r["first"] for r in rs)
+        right = sum(r.get("right", False) for r in rs)
+        out.append(f"| {t} | {len(rs)} | " + " | ".join(str(c.get(k, 0) or ".") for k in cols)
+                   + f" | {right}/{len(rs)} |")
+    n = len(rows)
+    right = sum(r.get("right", False) for r in rows)
+    eff = [r for r in rows if r["effect"] != "none"]
+    clean = [r for r in rows if r["effect"] == "none"]
+    fa = sum(r["status"] == "ok" and r["first"] != "none" for r in clean)
+    named = [r for r in ok if r["named"]]
+    beats = sum(r["after_beats_both"] for r in named)
+    errs = sum(r["status"] != "ok" for r in rows)
+    out += ["",
+            f"right first (or in an ambiguous pair that holds it): {right}/{n} = {right / max(n, 1):.1%} "
+            f"(effects only: {sum(r.get('right', False) for r in eff)}/{len(eff)})",
+            f"false alarms on clean recordings: {fa}/{len(clean)} = {fa / max(len(clean), 1):.1%}",
+            f"named cases with held-out NRMSE after < both the baseline as given and the null model: "
+            f"{beats}/{len(named)} = {beats / max(len(named), 1):.1%}",
+            f"diagnose raised / generator failed: {errs}/{n}"]
+    secs = [r["seconds"] for r in rows if "seconds" in r]
+    sims = [r["sim_seconds"] for r in rows if "sim_seconds" in r]
+    if secs:
+        out.append(f"time per recording: generate median {np.median(sims):.1f} s (max {max(sims):.1f}), diagnose "
+                   f"median {np.median(secs):.1f} s (max {max(secs):.1f})")
+    by_p = collections.defaultdict(list)
+    for r in rows:
+        by_p[r["protocol"]].append(r.get("right", False))
+    out.append("right first by protocol: " + ", ".join(f"{p} {sum(v)}/{len(v)}" for p, v in sorted(by_p.items())))
+    return out
+
+
+def main(args) -> int:
+    n = args.n
+    ids = list(range(args.first, args.first + n))
+    workers = max(1, min(args.workers, 2))
+    out = open(args.jsonl, "w") if args.jsonl else None
+    rows = []
+    t0 = time.perf_counter()
+    pool = mp.get_context("fork").Pool(workers) if workers > 1 else None
+    it = pool.imap_unordered(run_one, ids) if pool else map(run_one, ids)
+    for k, r in enumerate(it, 1):
+        rows.append(r)
+        if out:
+            out.write(json.dumps(r, default=float) + "\n")
+            out.flush()
+        print(f"[{k}/{n}] #{r['index']} {r['effect']} ({r['strength']:.2f}) {r['protocol']} fs {r['fs']:g} "
+              f"snr {r['snr']:g}: {r['status']} first={r.get('first')} named={r.get('named')} "
+              f"sim {r.get('sim_seconds', 0):.1f} s diag {r.get('seconds', 0):.1f} s"
+              + (f" ERROR {r['error'][:120]}" if "error" in r else ""), flush=True)
+    if pool:
+        pool.close()
+        pool.join()
+    if out:
+        out.close()
+    print(f"\n{n} recordings of the independent generator (#{args.first}..#{args.first + n - 1}), {workers} worker(s), "
+          f"wall {time.perf_counter() - t0:.0f} s")
+    print("\n".join(report(rows)))
+    return 0

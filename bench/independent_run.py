@@ -1,0 +1,57 @@
+"""Recordings of the independent generator (recon/testing/independent.py) as shakerlab runs.
+
+The generator returns plain dicts and knows nothing of shakerlab; this is the bridge the
+stress benches use to call recon.reconstruct / recon.diagnose in-process. A stage is built
+the way `shakerlab import` builds one from a CSV: time from zero, the original start kept in
+``settings["source_t0"]`` (the session clock a stiffness drift runs on).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from recon.model import HystereticModel
+from shakerlab.run_data import Run, Stage
+
+KEYS = ("c_m", "k_m", "alpha_m", "gamma", "delta")
+
+
+def to_run(rec: dict) -> Run:
+    stages = {}
+    for name, st in rec["stages"].items():
+        t = np.asarray(st["t"], float)
+        chans = ("x_base", "x_tip") if st["excitation"] == "base" else ("force", "x")
+        stages[name] = Stage(name, t - t[0], {c: np.asarray(st[c], float) for c in chans}, st["excitation"],
+                             settings={"source_t0": float(t[0]), "sampling_jitter": 0.0})
+    src = f"independent:seed={rec.get('system_seed', rec.get('seed'))},{rec['protocol']},{rec['effect']}"
+    return Run(stages, attrs={"source": "independent generator"}, source=src)
+
+
+def model_of(params: dict, excitation: str = "base") -> HystereticModel:
+    """A HystereticModel from the generator's per-unit-mass truth dict."""
+    return HystereticModel.from_dict({"excitation": excitation, "parameters": params,
+                                      "provenance": {"source": "recon.testing.independent"}})
+
+
+def score(model: HystereticModel, truth: dict) -> dict:
+    """Relative errors of every per-unit-mass parameter and fn coefficient of the truth (a missed
+    term counts 100 %), spurious and missed terms, admissibility of the estimate."""
+    err = {k: abs(getattr(model, k) / truth[k] - 1) for k in KEYS if truth[k] != 0}
+    for k, v in truth["fn_m"].items():
+        err[k] = abs(model.fn_m.get(k, 0.0) / v - 1)
+    spur = sorted(set(model.fn_m) - set(truth["fn_m"]))
+    miss = sorted(set(truth["fn_m"]) - set(model.fn_m))
+    vals = [model.c_m, model.k_m, model.alpha_m, model.gamma, model.delta, *model.fn_m.values()]
+    reasons = []
+    if not all(math.isfinite(v) for v in vals):
+        reasons.append("non-finite parameter")
+    if not model.alpha_m > 0:
+        reasons.append(f"alpha_m = {model.alpha_m:.4g} <= 0")
+    if not model.gamma + model.delta > 0:
+        reasons.append(f"gamma + delta = {model.gamma + model.delta:.4g} <= 0 (Bouc-Wen does not saturate)")
+    if not model.K_m > 0:
+        reasons.append(f"K_m = {model.K_m:.4g} <= 0")
+    worst = max(err.values()) if err else float("nan")
+    return {"errors": err, "worst": worst, "worst_param": max(err, key=err.get) if err else None,
+            "spurious": spur, "missed": miss, "exact": not spur and not miss, "inadmissible": reasons}

@@ -1,0 +1,104 @@
+"""The independent generator (recon/testing/independent.py) used by the stress benches of
+issues 13 and 18: it must share no code with shakerlab, and its physics must be right."""
+from __future__ import annotations
+
+import ast
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+GEN = ROOT / "recon" / "testing" / "independent.py"
+ALLOWED_TOP = {"__future__", "math", "numpy", "scipy"}
+
+
+def _load():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("independent_generator_under_test", GEN)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_generator_imports_only_numpy_scipy_and_the_standard_library():
+    tree = ast.parse(GEN.read_text(encoding="utf-8"))
+    tops = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            tops |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            assert node.level == 0, f"relative import at line {node.lineno}"
+            tops.add(node.module.split(".")[0])
+    assert tops <= ALLOWED_TOP, f"imports beyond numpy/scipy/stdlib: {sorted(tops - ALLOWED_TOP)}"
+    assert not tops & {"recon", "shakerlab", "numba", "sim_backend", "rig", "workflows"}
+
+
+def test_generator_loads_without_any_project_module():
+    code = ("import importlib.util, sys\n"
+            f"spec = importlib.util.spec_from_file_location('gen', {str(GEN)!r})\n"
+            "m = importlib.util.module_from_spec(spec); spec.loader.exec_module(m)\n"
+            "bad = sorted(k for k in sys.modules if k.split('.')[0] in "
+            "('recon', 'shakerlab', 'sim_backend', 'rig', 'drivers', 'workflows', 'numba'))\n"
+            "print(','.join(bad))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd="/")
+    assert out.stdout.strip() == ""
+
+
+def _linear_system(f_n=12.0, zeta=0.02, m=0.2):
+    K = m * (2 * math.pi * f_n) ** 2
+    return {"m": m, "c": 2 * zeta * math.sqrt(K * m), "k": K, "alpha": 0.0, "gamma": 0.0, "delta": 0.0,
+            "k2": 0.0, "k3": 0.0, "f_n": f_n, "zeta": zeta, "Y": 1e-3, "bw_kind": "none"}
+
+
+def _fundamental(t, x, f):
+    w = 2 * math.pi * f
+    A = np.column_stack([np.sin(w * t), np.cos(w * t), np.ones_like(t)])
+    c = np.linalg.lstsq(A, x, rcond=None)[0]
+    return complex(c[1], -c[0])   # amplitude and phase of the sin component, as a phasor
+
+
+def test_linear_system_gain_and_resonance_match_the_analytic_sdof():
+    gen = _load()
+    s = _linear_system()
+    ratios = []
+    freqs = s["f_n"] * np.array([0.5, 0.9, 0.97, 1.0, 1.03, 1.1])
+    for f in freqs:
+        rec = gen.simulate_tone(s, f, 1e-4, hold_s=60.0 / f if f != freqs[0] else 20.0 / f, fs=2000.0)
+        t = rec["t"]
+        a, b = rec["hold"]
+        sel = (t > a + 0.6 * (b - a)) & (t < b)     # steady state (time constant 1/(zeta w) = 0.66 s)
+        Y = _fundamental(t[sel], (rec["x_tip"] - rec["x_base"])[sel], f)
+        X = _fundamental(t[sel], rec["x_base"][sel], f)
+        r = f / s["f_n"]
+        analytic = r ** 2 / (1 - r ** 2 + 2j * s["zeta"] * r)
+        assert abs(Y / X) == pytest.approx(abs(analytic), rel=5e-3)
+        ratios.append(abs(Y / X))
+    # the relative-displacement resonance of a base-excited SDOF is at f_n / sqrt(1 - 2 zeta^2)
+    assert freqs[int(np.argmax(ratios))] == pytest.approx(s["f_n"], rel=1e-9)
+
+
+def test_truth_is_per_unit_mass_with_shakerlab_names():
+    gen = _load()
+    s = gen.random_system(np.random.default_rng(3), hysteresis=True, quadratic=True, cubic=True)
+    tr = gen.truth_per_unit_mass(s)
+    assert set(tr) == {"c_m", "k_m", "alpha_m", "gamma", "delta", "fn_m"}
+    assert set(tr["fn_m"]) == {"y^2", "y^3"}
+    assert tr["k_m"] + tr["alpha_m"] == pytest.approx((2 * math.pi * s["f_n"]) ** 2, rel=1e-12)
+    assert tr["gamma"] + tr["delta"] > 0 and tr["alpha_m"] > 0
+
+
+def test_noise_is_at_the_requested_snr_of_each_channel():
+    gen = _load()
+    rec = {"excitation": "base", "stages": {"a": {"t": np.arange(20000) / 1e3,
+                                                  "x_base": np.sin(np.arange(20000) / 7.0),
+                                                  "x_tip": 3 * np.cos(np.arange(20000) / 5.0),
+                                                  "excitation": "base"}}}
+    noisy = gen.add_noise(rec, 40.0, seed=1)
+    for ch in ("x_base", "x_tip"):
+        x = rec["stages"]["a"][ch]
+        ratio = np.std(noisy["stages"]["a"][ch] - x) / np.sqrt(np.mean(x ** 2))
+        assert ratio == pytest.approx(1e-2, rel=0.03)
