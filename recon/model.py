@@ -37,6 +37,7 @@ CONVENTION = ("per unit mass: every force term is divided by the mass m; base ex
 
 
 PARAMETER_NAMES = ("c_m", "k_m", "alpha_m", "gamma", "delta")   # the physical parameters, per unit mass
+MAX_SUBSTEPS = 64   # RK4 sub-steps per sample at most (64 steps per period of a resonance at fs)
 
 
 def signed(value: float, term: str) -> str:
@@ -215,8 +216,9 @@ class HystereticModel:
         if np.any(np.abs(dts - dt) > 1e-6 * dt + 1e-12):
             raise UserFacingError("simulate: t must be uniformly sampled")
         coef, p, r = self.fn_arrays()
-        if n_sub is None:
-            n_sub = substeps(dt, max(abs(self.K_m), abs(self.k_m), 1.0))
+        if n_sub is None:   # capped: a trial stiffer than that (resonance above ~fs) is far from any record;
+            # uncapped, one such output-error trial took minutes (issue 18), capped it diverges and is rejected
+            n_sub = min(substeps(dt, max(abs(self.K_m), abs(self.k_m), 1.0)), MAX_SUBSTEPS)
         y0, v0, z0 = (0.0, 0.0, 0.0) if initial is None else (float(v) for v in initial)
         return simulate_sdof(u, dt, int(n_sub), self.input_gain, self.c_m, self.k_m, self.alpha_m,
                              self.gamma, self.delta, coef, p, r, y0, v0, z0)

@@ -5,9 +5,11 @@ alpha <= 0, a Bouc-Wen law that does not saturate, a negative stiffness, or a si
 that diverges), or when every pass failed numerically, the answer is the admissible
 model of the simplest kinds below that predicts the held-out stages best:
 
-1. ``bouc_wen_fewer_terms``: the Bouc-Wen law with only the estimate's fn terms of degree
-   <= 3, started from the estimate folded into the admissible region;
-2. ``bouc_wen``: the Bouc-Wen law without fn terms;
+1. ``bouc_wen_fewer_terms``: the Bouc-Wen law with y^2, y^3 and the estimate's other fn terms
+   of degree <= 3 whose force is plausible, started from the estimate folded into the
+   admissible region and from a generic start (half the stiffness hysteretic, the loop's knee
+   at the nonlinear stage's amplitude);
+2. ``bouc_wen``: the Bouc-Wen law without fn terms, from the same starts;
 3. ``equivalent_linear``: no hysteresis; stiffness and damping that change with amplitude
    (c y' + k y + k3 y^3 + c3 y^2 y');
 4. ``linear``: c y' + k y.
@@ -133,38 +135,62 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
     starts = {"linear": (HystereticModel(**base), ["c_m", "k_m"] + extra),
               "equivalent_linear": (HystereticModel(**dict(base, fn_m={"y^3": 0.0, "y^2*dy": 0.0})),
                                     ["c_m", "k_m", "fn:y^3", "fn:y^2*dy"] + extra)}
-    if estimate is not None and np.all(np.isfinite([estimate.alpha_m, estimate.gamma, estimate.delta])) \
-            and estimate.alpha_m != 0.0:
+    keys_h = ["c_m", "k_m", "alpha_m", "gamma", "delta"] + extra
+    # a generic Bouc-Wen start: half the stiffness hysteretic, the loop's knee at the nonlinear
+    # stage's amplitude (lambda Y = 1)
+    y_nl = run.stage(settings.nonlinear_stage).y if settings.nonlinear_stage in run.stages else None
+    amp = float(np.sqrt(2.0) * np.std(y_nl)) if y_nl is not None and np.std(y_nl) > 0 else 1.0
+    generic = dict(base, alpha_m=0.5 * k0, k_m=0.5 * k0, gamma=0.5 / amp, delta=0.5 / amp)
+    bw_starts = [HystereticModel(**generic)]
+    few = {}
+    plausible = (estimate is not None and estimate.alpha_m != 0.0
+                 and np.all(np.isfinite([estimate.alpha_m, estimate.gamma, estimate.delta]))
+                 and abs(estimate.alpha_m) < 10 * k0)   # a split of k and alpha that cancels is no start
+    if plausible:
         g, d = estimate.gamma, estimate.delta
         if not g + d > 0:
             g, d = abs(g), abs(d)
         if not g + d > 0:
-            g = d = 1.0
+            g = d = 0.5 / amp
         alpha = abs(estimate.alpha_m)
-        hyst = dict(base, alpha_m=alpha, gamma=g, delta=d, k_m=max(k0 - alpha, 0.05 * k0))
-        few = {k: v for k, v in estimate.fn_m.items() if sum(monomials.parse(k)) <= 3 and np.isfinite(v)}
-        keys_h = ["c_m", "k_m", "alpha_m", "gamma", "delta"] + extra
-        starts["bouc_wen"] = (HystereticModel(**hyst), keys_h)
-        if few:
-            starts["bouc_wen_fewer_terms"] = (HystereticModel(**dict(hyst, fn_m=dict(few))),
-                                              keys_h + [f"fn:{k}" for k in few])
+        bw_starts.insert(0, HystereticModel(**dict(base, alpha_m=alpha, gamma=g, delta=d,
+                                                   k_m=max(k0 - alpha, 0.05 * k0))))
+    # the TMP law's stiffness terms (started at 0), and the estimate's other terms of degree <= 3
+    # whose force at the stage's amplitude is plausible (below 10 times the elastic force)
+    few = {"y^2": 0.0, "y^3": 0.0}
+    if estimate is not None:
+        few.update({k: v for k, v in estimate.fn_m.items() if sum(monomials.parse(k)) <= 3 and np.isfinite(v)
+                    and abs(v) * amp ** sum(monomials.parse(k)) < 10 * k0 * amp})
+    starts["bouc_wen"] = (bw_starts, keys_h)
+    if few:
+        with_terms = []
+        for m in bw_starts:
+            mt = HystereticModel.from_dict(m.to_dict())
+            mt.fn_m, mt.provenance = dict(few), m.provenance
+            with_terms.append(mt)
+        starts["bouc_wen_fewer_terms"] = (with_terms, keys_h + [f"fn:{k}" for k in few])
     out = []
     for kind in KINDS:
         if kind not in starts:
             continue
-        start, free = starts[kind]
-        try:
-            data = [decimate(start.fit_item(run.stage(n)))[0] for n in fitted]
-            # the fn terms start at 0 and take the scale of 1 % of the elastic force
-            m = _fit(_with_term_scales(start, data), data, free, max_nfev)
-            if not admissible(m):
-                out.append(SimplerFit(kind, m, float("inf"), float("inf"), "the fitted model is not admissible"))
+        first, free = starts[kind]
+        tried = []
+        for start in (first if isinstance(first, list) else [first]):
+            try:
+                data = [decimate(start.fit_item(run.stage(n)))[0] for n in fitted]
+                # fn terms that start at 0 take the scale of 1 % of the elastic force
+                m = _fit(_with_term_scales(start, data), data, free, max_nfev)
+            except NUMERICAL_ERRORS as e:
+                tried.append(SimplerFit(kind, None, float("inf"), float("inf"), f"{type(e).__name__}: {e}"))
                 continue
-            held = score(m, run, names)
+            if not admissible(m):
+                tried.append(SimplerFit(kind, m, float("inf"), float("inf"), "the fitted model is not admissible"))
+                continue
             fit_err = score(m, run, list(fitted))
-            out.append(SimplerFit(kind, m, held, fit_err, None if math.isfinite(held) else "its simulation diverges"))
-        except NUMERICAL_ERRORS as e:
-            out.append(SimplerFit(kind, None, float("inf"), float("inf"), f"{type(e).__name__}: {e}"))
+            tried.append(SimplerFit(kind, m, score(m, run, names), fit_err,
+                                    None if math.isfinite(fit_err) else "its simulation diverges"))
+        # of several starts, the one that fits the fitted stages best (the held-out stages choose the kind)
+        out.append(min(tried, key=lambda f: (f.failed is not None, f.fitted_nrmse)))
     return out
 
 
