@@ -340,8 +340,8 @@ def test_sigterm_to_shakerlab_gui_mid_run_aborts_safely(tmp_path):
         deadline = time.monotonic() + 60
         path = None
         while time.monotonic() < deadline:  # samples are being recorded (the writer holds the HDF5 lock,
-            files = list(out.glob("run-*.h5")) if out.exists() else []   # so watch the size, not the content)
-            if files:
+            files = list(out.glob("run-*.h5.partial")) if out.exists() else []   # so watch the size, not the
+            if files:                                                           # content; recorded as .partial)
                 path = files[0]
                 if path.stat().st_size > 150_000:
                     break
@@ -352,6 +352,8 @@ def test_sigterm_to_shakerlab_gui_mid_run_aborts_safely(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
+    assert not path.exists()                   # closed, checked and renamed into place
+    path = path.with_name(path.name.removesuffix(".partial"))
     info = read_info(path)
     assert info["clean_close"] and info["status"] == "aborted"
     assert info["stages"]["linear"]["n_samples"] > 1000
