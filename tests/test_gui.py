@@ -341,7 +341,7 @@ def test_sigterm_to_shakerlab_gui_mid_run_aborts_safely(tmp_path):
         path = None
         while time.monotonic() < deadline:  # samples are being recorded (the writer holds the HDF5 lock,
             # the run is recorded in RUN.h5.partial and renamed to RUN.h5 when it is closed
-            files = list(out.glob("run-*.h5*")) if out.exists() else []   # so watch the size, not the content)
+            files = [f for f in out.glob("run-*.h5*") if f.suffix in (".h5", ".partial")] if out.exists() else []
             if files:
                 path = files[0]
                 if path.stat().st_size > 150_000:
