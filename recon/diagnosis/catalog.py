@@ -66,8 +66,10 @@ def _contact(base, ctx):
 
 
 def _delay(base, ctx):
-    m = _am(base, {"delay": 0.0}, "channel_delay")
-    return [(m, ["x:delay"], {"x:delay": ctx["dt"]}, {"x:delay": (-20 * ctx["dt"], 20 * ctx["dt"])})]
+    # the displacement reading lags the input reading (d >= 0; a lead is not a sensor delay); the
+    # fit starts inside the bound, a quarter sample, not on it
+    m = _am(base, {"delay": 0.25 * ctx["dt"]}, "channel_delay")
+    return [(m, ["x:delay"], {"x:delay": ctx["dt"]}, {"x:delay": (0.0, 20 * ctx["dt"])})]
 
 
 def _scale(base, ctx):
