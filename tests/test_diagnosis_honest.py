@@ -130,3 +130,37 @@ def test_implausible_fits_are_named_with_their_reasons():
     w1 = math.sqrt(baseline.K_m)
     same = fr({"w2": 1.05 * w1, "zeta2": 0.02, "phi2": 0.1}, "higher_mode", {"x:w2": 1.0})
     assert any("fundamental" in w for w in implausible("higher_mode", same, ref, data))
+
+
+# ----------------------------------------------------------------- catalog additions
+def _with_term(run, baseline, term, value, seed=0):
+    """``run`` re-recorded through ``baseline`` plus fn term ``term`` (the augmented simulator)."""
+    from shakerlab.run_data import Run, Stage
+    truth = AugmentedModel(baseline.__class__.from_dict(baseline.to_dict()))
+    truth.baseline.fn_m[term] = value
+    data = rank.prepare(run, baseline)
+    rng = np.random.default_rng(seed)
+    stages = {}
+    for d in data:
+        st = run.stage(d.name)
+        y = truth.simulate(d.t, d.u, d.x_in)[0]
+        x_tip = st.channels["x_base"] + y
+        x_tip = x_tip + rng.normal(0, 10 ** (-70 / 20) * np.std(x_tip), x_tip.size)
+        stages[d.name] = Stage(name=d.name, t=st.t, channels={"x_base": st.channels["x_base"], "x_tip": x_tip},
+                               excitation=st.excitation)
+    return Run(stages=stages, source=f"test:{term}")
+
+
+@pytest.mark.parametrize("cid,term,value", [("offset", "y^0", 0.4), ("amplitude_damping", "y^2*dy", 1.5e6)])
+def test_new_catalog_entries_are_found(cid, term, value):
+    from recon.diagnosis.catalog import CATALOG
+    assert {"cubic_stiffness", "hysteresis", "offset", "amplitude_damping"} <= set(CATALOG)
+    run0, _, _, baseline = concealed_run(None, seed=7, duration=2.0, snr_db=None)
+    baseline.fn_m.pop(term, None)
+    run = _with_term(run0, baseline, term, value)
+    out = diagnose(run, baseline, candidates=[cid, "coulomb_friction", "quadratic_damping", "cubic_stiffness"]).to_dict()
+    ids = [m["id"] for m in out["missing_physics"]]
+    assert ids[:1] == [cid], out["candidates_tested"]
+    p = out["missing_physics"][0]["parameters"][term]
+    assert abs(p["value"] / value - 1) < 0.15 and p["interval"][0] > 0
+    assert out["fit_after"]["held_out_nrmse"] < 0.5 * out["fit_before"]["held_out_nrmse"]

@@ -151,6 +151,18 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
               "model change: extra mode q'' + 2 zeta w q' + w^2 q = g u, reading += phi q",
               "a second-order oscillator driven by the same input, added to the displacement output",
               ("x:w2", "x:zeta2", "x:phi2"), _higher_mode, screen_keys=1),
+    Candidate("offset",
+              "a constant force acts on the specimen (a preload, gravity on a tilted rig, a sensor or amplifier "
+              "offset): the response sits off its centre by f0 / k",
+              "library term y^0 (a constant f0 per unit mass) in fn", "fn gains f0 y^0 (RK4 of the augmented SDOF)",
+              ("fn:y^0",), _fn_start("y^0", "offset", lambda c: 0.01 * c["acc_rms"]),
+              lambda b, c: "y^0" not in b.fn_m, column=lambda am, t, y, dy: np.ones_like(y)),
+    Candidate("amplitude_damping",
+              "the damping grows with the displacement amplitude (micro-slip in bolted or clamped joints): "
+              "a y^2 y' dissipation term",
+              "library term y^2*dy in fn", "fn gains b y^2 y' (RK4 of the augmented SDOF)", ("fn:y^2*dy",),
+              _fn_start("y^2*dy", "amplitude_damping", lambda c: 0.01 * c["acc_rms"] / (c["y_rms"] ** 2 * c["v_rms"])),
+              lambda b, c: "y^2*dy" not in b.fn_m, column=lambda am, t, y, dy: y ** 2 * dy),
     Candidate("hysteresis",
               "the restoring force depends on the history of motion (a Bouc-Wen hysteretic loop) "
               "that the baseline without hysteresis cannot produce",

@@ -46,6 +46,8 @@ SIGNATURES = {
     "cubic_stiffness": ("state_beyond_displacement", "frequency_harmonic"),
     "quadratic_stiffness": ("state_beyond_displacement", "frequency_harmonic"),
     "hysteresis": ("state_cluster", "correlation_tests"),
+    "offset": ("state_cluster",),
+    "amplitude_damping": ("state_cluster", "frequency_harmonic"),
 }
 
 
@@ -169,6 +171,8 @@ def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data) -> list
         t_end = max(float(d.t[-1]) for d in data)
         if abs(m.get("drift")) * t_end > 0.5:
             why.append(f"stiffness drift of {m.get('drift') * t_end:+.0%} over the session")
+    if cid == "amplitude_damping" and b.fn_m.get("y^2*dy", 0.0) < 0:
+        why.append(f"negative amplitude-dependent damping {b.fn_m['y^2*dy']:.4g} (feeds energy in)")
     if cid == "hysteresis" and not (b.alpha_m > 0 and b.gamma + b.delta > 0):
         why.append(f"inadmissible Bouc-Wen (alpha_m {b.alpha_m:.4g}, gamma + delta {b.gamma + b.delta:.4g})")
     cand = CATALOG[cid]
