@@ -164,3 +164,37 @@ def test_new_catalog_entries_are_found(cid, term, value):
     p = out["missing_physics"][0]["parameters"][term]
     assert abs(p["value"] / value - 1) < 0.15 and p["interval"][0] > 0
     assert out["fit_after"]["held_out_nrmse"] < 0.5 * out["fit_before"]["held_out_nrmse"]
+
+
+# ----------------------------------------------------------------- ambiguity
+def test_ambiguous_pair_rule():
+    from recon.diagnosis.ambiguity import ambiguous_pair
+    ranked = [{"id": "coulomb_friction", "n_eff": 200.0}, {"id": "quadratic_damping", "n_eff": 200.0}]
+    # 2 % apart in MSE: 200 ln(1.02) = 4 < 10, the held-out data cannot tell them apart
+    assert ambiguous_pair(ranked, set(), {"coulomb_friction": 1.0, "quadratic_damping": 1.02}, 10.0) == \
+        ["coulomb_friction", "quadratic_damping"]
+    # 20 % apart: 200 ln(1.2) = 36 > 10: the first is clearly better
+    assert ambiguous_pair(ranked, set(), {"coulomb_friction": 1.0, "quadratic_damping": 1.2}, 10.0) is None
+    # the runner-up adds on top of the first (kept by the forward step): two effects, not rivals
+    assert ambiguous_pair(ranked, {"quadratic_damping"}, {"coulomb_friction": 1.0, "quadratic_damping": 1.0},
+                          10.0) is None
+
+
+@pytest.mark.parametrize("pair,stages", [(["coulomb_friction", "quadratic_damping"], ["validation_amplitude"]),
+                                         (["sensor_scale", "parameter_drift"], ["validation_frequency"]),
+                                         (["sensor_scale", "cubic_stiffness"],
+                                          ["validation_amplitude", "validation_frequency"])])
+def test_separating_protocol_is_accepted_by_acquire(tmp_path, pair, stages):
+    # what `shakerlab acquire --protocol FILE` checks before anything moves: the protocol schema
+    # (rig.protocol.load_protocol) and the rig config's limits (the simulated rig's default config)
+    from recon.diagnosis.ambiguity import separating_stage
+    from rig.config import load_config
+    from rig.protocol import load_protocol
+    sep = separating_stage(pair)
+    assert sep["stages"] == stages and sep["reason"]
+    path = tmp_path / "separate.toml"
+    path.write_text(sep["protocol_toml"])
+    proto = load_protocol(path)
+    names = [v.get("name") for v in proto.validation]
+    assert [n for n in names if n in stages] == stages
+    proto.check_against_limits(load_config(None).limits)

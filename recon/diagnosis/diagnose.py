@@ -22,6 +22,7 @@ import numpy as np
 
 from recon.determinism import single_thread_blas
 from recon.diagnosis import rank
+from recon.diagnosis.ambiguity import ambiguous_pair, separating_stage
 from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.catalog import CATALOG
 from recon.diagnosis.locate import locate, stage_derivatives
@@ -97,6 +98,7 @@ class Diagnosis:
     context: dict = field(default_factory=dict)
     seconds: float = 0.0
     reference: rank.FitResult | None = None   # the better of the baseline as given and the null model
+    ambiguity: dict | None = None             # two candidates the held-out data cannot tell apart
 
     def to_dict(self) -> dict:
         def clean_ctx(c):
@@ -116,6 +118,8 @@ class Diagnosis:
             "correlation_tests": self.context.get("billings_voon", {}),
             "context": clean_ctx(self.context),
             "augmented_model": self.best.to_dict(),
+            "ambiguous": list(self.ambiguity["ids"]) if self.ambiguity else [],
+            "separating_stage": self.ambiguity,
             "seconds": self.seconds,
         }
 
@@ -318,6 +322,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     sig = [t for t in tested if t["significant"]]
     sig.sort(key=lambda t: -t["explained"])
     combined = None
+    ranked = list(sig)
     if len(sig) > 1:
         # forward step: a runner-up is reported only if it still adds on top of the best one
         best_fr, best_keys, best_sc, best_b, best_free = fits[sig[0]["id"]]
@@ -348,6 +353,9 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                 combined = frc
                 break
         sig = kept
+    pair = ambiguous_pair(ranked, {t["id"] for t in sig[1:]}, {c: f[0].mse_held for c, f in fits.items()},
+                          rank.BIC_MARGIN)
+    ambiguity = separating_stage(pair) if pair else None
     missing = []
     for t in sig:
         fr, keys = fits[t["id"]][:2]
@@ -376,4 +384,4 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                   "noise_nrmse": {d.name: d.noise / d.rms for d in data}}
     return Diagnosis(baseline=base, baseline_kind=kind, fit_before=fit_before, null=null, mismatch=findings,
                      candidates=tested, missing=missing, best=best_fr.model, best_fit=best_fr, context=ctx,
-                     seconds=time.perf_counter() - t0, reference=ref)
+                     seconds=time.perf_counter() - t0, reference=ref, ambiguity=ambiguity)
