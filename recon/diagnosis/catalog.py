@@ -30,6 +30,7 @@ class Candidate:
     applies: Callable = lambda base, ctx: True
     screen_keys: int = 99       # with several starts: how many of the new keys the screening frees
     column: Callable | None = None   # col(am, t, y, dy): the term's regressor when linear in its first key
+    screen_output: bool = False      # with a column and several starts: pick the start by a short output-error fit
 
 
 def _am(base: HystereticModel, extras: dict, cid: str) -> AugmentedModel:
@@ -44,9 +45,17 @@ def _fn_start(term: str, cid: str, scale_of: Callable):
     return starts
 
 
+V0_FACTORS = (0.01, 0.05, 0.2)   # friction smoothing velocities tried, x the smallest stage rms velocity
+
+
 def _coulomb(base, ctx):
-    m = _am(base, {"mu": 0.0, "v0": 0.01 * ctx["v_rms_min"]}, "coulomb_friction")
-    return [(m, ["x:mu"], {"x:mu": 0.01 * ctx["acc_rms"]}, {"x:mu": (0.0, np.inf)})]
+    # the smoothing velocity v0 is not known: a sharp sign (0.01) fits a rig's friction, a joint's
+    # micro-slip is smoother (0.2); each is a start, the best one is kept (see diagnose.py)
+    out = []
+    for f in V0_FACTORS:
+        m = _am(base, {"mu": 0.0, "v0": f * ctx["v_rms_min"]}, "coulomb_friction")
+        out.append((m, ["x:mu"], {"x:mu": 0.01 * ctx["acc_rms"]}, {"x:mu": (0.0, np.inf)}))
+    return out
 
 
 def _quad_damp(base, ctx):
@@ -123,8 +132,8 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
     Candidate("coulomb_friction",
               "dry friction: a force of constant size opposing the motion, independent of amplitude",
               "term mu sign(y') (smoothed: tanh(y'/v0)) in the restoring force",
-              "extra force mu tanh(y'/v0), v0 = 1 % of the smallest stage rms velocity", ("x:mu",), _coulomb,
-              column=lambda am, t, y, dy: np.tanh(dy / am.get("v0"))),
+              "extra force mu tanh(y'/v0), v0 = 1, 5 or 20 % of the smallest stage rms velocity (the best fit)",
+              ("x:mu",), _coulomb, column=lambda am, t, y, dy: np.tanh(dy / am.get("v0")), screen_output=True),
     Candidate("contact_stiffness",
               "one-sided contact: beyond a gap the specimen touches a stop and gets stiffer on that side only",
               "term kc max(s*y - gap, 0) (s = +1 or -1) in the restoring force",

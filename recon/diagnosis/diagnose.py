@@ -253,7 +253,20 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
         if cand.column is not None:     # linear in its first parameter: equation-error step per start
             stepped = [rank.equation_step(m, step_keys, keys[0], cand.column, derivs, data)
                        for m, keys, _, _ in starts]
-            i = int(np.argmin([r for _, r in stepped]))
+            if cand.screen_output and len(starts) > 1:
+                # the starts differ in a fixed shape parameter (friction's v0): the equation residual
+                # cannot rank them (differentiation noise), a short output-error fit can
+                # (from the source model, the new term at its scale: the equation step's increments of
+                # the baseline's terms are biased by the same differentiation noise)
+                scr = []
+                for mm, keys, sc, b in starts:
+                    mm = mm.copy()
+                    set_parameter(mm, keys[0], sc[keys[0]])
+                    scr.append(rank.fit(mm, [keys[0]], data, sc, max_nfev=8, bounds=b))
+                i = int(np.argmin([f.cost_fit for f in scr]))
+                stepped[i] = (scr[i].model, 0.0)
+            else:
+                i = int(np.argmin([r for _, r in stepped]))
             _, keys, sc, b = starts[i]
             m = stepped[i][0]
             lo = b.get(keys[0], (-np.inf, np.inf))[0]
