@@ -99,7 +99,8 @@ def run_one(i: int) -> dict:
     row.update(status="ok", named=ids, ambiguous=amb, first=first,
                right=(first == true) if true != "none" and not amb else (bool(amb) and true in amb) if amb
                else first == "none",
-               held_out={"as_given": given, "null": fb.get("held_out_nrmse"), "after": fa.get("held_out_nrmse")},
+               held_out={"as_given": given, "null": fb.get("refit_held_out_nrmse", fb.get("held_out_nrmse")),
+                         "after": fa.get("held_out_nrmse")},
                parameters={m["id"]: {k: v["value"] for k, v in m["parameters"].items()}
                            for m in out["missing_physics"]},
                result=out["result"])

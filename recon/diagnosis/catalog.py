@@ -30,6 +30,7 @@ class Candidate:
     applies: Callable = lambda base, ctx: True
     screen_keys: int = 99       # with several starts: how many of the new keys the screening frees
     column: Callable | None = None   # col(am, t, y, dy): the term's regressor when linear in its first key
+    screen_output: bool = False      # with a column and several starts: pick the start by a short output-error fit
 
 
 def _am(base: HystereticModel, extras: dict, cid: str) -> AugmentedModel:
@@ -44,9 +45,17 @@ def _fn_start(term: str, cid: str, scale_of: Callable):
     return starts
 
 
+V0_FACTORS = (0.01, 0.05, 0.2)   # friction smoothing velocities tried, x the smallest stage rms velocity
+
+
 def _coulomb(base, ctx):
-    m = _am(base, {"mu": 0.0, "v0": 0.01 * ctx["v_rms_min"]}, "coulomb_friction")
-    return [(m, ["x:mu"], {"x:mu": 0.01 * ctx["acc_rms"]}, {"x:mu": (0.0, np.inf)})]
+    # the smoothing velocity v0 is not known: a sharp sign (0.01) fits a rig's friction, a joint's
+    # micro-slip is smoother (0.2); each is a start, the best one is kept (see diagnose.py)
+    out = []
+    for f in V0_FACTORS:
+        m = _am(base, {"mu": 0.0, "v0": f * ctx["v_rms_min"]}, "coulomb_friction")
+        out.append((m, ["x:mu"], {"x:mu": 0.01 * ctx["acc_rms"]}, {"x:mu": (0.0, np.inf)}))
+    return out
 
 
 def _quad_damp(base, ctx):
@@ -66,8 +75,10 @@ def _contact(base, ctx):
 
 
 def _delay(base, ctx):
-    m = _am(base, {"delay": 0.0}, "channel_delay")
-    return [(m, ["x:delay"], {"x:delay": ctx["dt"]}, {"x:delay": (-20 * ctx["dt"], 20 * ctx["dt"])})]
+    # the displacement reading lags the input reading (d >= 0; a lead is not a sensor delay); the
+    # fit starts inside the bound, a quarter sample, not on it
+    m = _am(base, {"delay": 0.25 * ctx["dt"]}, "channel_delay")
+    return [(m, ["x:delay"], {"x:delay": ctx["dt"]}, {"x:delay": (0.0, 20 * ctx["dt"])})]
 
 
 def _scale(base, ctx):
@@ -121,8 +132,8 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
     Candidate("coulomb_friction",
               "dry friction: a force of constant size opposing the motion, independent of amplitude",
               "term mu sign(y') (smoothed: tanh(y'/v0)) in the restoring force",
-              "extra force mu tanh(y'/v0), v0 = 1 % of the smallest stage rms velocity", ("x:mu",), _coulomb,
-              column=lambda am, t, y, dy: np.tanh(dy / am.get("v0"))),
+              "extra force mu tanh(y'/v0), v0 = 1, 5 or 20 % of the smallest stage rms velocity (the best fit)",
+              ("x:mu",), _coulomb, column=lambda am, t, y, dy: np.tanh(dy / am.get("v0")), screen_output=True),
     Candidate("contact_stiffness",
               "one-sided contact: beyond a gap the specimen touches a stop and gets stiffer on that side only",
               "term kc max(s*y - gap, 0) (s = +1 or -1) in the restoring force",
@@ -149,6 +160,18 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
               "model change: extra mode q'' + 2 zeta w q' + w^2 q = g u, reading += phi q",
               "a second-order oscillator driven by the same input, added to the displacement output",
               ("x:w2", "x:zeta2", "x:phi2"), _higher_mode, screen_keys=1),
+    Candidate("offset",
+              "a constant force acts on the specimen (a preload, gravity on a tilted rig, a sensor or amplifier "
+              "offset): the response sits off its centre by f0 / k",
+              "library term y^0 (a constant f0 per unit mass) in fn", "fn gains f0 y^0 (RK4 of the augmented SDOF)",
+              ("fn:y^0",), _fn_start("y^0", "offset", lambda c: 0.01 * c["acc_rms"]),
+              lambda b, c: "y^0" not in b.fn_m, column=lambda am, t, y, dy: np.ones_like(y)),
+    Candidate("amplitude_damping",
+              "the damping grows with the displacement amplitude (micro-slip in bolted or clamped joints): "
+              "a y^2 y' dissipation term",
+              "library term y^2*dy in fn", "fn gains b y^2 y' (RK4 of the augmented SDOF)", ("fn:y^2*dy",),
+              _fn_start("y^2*dy", "amplitude_damping", lambda c: 0.01 * c["acc_rms"] / (c["y_rms"] ** 2 * c["v_rms"])),
+              lambda b, c: "y^2*dy" not in b.fn_m, column=lambda am, t, y, dy: y ** 2 * dy),
     Candidate("hysteresis",
               "the restoring force depends on the history of motion (a Bouc-Wen hysteretic loop) "
               "that the baseline without hysteresis cannot produce",

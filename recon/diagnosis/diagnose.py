@@ -22,6 +22,7 @@ import numpy as np
 
 from recon.determinism import single_thread_blas
 from recon.diagnosis import rank
+from recon.diagnosis.ambiguity import ambiguous_pair, separating_stage
 from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.catalog import CATALOG
 from recon.diagnosis.locate import locate, stage_derivatives
@@ -46,6 +47,8 @@ SIGNATURES = {
     "cubic_stiffness": ("state_beyond_displacement", "frequency_harmonic"),
     "quadratic_stiffness": ("state_beyond_displacement", "frequency_harmonic"),
     "hysteresis": ("state_cluster", "correlation_tests"),
+    "offset": ("state_cluster",),
+    "amplitude_damping": ("state_cluster", "frequency_harmonic"),
 }
 
 
@@ -94,6 +97,8 @@ class Diagnosis:
     best_fit: rank.FitResult
     context: dict = field(default_factory=dict)
     seconds: float = 0.0
+    reference: rank.FitResult | None = None   # the better of the baseline as given and the null model
+    ambiguity: dict | None = None             # two candidates the held-out data cannot tell apart
 
     def to_dict(self) -> dict:
         def clean_ctx(c):
@@ -113,8 +118,21 @@ class Diagnosis:
             "correlation_tests": self.context.get("billings_voon", {}),
             "context": clean_ctx(self.context),
             "augmented_model": self.best.to_dict(),
+            "ambiguous": list(self.ambiguity["ids"]) if self.ambiguity else [],
+            "separating_stage": self.ambiguity,
             "seconds": self.seconds,
         }
+
+
+Z95 = 1.96
+# the baseline's parameters a candidate fit frees when it starts from the baseline as given
+GIVEN_FREE = ("c_m", "k_m")
+
+
+def _interval(v: float, se) -> list | None:
+    if se is None or not math.isfinite(se):
+        return None
+    return [v - Z95 * se, v + Z95 * se]
 
 
 def _params_of(fr: rank.FitResult, keys) -> dict:
@@ -122,8 +140,52 @@ def _params_of(fr: rank.FitResult, keys) -> dict:
     for k in keys:
         v = get_parameter(fr.model, k)
         name = k.split(":", 1)[-1]
-        out[name] = {"value": v, "stderr": fr.stderr.get(k)}
+        se = fr.stderr.get(k)
+        out[name] = {"value": v, "stderr": se, "interval": _interval(v, se) if k in fr.stderr else None}
     return out
+
+
+def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data) -> list[str]:
+    """Why the fitted candidate ``cid`` is not physical, or contradicts the rest of its model ([] if
+    it is plausible). Such a candidate is never reported, however well it fits."""
+    m = fr.model
+    b, r = m.baseline, ref.baseline
+    why = []
+    if b.K_m <= 0 < r.K_m:
+        why.append(f"linear stiffness K_m = {b.K_m:.4g} <= 0")
+    if b.c_m < 0 <= r.c_m:
+        why.append(f"negative viscous damping c_m = {b.c_m:.4g}")
+    if cid == "channel_delay" and m.get("delay") < 0:
+        why.append(f"negative delay {m.get('delay'):.4g} s")
+    if cid == "contact_stiffness":
+        side = 1.0 if m.get("side") >= 0 else -1.0
+        reach = float(max(np.max(side * d.y) for d in data))
+        beyond = int(sum(np.sum(side * d.y > m.get("gap")) for d in data))
+        if not 0.0 < m.get("gap") < reach or beyond < 10:
+            why.append(f"gap {m.get('gap'):.4g} m outside the recorded displacement range (0, {reach:.4g}) on side "
+                       f"{side:+.0f} ({beyond} samples beyond it)")
+        if m.get("kc") <= 0:
+            why.append(f"contact stiffness kc = {m.get('kc'):.4g} <= 0")
+    if cid == "higher_mode":
+        w1 = math.sqrt(max(b.K_m, 0.0))
+        if abs(m.get("w2") - w1) < 0.2 * w1:
+            why.append(f"second mode at {m.get('w2') / (2 * math.pi):.4g} Hz is within 20 % of the fundamental "
+                       f"{w1 / (2 * math.pi):.4g} Hz")
+    if cid == "parameter_drift":
+        t_end = max(float(d.t[-1]) for d in data)
+        if abs(m.get("drift")) * t_end > 0.5:
+            why.append(f"stiffness drift of {m.get('drift') * t_end:+.0%} over the session")
+    if cid == "amplitude_damping" and b.fn_m.get("y^2*dy", 0.0) < 0:
+        why.append(f"negative amplitude-dependent damping {b.fn_m['y^2*dy']:.4g} (feeds energy in)")
+    if cid == "hysteresis" and not (b.alpha_m > 0 and b.gamma + b.delta > 0):
+        why.append(f"inadmissible Bouc-Wen (alpha_m {b.alpha_m:.4g}, gamma + delta {b.gamma + b.delta:.4g})")
+    cand = CATALOG[cid]
+    k0 = cand.parameters[0]
+    if k0 in fr.stderr:
+        iv = _interval(get_parameter(m, k0), fr.stderr[k0])
+        if iv is not None and iv[0] <= 0.0 <= iv[1]:
+            why.append(f"the 95 % interval of {k0.split(':', 1)[-1]} [{iv[0]:.4g}, {iv[1]:.4g}] holds 0")
+    return why
 
 
 # numerical failures of one candidate's fit or simulation: recorded, never raised
@@ -158,75 +220,129 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     bkeys = rank.baseline_keys(base.baseline)
     extra_keys = [f"x:{k}" for k in base.extras if k not in ("v0", "side")]
     null = rank.fit(base, bkeys + extra_keys, data, max_nfev=max_nfev)
-    _check_null(null, data, run)
-    sims = rank.simulate_all(null.model, data)
+    # the baseline as given, scored the same way (no parameter moved)
+    given = rank.fit(base, [], data)
+    _check_null(null if math.isfinite(null.mse_held) else given, data, run)
+    # the reference every candidate must beat on the held-out samples: the better of the baseline as
+    # given and the null model. When the refit is worse there (it absorbed the effect, or one tone
+    # per stage leaves it poorly determined), the baseline's own parameters stay as given in every
+    # candidate fit, so a candidate gets no credit for undoing a refit.
+    refit_better = math.isfinite(null.mse_held) and not (math.isfinite(given.mse_held) and given.mse_held <= null.mse_held)
+    ref = null if refit_better else given
+    ref_name = "refit" if refit_better else "as_given"
+    # candidate fits free the baseline's parameters from the null model; from the baseline as given
+    # only its linear terms (c, k: where a baseline reconstructed from the same data absorbs an
+    # effect, friction as extra viscous damping), the rest stays as given
+    base_free = bkeys + extra_keys if refit_better else list(GIVEN_FREE)
+    sims = rank.simulate_all(ref.model, data)
 
     derivs = stage_derivatives(run, data)
-    findings, ctx = locate(null.model, run, data, sims, derivs)
+    findings, ctx = locate(ref.model, run, data, sims, derivs)
     noise_mse = float(np.sum([np.sum(d.held) * d.noise ** 2 for d in data]) / max(sum(int(d.held.sum()) for d in data), 1))
     tested = []
     fits = {}
     ids = candidates or list(CATALOG)
+
+    def fit_candidate(cid, cand, src, free, step_keys):
+        """One candidate's augmented fit started from ``src`` with ``free`` baseline keys."""
+        starts = cand.starts(src.model.baseline, ctx)
+        for m, _, _, _ in starts:       # keep extras already in the baseline
+            for k, v in src.model.extras.items():
+                m.extras.setdefault(k, v)
+            m.added = list(src.model.added) + [cid]
+        if cand.column is not None:     # linear in its first parameter: equation-error step per start
+            stepped = [rank.equation_step(m, step_keys, keys[0], cand.column, derivs, data)
+                       for m, keys, _, _ in starts]
+            if cand.screen_output and len(starts) > 1:
+                # the starts differ in a fixed shape parameter (friction's v0): the equation residual
+                # cannot rank them (differentiation noise), a short output-error fit can
+                # (from the source model, the new term at its scale: the equation step's increments of
+                # the baseline's terms are biased by the same differentiation noise)
+                scr = []
+                for mm, keys, sc, b in starts:
+                    mm = mm.copy()
+                    set_parameter(mm, keys[0], sc[keys[0]])
+                    scr.append(rank.fit(mm, [keys[0]], data, sc, max_nfev=8, bounds=b))
+                i = int(np.argmin([f.cost_fit for f in scr]))
+                stepped[i] = (scr[i].model, 0.0)
+            else:
+                i = int(np.argmin([r for _, r in stepped]))
+            _, keys, sc, b = starts[i]
+            m = stepped[i][0]
+            lo = b.get(keys[0], (-np.inf, np.inf))[0]
+            if keys[0].startswith("x:") and np.isfinite(lo) and m.extras[keys[0][2:]] < lo:
+                # the equation-error step points across the term's physical bound (input-estimation
+                # errors bias it): also start from two values inside the bound, refit with c and k,
+                # and keep the start that fits best
+                m.extras[keys[0][2:]] = lo
+                tries = [m]
+                for mult in (1.0, 5.0):
+                    mm = m.copy()
+                    mm.extras[keys[0][2:]] = lo + mult * sc[keys[0]]
+                    tries.append(mm)
+                screened = [rank.fit(mm, [keys[0], "c_m", "k_m"], data, sc, max_nfev=8, bounds=b) for mm in tries]
+                m = screened[int(np.argmin([f.cost_fit for f in screened]))].model
+        elif len(starts) > 1:           # screen the starts with only the new terms free
+            screened = [rank.fit(m, keys[:cand.screen_keys], data, sc, max_nfev=5, bounds=b)
+                        for m, keys, sc, b in starts]
+            i = int(np.argmin([s.cost_fit for s in screened]))
+            m, keys, sc, b = starts[i]
+            m = screened[i].model
+        else:
+            m, keys, sc, b = starts[0]
+        fr = rank.fit(m, list(dict.fromkeys(free + keys)), data, sc, max_nfev=max_nfev, bounds=b)
+        if not (math.isfinite(fr.mse_held) and fr.n_held > 0):
+            raise FloatingPointError(f"held-out mean-square error is {fr.mse_held} on {fr.n_held} samples")
+        return fr, keys, sc, b
+
+    # where candidate fits start: the reference; when that is the baseline as given, also the null
+    # model with every baseline parameter free (a refit that is worse alone may be right with the
+    # missing term); the start with the lower held-out error is scored, against the reference
+    origins = [(ref, base_free, bkeys if refit_better else list(GIVEN_FREE), ref_name)]
+    if not refit_better and math.isfinite(null.mse_held):
+        origins.append((null, bkeys + extra_keys, bkeys, "refit"))
     for cid in ids:
         if cid not in CATALOG:
             raise UserFacingError(f"unknown candidate {cid!r} (catalog: {', '.join(CATALOG)})")
         cand = CATALOG[cid]
-        if cid in null.model.added or not cand.applies(null.model.baseline, ctx):
+        if cid in ref.model.added or not cand.applies(ref.model.baseline, ctx):
             continue
         tc = time.perf_counter()
         try:
-            starts = cand.starts(null.model.baseline, ctx)
-            for m, _, _, _ in starts:       # keep extras already in the baseline
-                for k, v in null.model.extras.items():
-                    m.extras.setdefault(k, v)
-                m.added = list(null.model.added) + [cid]
-            if cand.column is not None:     # linear in its first parameter: equation-error step per start
-                stepped = [rank.equation_step(m, bkeys, keys[0], cand.column, derivs, data) for m, keys, _, _ in starts]
-                i = int(np.argmin([r for _, r in stepped]))
-                _, keys, sc, b = starts[i]
-                m = stepped[i][0]
-                lo = b.get(keys[0], (-np.inf, np.inf))[0]
-                if keys[0].startswith("x:") and np.isfinite(lo) and m.extras[keys[0][2:]] < lo:
-                    # the equation-error step points across the term's physical bound (input-estimation
-                    # errors bias it): also start from two values inside the bound, refit with c and k,
-                    # and keep the start that fits best
-                    m.extras[keys[0][2:]] = lo
-                    tries = [m]
-                    for mult in (1.0, 5.0):
-                        mm = m.copy()
-                        mm.extras[keys[0][2:]] = lo + mult * sc[keys[0]]
-                        tries.append(mm)
-                    screened = [rank.fit(mm, [keys[0], "c_m", "k_m"], data, sc, max_nfev=8, bounds=b) for mm in tries]
-                    m = screened[int(np.argmin([f.cost_fit for f in screened]))].model
-            elif len(starts) > 1:           # screen the starts with only the new terms free
-                screened = [rank.fit(m, keys[:cand.screen_keys], data, sc, max_nfev=5, bounds=b)
-                            for m, keys, sc, b in starts]
-                i = int(np.argmin([s.cost_fit for s in screened]))
-                m, keys, sc, b = starts[i]
-                m = screened[i].model
-            else:
-                m, keys, sc, b = starts[0]
-            fr = rank.fit(m, bkeys + extra_keys + keys, data, sc, max_nfev=max_nfev, bounds=b)
-            if not (math.isfinite(fr.mse_held) and fr.n_held > 0):
-                raise FloatingPointError(f"held-out mean-square error is {fr.mse_held} on {fr.n_held} samples")
-            sc_ = rank.score(null, fr, len(keys), noise_mse)
+            got, errs = [], []
+            for src, free, step_keys, oname in origins:
+                try:
+                    got.append((fit_candidate(cid, cand, src, free, step_keys), free, oname))
+                except CANDIDATE_FAILURES as exc:
+                    errs.append(exc)
+            if not got:
+                raise errs[0]
+            (fr, keys, sc, b), free, oname = min(got, key=lambda g: g[0][0].mse_held)
+            sc_ = rank.score(ref, fr, len(keys), noise_mse)
         except CANDIDATE_FAILURES as exc:
             # a candidate whose fit or simulation fails is recorded with its reason and not ranked
             tested.append({"id": cid, "failed": f"{type(exc).__name__}: {exc}", "significant": False,
                            "seconds": time.perf_counter() - tc})
             continue
-        fits[cid] = (fr, keys, sc, b)
-        tested.append({"id": cid, **sc_, "held_out_nrmse": fr.nrmse_held, "seconds": time.perf_counter() - tc})
+        fits[cid] = (fr, keys, sc, b, free)
+        entry = {"id": cid, **sc_, "held_out_nrmse": fr.nrmse_held, "started_from": oname,
+                 "seconds": time.perf_counter() - tc}
+        why = implausible(cid, fr, ref.model, data)
+        if why:
+            entry["implausible"] = why
+            entry["significant"] = False
+        tested.append(entry)
     sig = [t for t in tested if t["significant"]]
     sig.sort(key=lambda t: -t["explained"])
     combined = None
+    ranked = list(sig)
     if len(sig) > 1:
         # forward step: a runner-up is reported only if it still adds on top of the best one
-        best_fr, best_keys, best_sc, best_b = fits[sig[0]["id"]]
+        best_fr, best_keys, best_sc, best_b, best_free = fits[sig[0]["id"]]
         kept = [sig[0]]
         for t in sig[1:]:
             cand = CATALOG[t["id"]]
-            fr1, keys1, sc1, b1 = fits[t["id"]]
+            fr1, keys1, sc1, b1, _ = fits[t["id"]]
             m = best_fr.model.copy()
             for k in keys1:
                 set_parameter(m, k, get_parameter(fr1.model, k))
@@ -234,19 +350,25 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                 m.extras["side"] = fr1.model.get("side")
             m.added = list(best_fr.model.added) + [t["id"]]
             try:
-                frc = rank.fit(m, bkeys + extra_keys + best_keys + keys1, data, {**best_sc, **sc1},
+                frc = rank.fit(m, list(dict.fromkeys(best_free + best_keys + keys1)), data, {**best_sc, **sc1},
                                max_nfev=max_nfev, bounds={**best_b, **b1})
                 s2 = rank.score(best_fr, frc, len(keys1), noise_mse)
             except CANDIDATE_FAILURES as exc:
                 t["on_top_of_best"] = {"failed": f"{type(exc).__name__}: {exc}", "significant": False}
                 continue
+            why = implausible(t["id"], frc, ref.model, data) + implausible(sig[0]["id"], frc, ref.model, data)
+            if why:
+                s2 = {**s2, "implausible": why, "significant": False}
             t["on_top_of_best"] = s2
             if s2["significant"]:
                 kept.append(t)
-                fits[t["id"]] = (frc, keys1, sc1, b1)
+                fits[t["id"]] = (frc, keys1, sc1, b1, best_free)
                 combined = frc
                 break
         sig = kept
+    pair = ambiguous_pair(ranked, {t["id"] for t in sig[1:]}, {c: f[0].mse_held for c, f in fits.items()},
+                          rank.BIC_MARGIN)
+    ambiguity = separating_stage(pair) if pair else None
     missing = []
     for t in sig:
         fr, keys = fits[t["id"]][:2]
@@ -255,7 +377,8 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
         missing.append({
             "id": t["id"], "explanation": cand.explanation, "adds": cand.adds, "simulated": cand.simulated,
             "parameters": _params_of(fr, [k for k in cand.parameters if k in keys or k == "x:side"]),
-            "evidence": {"held_out_nrmse_before": null.nrmse_held, "held_out_nrmse_after": fr.nrmse_held,
+            "evidence": {"held_out_nrmse_before": given.nrmse_held, "held_out_nrmse_after": fr.nrmse_held,
+                         "held_out_nrmse_refit": null.nrmse_held, "compared_with": ref_name,
                          "explained_fraction_of_excess": t["explained"], "delta_bic_held_out": t["dbic"],
                          "effective_samples": t["n_eff"],
                          "located": [f for f in findings if f["kind"] in ev_kinds][:4]},
@@ -266,9 +389,12 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     elif missing:
         best_fr = fits[missing[0]["id"]][0]
     else:
-        best_fr = null
-    fit_before = {"nrmse": before, "refit_nrmse": null.nrmse, "held_out_nrmse": null.nrmse_held,
+        best_fr = ref
+    # fit_before: the baseline as given (nrmse, held_out_nrmse); the null model's figures under refit_*
+    fit_before = {"nrmse": before, "refit_nrmse": null.nrmse, "held_out_nrmse": given.nrmse_held,
+                  "held_out_nrmse_as_given": given.nrmse_held, "refit_held_out_nrmse": null.nrmse_held,
+                  "compared_with": ref_name,
                   "noise_nrmse": {d.name: d.noise / d.rms for d in data}}
     return Diagnosis(baseline=base, baseline_kind=kind, fit_before=fit_before, null=null, mismatch=findings,
                      candidates=tested, missing=missing, best=best_fr.model, best_fit=best_fr, context=ctx,
-                     seconds=time.perf_counter() - t0)
+                     seconds=time.perf_counter() - t0, reference=ref, ambiguity=ambiguity)

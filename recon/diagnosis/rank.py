@@ -40,7 +40,50 @@ from shakerlab.run_data import BASE, Run
 BIC_MARGIN = 10.0
 MIN_EXPLAINED = 0.15
 MIN_GAIN_NOISE = 2.0
+MIN_REL_GAIN = 0.1          # the held-out NRMSE must fall by at least 10 % of the reference's
 HOLD_FRACTION = 0.3
+RESOLUTION_FRACTION = 1e-5  # no displacement reading resolves better than 1e-5 of its peak (100 dB)
+DIFF_ORDERS = (2, 3, 4, 5, 6)
+
+
+def difference_noise(x: np.ndarray) -> float:
+    """White-noise std of ``x`` from its k-th differences, sigma^2 = mean((D^k x)^2) / C(2k, k),
+    the smallest over k = 2..6. Model-free: no fitted model's error can hide in it, and a smooth
+    signal's part of D^k x falls as (w dt)^k, so the best order leaves the noise."""
+    x = np.asarray(x, float)
+    best = float("inf")
+    for k in DIFF_ORDERS:
+        if x.size <= k + 10:
+            continue
+        dk = np.diff(x, n=k)
+        best = min(best, float(math.sqrt(np.mean(dk ** 2) / math.comb(2 * k, k))))
+    return best if math.isfinite(best) else 0.0
+
+
+def resolution_floor(x: np.ndarray) -> float:
+    """The std a reading of ``x`` cannot resolve below: q / sqrt(12) when its values sit on a
+    grid of step q (a quantised channel), and never below RESOLUTION_FRACTION of its peak."""
+    x = np.asarray(x, float)
+    peak = float(np.max(np.abs(x))) if x.size else 0.0
+    floor = RESOLUTION_FRACTION * peak
+    xs = x[: min(x.size, 20000)]
+    steps = np.diff(np.unique(xs))
+    steps = steps[steps > 1e-12 * max(peak, 1e-300)]
+    if steps.size:
+        q = float(np.min(steps))
+        grid = (xs - xs.min()) / q
+        if np.max(np.abs(grid - np.round(grid))) < 0.01:
+            floor = max(floor, q / math.sqrt(12.0))
+    return floor
+
+
+def noise_floor(x: np.ndarray, dt: float) -> dict:
+    """The noise std of one channel used by the significance tests, and its parts: the largest of
+    the spectral floor, the difference-based floor and the resolution bound (averaged records
+    have a spectral floor far below what the sensor resolves)."""
+    parts = {"spectral": float(estimate_spectrum(x, dt).noise_std), "differences": difference_noise(x),
+             "resolution": resolution_floor(x)}
+    return {"std": max(parts.values()), **parts}
 
 
 @dataclass
@@ -55,6 +98,7 @@ class StageData:
     noise: float             # white-noise std of the recorded y
     rms: float
     initial: tuple = (0.0, 0.0, 0.0)   # (y, y', z) at the first sample (0 when recorded from rest)
+    noise_parts: dict = field(default_factory=dict)   # per channel: spectral, differences, resolution
 
     @property
     def dt(self) -> float:
@@ -81,14 +125,15 @@ def prepare(run: Run, model: HystereticModel) -> list[StageData]:
             fit[cut:] = False
             held[cut:] = True
         if st.excitation == BASE:
-            noise = math.hypot(estimate_spectrum(st.channels["x_tip"], st.dt).noise_std,
-                               estimate_spectrum(st.channels["x_base"], st.dt).noise_std)
+            floors = {c: noise_floor(st.channels[c], st.dt) for c in ("x_tip", "x_base")}
+            noise = math.hypot(floors["x_tip"]["std"], floors["x_base"]["std"])
         else:
-            noise = estimate_spectrum(st.channels["x"], st.dt).noise_std
+            floors = {"x": noise_floor(st.channels["x"], st.dt)}
+            noise = floors["x"]["std"]
         # session time (drift): an imported stage keeps its original start in settings["source_t0"]
         t_session = st.t + float(st.settings.get("source_t0", 0.0) or 0.0)
         d = StageData(n, t_session, u, st.channels.get("x_base") if st.excitation == BASE else None, y,
-                      fit, held, noise, float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0)
+                      fit, held, noise, float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0, noise_parts=floors)
         start = model.stage_start(st, u)
         if any(start):
             # a stage recorded mid-motion starts from its estimated state, but the estimate is taken
@@ -216,9 +261,11 @@ def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> d
     excess = max(null.mse_held - noise_mse, 1e-300)
     explained = (null.mse_held - cand.mse_held) / excess
     gain = (null.mse_held - cand.mse_held) / max(noise_mse, 1e-300)
+    rel = 1.0 - math.sqrt(cand.mse_held / null.mse_held)
     return {"dbic": float(dbic), "explained": float(explained), "gain_over_noise": float(gain),
-            "n_eff": float(n_eff),
-            "significant": bool(dbic < -BIC_MARGIN and explained >= MIN_EXPLAINED and gain >= MIN_GAIN_NOISE)}
+            "n_eff": float(n_eff), "relative_gain": float(rel),
+            "significant": bool(dbic < -BIC_MARGIN and explained >= MIN_EXPLAINED and gain >= MIN_GAIN_NOISE
+                                and rel >= MIN_REL_GAIN)}
 
 
 def equation_step(am: AugmentedModel, keys: list[str], new_key: str | None, column, derivs: dict,

@@ -1,0 +1,200 @@
+"""Issue 13: honest before/after, a noise floor that averaged records cannot fool, physically
+plausible effects with intervals.
+
+- fit_before holds the baseline as given; a candidate is reported only when it beats the better
+  of the baseline as given and the null model (the refit) on the held-out samples;
+- the noise floor is the largest of the spectral floor, a difference-based floor and the sensor's
+  resolution, and a candidate must cut the held-out NRMSE by a fraction of the reference's;
+- implausible fits (negative delay, a gap outside the recorded range, an interval holding 0) are
+  never reported, and every reported parameter has a 95 % interval.
+"""
+import math
+
+import numpy as np
+import pytest
+
+from recon.diagnosis import rank
+from recon.diagnosis.augmented import AugmentedModel
+from recon.diagnosis.diagnose import diagnose, implausible
+from recon.testing.concealed import concealed_run
+
+
+# ----------------------------------------------------------------- before / after
+@pytest.mark.parametrize("effect,seed,name,true", [("coulomb_friction", 0, "mu", 0.02),
+                                                   ("sensor_scale", 4, "tip_scale", 0.02)])
+def test_after_beats_the_baseline_as_given_when_the_refit_is_worse(effect, seed, name, true):
+    # the truth without the effect as baseline: refitting it absorbs the effect (friction as viscous
+    # damping, a scale error as stiffness) and does worse on the validation stage than as given
+    run, _, _, baseline = concealed_run(effect, seed=seed, duration=2.0)
+    d = diagnose(run, baseline)
+    out = d.to_dict()
+    fb = out["fit_before"]
+    # fit_before is the baseline as given; the null model under refit_*
+    am = AugmentedModel(baseline)
+    data = rank.prepare(run, baseline)
+    as_given = rank.nrmse_per_stage(am, data)
+    assert fb["nrmse"] == pytest.approx(as_given)
+    assert fb["held_out_nrmse"] == pytest.approx(as_given["validation"])
+    assert fb["held_out_nrmse_as_given"] == fb["held_out_nrmse"]
+    assert fb["refit_held_out_nrmse"] == pytest.approx(d.null.nrmse_held)
+    assert fb["refit_held_out_nrmse"] > fb["held_out_nrmse"]            # the case this test is about
+    assert fb["compared_with"] == "as_given"
+    ids = [m["id"] for m in out["missing_physics"]]
+    assert ids and ids[0] == effect, out["candidates_tested"]
+    after = out["fit_after"]["held_out_nrmse"]
+    for m in out["missing_physics"]:
+        ev = m["evidence"]
+        assert ev["held_out_nrmse_before"] == fb["held_out_nrmse"]
+        assert ev["held_out_nrmse_after"] < ev["held_out_nrmse_before"]
+        assert ev["held_out_nrmse_after"] < ev["held_out_nrmse_refit"]
+    assert after < fb["held_out_nrmse"] and after < fb["refit_held_out_nrmse"]
+    assert out["fit_after"]["nrmse"]["validation"] < fb["nrmse"]["validation"]
+    p = out["missing_physics"][0]["parameters"][name]
+    assert abs(p["value"] / true - 1) < 0.15
+    lo, hi = p["interval"]
+    assert lo < p["value"] < hi and lo > 0
+
+
+def test_nothing_found_reports_the_better_of_as_given_and_refit():
+    run, _, _, baseline = concealed_run(None, seed=11, duration=2.0)
+    out = diagnose(run, baseline).to_dict()
+    fb = out["fit_before"]
+    assert out["missing_physics"] == []
+    assert out["fit_after"]["held_out_nrmse"] == pytest.approx(min(fb["held_out_nrmse"], fb["refit_held_out_nrmse"]))
+
+
+# ----------------------------------------------------------------- noise floor
+def test_difference_floor_measures_white_noise_under_a_smooth_signal():
+    rng = np.random.default_rng(0)
+    t = np.arange(20000) / 2000.0
+    x = 1e-3 * np.sin(2 * np.pi * 20 * t) + 3e-4 * np.sin(2 * np.pi * 47 * t + 1)
+    sigma = 2e-6
+    est = rank.difference_noise(x + rng.normal(0, sigma, x.size))
+    assert est == pytest.approx(sigma, rel=0.1)
+
+
+def test_averaged_and_quantised_records_cannot_go_below_the_resolution():
+    t = np.arange(20000) / 2000.0
+    x = 1e-3 * np.sin(2 * np.pi * 20 * t)
+    # an averaged record: all but noise-free; its floor is the resolution bound, 1e-5 of the peak
+    f = rank.noise_floor(x + np.random.default_rng(1).normal(0, 1e-11, x.size), 1 / 2000.0)
+    assert f["std"] >= rank.RESOLUTION_FRACTION * 1e-3 * 0.999
+    assert f["std"] == f["resolution"]
+    # a quantised channel: q / sqrt(12)
+    q = 1e-5
+    fq = rank.noise_floor(np.round(x / q) * q, 1 / 2000.0)
+    assert fq["resolution"] == pytest.approx(q / math.sqrt(12), rel=1e-6)
+    assert fq["std"] >= q / math.sqrt(12)
+
+
+def _fr(mse, resid=None):
+    r = resid if resid is not None else np.random.default_rng(0).normal(0, math.sqrt(mse), 4000)
+    return rank.FitResult(model=None, cost_fit=0.0, mse_held=mse, nrmse={}, nrmse_held=math.sqrt(mse), n_held=r.size,
+                          resid_held=r)
+
+
+def test_a_tiny_noise_floor_does_not_make_a_small_gain_significant():
+    # averaged record: noise variance 1e-10 of the reference's MSE. A 3 % cut of the held-out NRMSE passes
+    # the BIC and gain-over-noise tests trivially (gain over noise ~ 6e8) but is not a meaningful fraction
+    ref = _fr(1.0)
+    small = rank.score(ref, _fr(0.97 ** 2), 1, 1e-10)
+    assert small["gain_over_noise"] > 1e8 and small["dbic"] < -rank.BIC_MARGIN
+    assert small["relative_gain"] == pytest.approx(0.03)
+    assert not small["significant"]
+    big = rank.score(ref, _fr(0.5 ** 2), 1, 1e-10)
+    assert big["significant"]
+
+
+# ----------------------------------------------------------------- plausibility
+def test_implausible_fits_are_named_with_their_reasons():
+    run, _, _, baseline = concealed_run(None, seed=3, duration=1.0)
+    data = rank.prepare(run, baseline)
+    ref = AugmentedModel(baseline)
+    ymax = max(float(np.max(d.y)) for d in data)
+
+    def fr(extras, added, stderr):
+        m = AugmentedModel(baseline, dict(extras), [added])
+        return rank.FitResult(model=m, cost_fit=0.0, mse_held=1.0, nrmse={}, nrmse_held=1.0, n_held=1, stderr=stderr)
+
+    assert any("negative delay" in w for w in implausible("channel_delay", fr({"delay": -1e-4}, "channel_delay",
+                                                                             {"x:delay": 1e-6}), ref, data))
+    assert implausible("channel_delay", fr({"delay": 1e-4}, "channel_delay", {"x:delay": 1e-6}), ref, data) == []
+    far = fr({"kc": 1000.0, "gap": 3.0 * ymax, "side": 1.0}, "contact_stiffness", {"x:kc": 1.0})
+    assert any("outside the recorded displacement range" in w for w in implausible("contact_stiffness", far, ref, data))
+    near = fr({"kc": 1000.0, "gap": 0.5 * ymax, "side": 1.0}, "contact_stiffness", {"x:kc": 1.0})
+    assert implausible("contact_stiffness", near, ref, data) == []
+    # an effect whose 95 % interval holds 0 is not established
+    vague = fr({"mu": 0.01, "v0": 1e-4}, "coulomb_friction", {"x:mu": 0.01})
+    assert any("holds 0" in w for w in implausible("coulomb_friction", vague, ref, data))
+    # a second mode on top of the fundamental contradicts the one-mode part of the model
+    w1 = math.sqrt(baseline.K_m)
+    same = fr({"w2": 1.05 * w1, "zeta2": 0.02, "phi2": 0.1}, "higher_mode", {"x:w2": 1.0})
+    assert any("fundamental" in w for w in implausible("higher_mode", same, ref, data))
+
+
+# ----------------------------------------------------------------- catalog additions
+def _with_term(run, baseline, term, value, seed=0):
+    """``run`` re-recorded through ``baseline`` plus fn term ``term`` (the augmented simulator)."""
+    from shakerlab.run_data import Run, Stage
+    truth = AugmentedModel(baseline.__class__.from_dict(baseline.to_dict()))
+    truth.baseline.fn_m[term] = value
+    data = rank.prepare(run, baseline)
+    rng = np.random.default_rng(seed)
+    stages = {}
+    for d in data:
+        st = run.stage(d.name)
+        y = truth.simulate(d.t, d.u, d.x_in)[0]
+        x_tip = st.channels["x_base"] + y
+        x_tip = x_tip + rng.normal(0, 10 ** (-70 / 20) * np.std(x_tip), x_tip.size)
+        stages[d.name] = Stage(name=d.name, t=st.t, channels={"x_base": st.channels["x_base"], "x_tip": x_tip},
+                               excitation=st.excitation)
+    return Run(stages=stages, source=f"test:{term}")
+
+
+@pytest.mark.parametrize("cid,term,value", [("offset", "y^0", 0.4), ("amplitude_damping", "y^2*dy", 1.5e6)])
+def test_new_catalog_entries_are_found(cid, term, value):
+    from recon.diagnosis.catalog import CATALOG
+    assert {"cubic_stiffness", "hysteresis", "offset", "amplitude_damping"} <= set(CATALOG)
+    run0, _, _, baseline = concealed_run(None, seed=7, duration=2.0, snr_db=None)
+    baseline.fn_m.pop(term, None)
+    run = _with_term(run0, baseline, term, value)
+    out = diagnose(run, baseline, candidates=[cid, "coulomb_friction", "quadratic_damping", "cubic_stiffness"]).to_dict()
+    ids = [m["id"] for m in out["missing_physics"]]
+    assert ids[:1] == [cid], out["candidates_tested"]
+    p = out["missing_physics"][0]["parameters"][term]
+    assert abs(p["value"] / value - 1) < 0.15 and p["interval"][0] > 0
+    assert out["fit_after"]["held_out_nrmse"] < 0.5 * out["fit_before"]["held_out_nrmse"]
+
+
+# ----------------------------------------------------------------- ambiguity
+def test_ambiguous_pair_rule():
+    from recon.diagnosis.ambiguity import ambiguous_pair
+    ranked = [{"id": "coulomb_friction", "n_eff": 200.0}, {"id": "quadratic_damping", "n_eff": 200.0}]
+    # 2 % apart in MSE: 200 ln(1.02) = 4 < 10, the held-out data cannot tell them apart
+    assert ambiguous_pair(ranked, set(), {"coulomb_friction": 1.0, "quadratic_damping": 1.02}, 10.0) == \
+        ["coulomb_friction", "quadratic_damping"]
+    # 20 % apart: 200 ln(1.2) = 36 > 10: the first is clearly better
+    assert ambiguous_pair(ranked, set(), {"coulomb_friction": 1.0, "quadratic_damping": 1.2}, 10.0) is None
+    # the runner-up adds on top of the first (kept by the forward step): two effects, not rivals
+    assert ambiguous_pair(ranked, {"quadratic_damping"}, {"coulomb_friction": 1.0, "quadratic_damping": 1.0},
+                          10.0) is None
+
+
+@pytest.mark.parametrize("pair,stages", [(["coulomb_friction", "quadratic_damping"], ["validation_amplitude"]),
+                                         (["sensor_scale", "parameter_drift"], ["validation_frequency"]),
+                                         (["sensor_scale", "cubic_stiffness"],
+                                          ["validation_amplitude", "validation_frequency"])])
+def test_separating_protocol_is_accepted_by_acquire(tmp_path, pair, stages):
+    # what `shakerlab acquire --protocol FILE` checks before anything moves: the protocol schema
+    # (rig.protocol.load_protocol) and the rig config's limits (the simulated rig's default config)
+    from recon.diagnosis.ambiguity import separating_stage
+    from rig.config import load_config
+    from rig.protocol import load_protocol
+    sep = separating_stage(pair)
+    assert sep["stages"] == stages and sep["reason"]
+    path = tmp_path / "separate.toml"
+    path.write_text(sep["protocol_toml"])
+    proto = load_protocol(path)
+    names = [v.get("name") for v in proto.validation]
+    assert [n for n in names if n in stages] == stages
+    proto.check_against_limits(load_config(None).limits)
