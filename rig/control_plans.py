@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from rig import analysis
-from rig.decisions import allowed_scale, nonlinearity_reached
+from rig.decisions import next_level, nonlinearity_reached
 from rig.messages import BeginStage, Checkpoint, ControlSine, EndStage, Log, Rest, SetFrequency
 from shakerlab.errors import UserFacingError
 
@@ -139,21 +139,11 @@ def nonlinear_stage(p: dict, settle_s: float, ctx):
             stop_reason = (f"response limit: the base target was lowered to {res.effective_target_m * 1e3:.4g} mm "
                            f"to keep the response at its ceiling")
             break
-        if target >= tmax * (1 - 1e-9):
-            stop_reason = f"base target limit {tmax * 1e3:g} mm reached without clear nonlinearity"
+        nxt, stop_reason, key = next_level(target, tmax, p["step_factor"], ctx.limits, r,
+                                           f"base target limit {tmax * 1e3:g} mm")
+        if nxt is None:
             break
-        nxt = min(target * p["step_factor"], tmax)
-        if nxt < 1.1 * target:
-            stop_reason = f"base target limit {tmax * 1e3:g} mm reached (within 10 %) without clear nonlinearity"
-            break
-        scale, key = allowed_scale(ctx.limits, r)
-        if nxt > target * scale:
-            if scale < 1.1:
-                frac = ctx.limits["soft_limit_fraction"]
-                stop_reason = (f"limit: the next level would exceed {frac:g} x {key} "
-                               f"({ctx.limits[key] * 1e3:g} mm, extrapolated from this level)")
-                break
-            nxt = target * scale
+        if key is not None:
             yield Log("info", f"next level {nxt * 1e3:.4g} mm: limited to {ctx.limits['soft_limit_fraction']:g} x {key}")
         target = nxt
     yield Log("info" if stop_reason.startswith("nonlinearity") else "warning",

@@ -30,3 +30,25 @@ def allowed_scale(limits: dict, r: analysis.Response) -> tuple[float, str]:
         if peak > 0 and frac * limits[key] / peak < best:
             best, which = frac * limits[key] / peak, key
     return best, which
+
+
+def next_level(level: float, top: float, step_factor: float, limits: dict, r: analysis.Response,
+               describe_top: str) -> tuple[float | None, str | None, str | None]:
+    """The nonlinear stage's next excitation level (drive Vpp, or base target in m: the rule is the
+    same): ``(next level, None, key)`` where ``key`` names the sensor limit that cut the step (or
+    None), or ``(None, stop reason, None)`` when the stage stops raising. ``describe_top`` names the
+    level's upper bound in the stop reasons ("amplitude limit 6 Vpp")."""
+    if level >= top * (1 - 1e-9):
+        return None, f"{describe_top} reached without clear nonlinearity", None
+    nxt = min(level * step_factor, top)
+    if nxt < 1.1 * level:  # the bound is within 10 % of this level: this is the last level
+        return None, f"{describe_top} reached (within 10 %) without clear nonlinearity", None
+    scale, key = allowed_scale(limits, r)
+    if nxt > level * scale:
+        # approach the limit: a last, smaller step if it is still worth one
+        if scale < 1.1:
+            frac = limits["soft_limit_fraction"]
+            return None, (f"limit: the next level would exceed {frac:g} x {key} "
+                          f"({limits[key] * 1e3:g} mm, extrapolated from this level)"), None
+        return level * scale, None, key
+    return nxt, None, None

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from rig import analysis, control_plans
-from rig.decisions import allowed_scale, nonlinearity_reached
+from rig.decisions import next_level, nonlinearity_reached
 from rig.messages import Acquire, BeginStage, Checkpoint, CheckSetpoint, EndStage, Log, Ramp, Rest, SetFrequency
 
 
@@ -115,22 +115,11 @@ def nonlinear_stage(p: dict, settle_s: float, ctx: PlanContext):
         if reasons:
             stop_reason = "nonlinearity: " + "; ".join(reasons)
             break
-        if vpp >= vmax * (1 - 1e-9):
-            stop_reason = f"amplitude limit {vmax:g} Vpp reached without clear nonlinearity"
+        nxt, stop_reason, key = next_level(vpp, vmax, p["step_factor"], ctx.limits, r,
+                                           f"amplitude limit {vmax:g} Vpp")
+        if nxt is None:
             break
-        nxt = min(vpp * p["step_factor"], vmax)
-        if nxt < 1.1 * vpp:  # max_vpp is within 10 % of this level: this is the last level
-            stop_reason = f"amplitude limit {vmax:g} Vpp reached (within 10 %) without clear nonlinearity"
-            break
-        scale, key = allowed_scale(ctx.limits, r)
-        if nxt > vpp * scale:
-            # approach the limit: a last, smaller step if it is still worth one
-            if scale < 1.1:
-                frac = ctx.limits["soft_limit_fraction"]
-                stop_reason = (f"limit: the next level would exceed {frac:g} x {key} "
-                               f"({ctx.limits[key] * 1e3:g} mm, extrapolated from this level)")
-                break
-            nxt = vpp * scale
+        if key is not None:
             yield Log("info", f"next level {nxt:.3f} Vpp: limited to {ctx.limits['soft_limit_fraction']:g} x {key}")
         vpp = nxt
     yield Log("info" if stop_reason.startswith("nonlinearity") else "warning",
