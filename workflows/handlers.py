@@ -33,7 +33,6 @@ def reconstruct_command(args) -> int:
     out = result.to_dict()
     out["warnings"] = warnings_for(run, result)
     if getattr(args, "uncertainty", False):
-
         out["uncertainty"] = parameter_intervals(result.model, run)
     if args.plots:
         out["plots"] = [str(p) for p in write_validation_plots(result, run, Path(args.plots))]
@@ -156,7 +155,6 @@ def diagnose_command(args) -> int:
     out = d.to_dict()
     out["warnings"] = warnings_for(run)
     if args.report:
-
         out["report"] = [str(p) for p in write_report(d, run, Path(args.report))]
     if args.save_model:
         d.best.save(args.save_model, overwrite=getattr(args, "force", False))

@@ -110,8 +110,7 @@ class OutputError:
         m = self.model
         kw = {k: getattr(m, k) for k in PARAMETER_NAMES}
         kw.update({k: float(x[i]) for i, k in enumerate(self.keys) if not k.startswith("fn:")})
-        fn = {k: v for k, v in m.fn_m.items() if f"fn:{k}" not in self.keys} if len(self.keys) < len(
-            parameter_keys(m)) else {}
+        fn = {k: v for k, v in m.fn_m.items() if f"fn:{k}" not in self.keys}   # fixed terms (``free``)
         fn.update({k[3:]: float(x[i]) for i, k in enumerate(self.keys) if k.startswith("fn:")})
         return HystereticModel(excitation=m.excitation, fn_m=fn, provenance=m.provenance,
                                inv_m=kw.pop("inv_m", m.inv_m), **kw)
