@@ -16,13 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.differentiation import choose_window, derivatives, undo_passband_loss
 from recon.library import monomials
 from recon.simulation.rk4 import simulate_sdof, substeps
-from recon.signals import measured_base_input
+from recon.signals import stage_input, start_derivatives
 from shakerlab.errors import UserFacingError
 from shakerlab.output_files import check_output, write_text
-from shakerlab.quantities import DISPLACEMENT
 from shakerlab.run_data import BASE, FORCE, Stage
 
 UNITS = {
@@ -224,20 +222,10 @@ class HystereticModel:
                              self.gamma, self.delta, coef, p, r, y0, v0, z0)
 
     def stage_input(self, stage: Stage) -> np.ndarray:
-        """The input u the model is driven by, built from the stage's channels."""
+        """The input u the model is driven by, built from the stage's channels (recon.signals)."""
         if stage.excitation != self.excitation:
             raise UserFacingError(f"stage {stage.name!r} is {stage.excitation} excitation, model is {self.excitation}")
-        if self.excitation == FORCE:
-            return stage.channels["force"]
-        if stage.quantities.get("x_base", DISPLACEMENT) != DISPLACEMENT:
-            return measured_base_input(stage)       # from the base velocity or acceleration itself
-
-        # u = -x_base'' by a Savitzky-Golay second derivative, with the filter's known passband
-        # loss undone (0.08 % at a 12.5 Hz drive with a 109-sample window at 2 kHz; left in, the
-        # output-error fit turned it into a -0.1 % bias of the cubic stiffness)
-        xb = stage.channels["x_base"]
-        ch = choose_window({"x_base": xb}, stage.dt, deriv=2, for_regression=False)
-        return undo_passband_loss(-derivatives(xb, stage.dt, ch.window, ch.order, 2)[2], stage.dt, ch.window, ch.order)
+        return stage_input(stage)
 
     def stage_start(self, stage: Stage, u=None):
         """The stage's state at its first sample (y, y', z), estimated from the recording.
@@ -246,23 +234,11 @@ class HystereticModel:
         z = g u - y'' - c y' - k y - fn(y, y'). A stage recorded from rest gives ~0."""
 
         u = self.stage_input(stage) if u is None else u
-        y = stage.y
-        ch = choose_window({"y": y}, stage.dt, deriv=2, for_regression=False)
-        n = min(y.size, 4 * ch.window)
-        w = min(ch.window, n - (1 - n % 2))
-        d = derivatives(y[:n], stage.dt, w, ch.order, 2)
-        y0, v0, a0 = d[0][0], d[1][0], d[2][0]
+        y0, v0, a0, sigma, sig_v, v_rms = start_derivatives(stage)
         # recorded from rest: y0 within the noise and y'0 small against the stage's rms
         # velocity (a zero crossing mid-motion has y'0 near its peak) or within the noise of
-        # the edge estimate (the polynomial fit evaluated at the window's first sample: at
-        # 40 dB its y' noise alone exceeds 5 % of the rms velocity). Then start from rest
-        # exactly: an edge estimate of y'' (hence z0) is noisy.
-        sigma = ch.noise_level["y"]
-        # y'(0) of the least-squares polynomial over the first w samples: weights P[1]/((w-1) dt)
-        # (scipy's savgol_coeffs(pos=0) loses accuracy for long windows, hence the own fit)
-        P = np.linalg.pinv(np.vander(np.arange(w) / (w - 1), ch.order + 1, increasing=True))
-        sig_v = sigma * float(np.linalg.norm(P[1])) / ((w - 1) * stage.dt)
-        v_rms = float(np.sqrt(np.mean(derivatives(y, stage.dt, ch.window, ch.order, 1)[1] ** 2)))
+        # the edge estimate (at 40 dB its y' noise alone exceeds 5 % of the rms velocity). Then
+        # start from rest exactly: an edge estimate of y'' (hence z0) is noisy.
         if abs(y0) < 5 * sigma and (abs(v0) < 0.05 * v_rms or abs(v0) < 4 * sig_v):
             return 0.0, 0.0, 0.0
         z0 = self.start_z(u[0], y0, v0, a0)

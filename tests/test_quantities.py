@@ -101,3 +101,38 @@ def test_line_removal_takes_out_a_sensor_offset_exactly():
     assert np.max(np.abs(d1 - d0)) < 1e-12
     # and the displacement is the true one up to the leak of the weighted line (< 0.3 %)
     assert np.max(np.abs(x0 - np.sin(2 * np.pi * 7 * t) / (2 * np.pi * 7))) < 3e-3 / (2 * np.pi * 7)
+
+
+def test_every_stage_signal_follows_the_measured_quantity(tmp_path, truth):
+    """The weak form's layer, the model input and the uncertainty's input-noise model of a velocity
+    stage come from the velocity itself (recon.signals), and agree with the displacement stage's."""
+    from recon.output_error.uncertainty import InputNoise
+    from recon.signals import input_filter, stage_input
+    from recon.weak.segments import sdof_layer, smoothed_noise
+
+    run, model = truth
+    runs = {}
+    for q in ("x", "v"):
+        files = _export(tmp_path, run, model, q, 80.0, 11)
+        out = tmp_path / f"{q}.h5"
+        args = ["import", "-o", str(out)]
+        for name, path in files.items():
+            args += [f"--{name}", str(path)]
+        assert main(args) == 0
+        runs[q] = load_run(out)
+
+    def rel(a, b):
+        return float(np.sqrt(np.mean((a - b)[300:-300] ** 2)) / np.sqrt(np.mean(a[300:-300] ** 2)))
+
+    for name in ("linear", "nonlinear"):
+        sx, sv = runs["x"].stage(name), runs["v"].stage(name)
+        assert input_filter(sx).channel == "x_base" and input_filter(sv).channel == "v_base"
+        assert InputNoise(sv).info["channel"] == "v_base"
+        # measured (seed 11, 80 dB): u within 0.03 %, y, y', D'' within 0.4 %
+        assert rel(stage_input(sx), stage_input(sv)) < 0.005
+        Lx, Dx = sdof_layer(sx)
+        Lv, Dv = sdof_layer(sv)
+        assert rel(Lx.y, Lv.y) < 0.01 and rel(Lx.dy, Lv.dy) < 0.01 and rel(Dx, Dv) < 0.02
+        # the smoothed y's noise is the integrated velocity noise (3-4x the displacement stage's
+        # at these levels), not the velocity channel's noise level taken as a displacement
+        assert 1.0 < smoothed_noise(Lv) / smoothed_noise(Lx) < 10.0

@@ -68,6 +68,7 @@ from recon.library.agent import AgentLibrary
 from recon.library.clustering import cluster
 from recon.model import HystereticModel
 from recon.output_error.newmark_refine import refine as oe_refine
+from recon.output_error.problem import FD_STEP
 from recon.regression.sparse import AutoSTLSQ, GroupedSparseSelector
 from recon.simulation import resampling
 from recon.simulation.newmark import NewmarkParameters
@@ -468,7 +469,7 @@ def hysteresis_step(rec: PeriodicRecord, lin: LinearStep, fn_terms=(), passes: i
     starts += [np.array([0.5 * lin.K, g0, -g0]), np.array([0.5 * lin.K, g0, 0.5 * g0]),
               np.array([0.8 * lin.K, 2 * g0, -2 * g0])]
     def solve(x0, max_nfev):
-        sol = least_squares(lambda x: inner(x0 * (1.0 + x))[1], np.zeros(3), diff_step=1e-6, xtol=1e-12,
+        sol = least_squares(lambda x: inner(x0 * (1.0 + x))[1], np.zeros(3), diff_step=FD_STEP, xtol=1e-12,
                             ftol=1e-12, max_nfev=max_nfev)
         return sol, x0 * (1.0 + sol.x)
 

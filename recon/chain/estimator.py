@@ -35,7 +35,7 @@ from recon.differentiation import choose_window, derivatives
 from recon.library import monomials
 from recon.library.agent import AgentLibrary, phi
 from recon.library.clustering import cluster
-from recon.output_error.problem import DIVERGED_RESIDUAL, parameter_scales
+from recon.output_error.problem import DIVERGED_RESIDUAL, FD_STEP, parameter_scales
 from recon.regression.criteria import filter_correlation_length
 from recon.regression.sparse import GroupedSparseSelector
 from recon.steps.bouc_wen import (NEGLIGIBLE, HysteresisParams, estimate_delta,
@@ -322,7 +322,7 @@ def polish_chain(model: ChainModel, stages: list, max_nfev: int = 30, n_sub: int
         return np.concatenate(out)
 
     r0 = resid(np.zeros(len(keys)))
-    sol = least_squares(resid, np.zeros(len(keys)), method="trf", diff_step=1e-6, max_nfev=max_nfev,
+    sol = least_squares(resid, np.zeros(len(keys)), method="trf", diff_step=FD_STEP, max_nfev=max_nfev,
                         xtol=1e-10, ftol=1e-12)
     c0, c1 = float(np.sqrt(r0 @ r0)), float(np.sqrt(sol.fun @ sol.fun))
     info = {"applied": c1 < c0, "error_before": c0, "error_after": c1, "nfev": int(sol.nfev), "parameters": len(keys)}

@@ -17,7 +17,7 @@ import math
 import numpy as np
 from scipy.signal import cont2discrete, lfilter, welch
 
-from recon.differentiation import choose_window, derivatives
+from recon.signals import stage_signals
 from shakerlab.run_data import BASE
 
 N_SEGMENTS = 8
@@ -55,15 +55,16 @@ def z_from_velocity(model, dy, dt):
 
 
 def stage_derivatives(run, data) -> dict:
-    """Per stage: (t, y, y', y'', u) from Savitzky-Golay derivatives of the recorded y, edges trimmed."""
+    """Per stage: (t, y, y', y'', u) from the stage signals (recon.signals: Savitzky-Golay
+    derivatives of the measured quantity), edges trimmed; u is the model input of the fit data."""
     out = {}
     for d in data:
         st = run.stage(d.name)
-        ch = choose_window({"y": st.y}, st.dt, deriv=2, for_regression=False)
-        y, dy, ddy = derivatives(st.y, st.dt, ch.window, ch.order, 2)
-        h = ch.window // 2
-        sl = slice(h, y.size - h)
-        out[d.name] = (d.t[sl], y[sl], dy[sl], ddy[sl], d.u[sl], float(np.median(np.diff(st.t))))
+        sig = stage_signals(st, deriv=2, for_regression=False)
+        h = (st.t.size - sig.t.size) // 2
+        sl = slice(h, st.t.size - h)
+        y, dy, ddy = sig.y
+        out[d.name] = (d.t[sl], y, dy, ddy, d.u[sl], float(np.median(np.diff(st.t))))
     return out
 
 
@@ -212,7 +213,6 @@ def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
             dyr = np.gradient(d.y, d.dt)
             A = np.column_stack([xb, dyr * d.dt])
             coef, *_ = np.linalg.lstsq(A, r, rcond=None)
-            expl = A @ coef
             for j, (name, meaning) in enumerate((("x_base", "scale error (feedthrough of a channel)"),
                                                  ("x_tip'", "time skew between the channels"))):
                 part = float(np.sqrt(np.mean((A[:, j] * coef[j]) ** 2)) / d.rms)

@@ -32,7 +32,7 @@ from recon.diagnosis.locate import equation_residual
 from recon.differentiation import estimate_spectrum
 from recon.library import monomials
 from recon.model import HystereticModel
-from recon.output_error.problem import (DIVERGED_RESIDUAL, get_parameter,
+from recon.output_error.problem import (DIVERGED_RESIDUAL, FD_STEP, get_parameter,
                                         parameter_scales, set_parameter)
 from recon.regression.criteria import effective_samples
 from shakerlab.run_data import BASE, Run
@@ -222,7 +222,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
 
     p0 = np.clip(np.zeros(len(keys)), lo, hi)
     if keys:
-        sol = least_squares(resid, p0, method="trf", bounds=(lo, hi), x_scale=1.0, diff_step=1e-5,
+        sol = least_squares(resid, p0, method="trf", bounds=(lo, hi), x_scale=1.0, diff_step=FD_STEP,
                             max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
         p = sol.x
         cost = float(sol.fun @ sol.fun)

@@ -30,7 +30,7 @@ from scipy.optimize import least_squares
 from recon.library import monomials
 from recon.model import HystereticModel
 from recon.output_error.polish import decimate
-from recon.output_error.problem import OutputError
+from recon.output_error.problem import FD_STEP, OutputError
 from recon.validation import nrmse
 from shakerlab.run_data import BASE, Run
 
@@ -117,7 +117,7 @@ def _linear_start(run: Run, linear_stage: str, excitation: str, lin=None) -> tup
 def _fit(model: HystereticModel, data: list, free: list, max_nfev: int) -> HystereticModel:
     prob = OutputError(model, data, free=free)
     with np.errstate(all="ignore"):
-        sol = least_squares(prob.residual, np.zeros(len(prob.keys)), method="trf", x_scale=1.0, diff_step=1e-6,
+        sol = least_squares(prob.residual, np.zeros(len(prob.keys)), method="trf", x_scale=1.0, diff_step=FD_STEP,
                             max_nfev=max_nfev, xtol=1e-10, ftol=1e-12)
     return prob.build(sol.x)
 

@@ -31,7 +31,7 @@ from dataclasses import replace as dc_replace
 import numpy as np
 from scipy.optimize import least_squares
 
-from recon.output_error.problem import DIVERGED_RESIDUAL
+from recon.output_error.problem import DIVERGED_RESIDUAL, FD_STEP
 from recon.simulation.newmark import NewmarkParameters, simulate_chain
 from shakerlab.errors import UserFacingError
 
@@ -124,7 +124,7 @@ def refine(initial, u, y, fs: float, *, periodic: bool, upsample: int = 20, n_wa
         return ys[discard:] - y[discard:]
 
     r0 = residual(np.zeros(idx.size))
-    sol = least_squares(residual, np.zeros(idx.size), method="trf", x_scale=1.0, diff_step=1e-7,
+    sol = least_squares(residual, np.zeros(idx.size), method="trf", x_scale=1.0, diff_step=FD_STEP,
                         xtol=xtol, ftol=ftol, gtol=1e-12, max_nfev=max_nfev)
     p_fit = params_of(sol.x)
     rel_std = {}

@@ -58,16 +58,15 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from recon.determinism import single_thread_blas
-from recon.differentiation import (choose_window, derivatives,
-                                   estimate_spectrum, undo_passband_loss)
 from recon.estimator.pipeline import reconstruct
 from recon.model import HystereticModel
 from recon.output_error.problem import OutputError
 from recon.regression.criteria import decorrelation_lag
 from recon.regression.sparse import GroupedSparseSelector
+from recon.signals import input_filter
 from recon.steps.bouc_wen import extract
 from shakerlab.errors import UserFacingError
-from shakerlab.run_data import BASE, Run
+from shakerlab.run_data import Run
 
 METHOD = ("output-error ensemble: block wild bootstrap of the residual + redrawn input noise, "
           "linearised refit (one Gauss-Newton step per member), centred on the estimate corrected "
@@ -103,34 +102,17 @@ def fitted_stages(model: HystereticModel) -> list[str]:
     return [non] if hasattr(model, "stage_start") else [lin, non]
 
 
-class _InputNoise:
-    """Draws of the noise the stage's input u carries: white channel noise through the same
-    filter as the signal (Savitzky-Golay second derivative and the passband-loss correction)."""
+class InputNoise:
+    """Draws of the noise the stage's input u carries: white noise of the input channel's level
+    through the filter that makes u from that channel (recon.signals.InputFilter)."""
 
-    def __init__(self, sigma: float, n: int, dt: float, window: int | None, order: int | None, info: dict):
-        self.sigma, self.n, self.dt, self.window, self.order, self.info = sigma, n, dt, window, order, info
+    def __init__(self, stage):
+        self.filter = input_filter(stage)
+        self.n = self.filter.raw.size
+        self.info = self.filter.info()
 
     def __call__(self, rng: np.random.Generator) -> np.ndarray:
-        e = rng.normal(0.0, self.sigma, self.n)
-        if self.window is None:
-            return e
-
-        return undo_passband_loss(-derivatives(e, self.dt, self.window, self.order, 2)[2], self.dt, self.window,
-                                  self.order)
-
-
-def input_noise_model(stage) -> _InputNoise:
-    """How the input u of ``stage`` is made (recon.model.HystereticModel.stage_input) and its noise level."""
-
-    if stage.excitation == BASE:
-        xb = stage.channels["x_base"]
-        ch = choose_window({"x_base": xb}, stage.dt, deriv=2, for_regression=False)
-        sigma = float(ch.noise_level["x_base"])
-        return _InputNoise(sigma, xb.size, stage.dt, ch.window, ch.order,
-                           {"channel": "x_base", "noise_std": sigma, "window": ch.window, "order": ch.order})
-    f = stage.channels["force"]
-    sigma = float(estimate_spectrum(f, stage.dt).noise_std)
-    return _InputNoise(sigma, f.size, stage.dt, None, None, {"channel": "force", "noise_std": sigma})
+        return self.filter(rng.normal(0.0, self.filter.noise_std, self.n))
 
 
 def _block_ids(sizes: list[int], residuals: list[np.ndarray], s: UncertaintySettings):
@@ -163,7 +145,7 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
         st = run.stage(name)
         u = model.stage_input(st)
         data.append(model.fit_item(st, u))   # (t from 0, u, y, recorded start), as the polish fits it
-        noise.append(input_noise_model(st))
+        noise.append(InputNoise(st))
     prob = OutputError(model, data)
     keys, x0, scale = prob.keys, prob.x0, prob.scale
     w = [1.0 / ((float(np.sqrt(np.mean((d[2] - d[2].mean()) ** 2))) or 1.0) * np.sqrt(d[2].size)) for d in data]

@@ -284,7 +284,7 @@ class PathProblem:
         for f in starts:
             p0 = np.array([lam0 * (1 - f), lam0 * f])
             sol = least_squares(self.residual, p0, args=(support,), x_scale=np.full(2, abs(lam0)),
-                                diff_step=1e-4, xtol=1e-10, ftol=1e-12, max_nfev=60)
+                                diff_step=1e-4, xtol=1e-10, ftol=1e-12, max_nfev=60)  # algebraic, not simulated
             if np.sum(sol.x) <= 0:
                 continue
             if best is None or sol.cost < best.cost:

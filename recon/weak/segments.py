@@ -53,10 +53,11 @@ import numpy as np
 from scipy import sparse
 from scipy.signal import savgol_coeffs
 
-from recon.differentiation import choose_window, derivatives, estimate_spectrum
+from recon.differentiation import estimate_spectrum
 from recon.library import monomials
 from recon.library.agent import AgentLibrary, phi
 from recon.regression.sparse import GroupedSparseSelector
+from recon.signals import stage_signals
 from recon.steps.bouc_wen import HysteresisParams, extract, fn_values, project_lambda
 from recon.steps.linear import LinearFit, fit_linear
 from shakerlab.errors import UserFacingError
@@ -184,7 +185,9 @@ class WeakLayer:
 
     y_raw, D_raw: recorded (noisy) displacement combinations, used in the integrals
     that are linear in them; y, dy: Savitzky-Golay smoothed y, y' for the products;
-    Rdd: R'' (Savitzky-Golay); F: force (zeros under base excitation)."""
+    Rdd: R'' (Savitzky-Golay); F: force (zeros under base excitation); y_noise: noise std of the
+    smoothed y when a sensor measured velocity or acceleration (recon.signals' column noise;
+    None: white displacement noise, :func:`smoothed_noise`)."""
 
     dt: float
     y_raw: np.ndarray
@@ -194,6 +197,7 @@ class WeakLayer:
     Rdd: np.ndarray
     F: np.ndarray
     choice: dict = field(default_factory=dict)
+    y_noise: float | None = None
 
     def kernel(self) -> np.ndarray:
         return np.sign(np.sign(self.y) + np.sign(self.dy)).astype(np.int8)
@@ -396,27 +400,26 @@ def smoothed_noise(L: WeakLayer) -> float:
     """Noise std of the Savitzky-Golay smoothed y of a layer (the assumed white noise of the
     displacement channels times the filter's noise gain)."""
 
+    if L.y_noise is not None:
+        return L.y_noise
     c0 = savgol_coeffs(L.choice["window"], L.choice["order"])
     ny = np.sqrt(sum(v ** 2 for k, v in L.choice["noise_level"].items() if k != "force"))
     return float(ny * np.sqrt(c0 @ c0))
 
 
 def sdof_layer(stage, window=None, order=None) -> tuple[WeakLayer, np.ndarray]:
-    """The WeakLayer of an SDOF stage and the Savitzky-Golay D''."""
+    """The WeakLayer of an SDOF stage and the Savitzky-Golay D'' (recon.signals, untrimmed)."""
 
-    dt = stage.dt
+    sig = stage_signals(stage, deriv=2, window=window, order=order, for_regression=True, trim=False)
+    y, dy, ddy = sig.y
+    y_noise = sig.column_noise["y"] if "quantities" in sig.choice else None
     if stage.excitation == BASE:
         xb, xt = stage.channels["x_base"], stage.channels["x_tip"]
-        ch = choose_window({"x_tip": xt, "x_base": xb}, dt, deriv=2, window=window, order=order, for_regression=True)
-        y_raw = xt - xb
-        yd = derivatives(y_raw, dt, ch.window, ch.order, 2)
-        bd = derivatives(xb, dt, ch.window, ch.order, 2)
-        L = WeakLayer(dt=dt, y_raw=y_raw, D_raw=xt, y=yd[0], dy=yd[1], Rdd=bd[2], F=np.zeros_like(xt),
-                      choice=ch.to_dict())
-        return L, yd[2] + bd[2]
+        rdd = -sig.u[0]                     # the base acceleration
+        L = WeakLayer(dt=stage.dt, y_raw=xt - xb, D_raw=xt, y=y, dy=dy, Rdd=rdd, F=np.zeros_like(xt),
+                      choice=sig.choice, y_noise=y_noise)
+        return L, ddy + rdd
     x, f = stage.channels["x"], stage.channels["force"]
-    ch = choose_window({"x": x}, dt, deriv=2, window=window, order=order, for_regression=True)
-    ch.noise_level["force"] = estimate_spectrum(f, dt).noise_std
-    xd = derivatives(x, dt, ch.window, ch.order, 2)
-    L = WeakLayer(dt=dt, y_raw=x, D_raw=x, y=xd[0], dy=xd[1], Rdd=np.zeros_like(x), F=f, choice=ch.to_dict())
-    return L, xd[2]
+    L = WeakLayer(dt=stage.dt, y_raw=x, D_raw=x, y=y, dy=dy, Rdd=np.zeros_like(x), F=f, choice=sig.choice,
+                  y_noise=y_noise)
+    return L, ddy
