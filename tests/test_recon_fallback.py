@@ -119,10 +119,10 @@ def test_model_without_hysteresis_starts_with_zero_z(short_run):
     assert hyst.stage_start(st)[2] != 0.0     # with hysteresis, z0 follows from the equation of motion
 
 
-def test_independent_draw_that_hung_the_polish_gets_an_admissible_answer():
-    """Issue 18: an independent-generator recording (paper protocol, 5177 Hz, 50 dB, seed 0) whose
-    equation-error estimate split k and alpha into +-9.7e10; polishing it ran for minutes. Now the
-    polish is skipped from an inadmissible start and the answer is admissible, with its verdict."""
+@pytest.fixture(scope="module")
+def independent_seed0():
+    """Stress seed 0 of the independent generator: paper protocol, 5177 Hz, 50 dB; TMP-like truth
+    with y^2 and y^3 (recon/testing/independent.py shares no code with the estimator)."""
     from recon.testing import independent as ind
 
     system = ind.random_system(np.random.default_rng([0, 18]), hysteresis=True)
@@ -132,12 +132,53 @@ def test_independent_draw_that_hung_the_polish_gets_an_admissible_answer():
         t = np.asarray(st["t"], float)
         stages[name] = Stage(name, t - t[0], {c: np.asarray(st[c], float) for c in ("x_base", "x_tip")}, "base",
                              settings={"source_t0": float(t[0])})
-    r = reconstruct(Run(stages, source="independent:seed=0"), ReconSettings())
+    return Run(stages, source="independent:seed=0"), rec["truth"]
+
+
+def _worst_error(model, truth):
+    keys = {"c_m": model.c_m, "k_m": model.k_m, "alpha_m": model.alpha_m, "gamma": model.gamma,
+            "delta": model.delta, **{f"fn:{k}": v for k, v in model.fn_m.items()}}
+    return {k: abs(v / truth[k] - 1) for k, v in keys.items() if k in truth}
+
+
+def test_independent_draw_that_hung_the_polish_gets_the_right_answer(independent_seed0):
+    """Issue 18: on this draw the equation-error estimate split k and alpha into +-9.7e10 (lambda 9
+    against 1197) and polishing it ran for minutes. The polish is skipped from an inadmissible
+    start; the fallback of the law's own form (Bouc-Wen + y^2 + y^3, fitted by output error from a
+    generic start) is the answer, adequate, with the exact terms."""
+    run, truth = independent_seed0
+    r = reconstruct(run, ReconSettings())
     assert admissible(r.model), r.model.equation()
-    a = r.adequacy
-    assert a["verdict"] in ("adequate", "inadequate")
-    if a["verdict"] == "adequate":       # then it must be right
-        truth = rec["truth"]
-        assert abs(r.model.K_m / (truth["k_m"] + truth["alpha_m"]) - 1) < 0.05
-    else:
-        assert "shakerlab diagnose" in one_line(a)
+    assert r.adequacy["fallback"]["kind"] == "bouc_wen_fewer_terms"
+    assert r.adequacy["verdict"] == "adequate", r.adequacy
+    assert set(r.model.fn_m) == {"y^2", "y^3"}
+    truth = {k: v for k, v in truth.items()} | {f"fn:{k}": v for k, v in truth.get("fn_m", {}).items()}
+    err = _worst_error(r.model, truth)
+    # measured: every parameter within 2.8 % (c_m), k_m 0.2 %
+    assert max(err.values()) < 0.06, err
+
+
+def test_estimate_that_does_not_simulate_is_restarted_without_its_fn_terms(independent_seed0):
+    """An admissible estimate whose simulation diverges on the nonlinear stage is polished again from
+    restarted fn terms (none; y^2 and y^3), and the better admissible restart is kept. The estimate
+    is the one the pointwise pass made of this draw at 60 dB: y y'^2 for the true y^3, a y'^3, the
+    stiffness split wrong (k 392 against 1516); its simulation of the 50 dB stage diverges."""
+    from recon.estimator.finish import polish_and_validate
+    from recon.estimator.result import ReconSettings as Settings
+
+    run, truth = independent_seed0
+    bad = HystereticModel(excitation="base", c_m=1.9891, k_m=391.952, alpha_m=2309.81, gamma=315.882,
+                          delta=-185.955, fn_m={"y^2": 171098.0, "y*dy^2": -289737.0, "dy^3": 64.1776})
+    assert admissible(bad)
+    info, timings = {}, {}
+    model, val = polish_and_validate(bad, run, Settings(), info, timings, True)
+    pol = model.provenance["output_error_polish"]
+    assert pol["restart"]["start_nrmse"] > 1.0          # the estimate itself does not simulate the stage
+    assert pol["restart"]["kept"] == "stiffness_terms"
+    assert set(model.fn_m) == {"y^2", "y^3"}
+    assert val["nrmse"] < 0.02, val
+    truth_all = dict(truth) | {f"fn:{k}": v for k, v in truth["fn_m"].items()}
+    err = _worst_error(model, truth_all)
+    # measured after this one polish (the pipeline polishes again after the term selection):
+    # delta 12 % off, every other parameter within 3.3 %
+    assert err.pop("delta") < 0.25 and max(err.values()) < 0.06, err

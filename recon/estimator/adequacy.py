@@ -3,7 +3,9 @@
 The verdict is ``adequate`` when the model is admissible, its validation NRMSE is within
 ``NOISE_FACTOR`` times the noise floor of the validation recording (or below
 ``NRMSE_FLOOR``, whichever is larger) and it has no more fn terms than ``MAX_FN_TERMS``;
-otherwise ``inadequate``, with the reasons. The noise floor is the NRMSE a perfect model
+otherwise ``inadequate``, with the reasons. A fallback to a simpler model without hysteresis
+(equivalent-linear, linear) is always inadequate; a fallback of the law's own (Bouc-Wen) form,
+fitted by output error from a generic start, is judged by the same figures as any estimate. The noise floor is the NRMSE a perfect model
 would score: the validation record's noise (from its spectrum's flat tail) over its rms.
 An inadequate model points to ``shakerlab diagnose``.
 """
@@ -14,7 +16,7 @@ import math
 import numpy as np
 
 from recon.differentiation import estimate_spectrum
-from recon.estimator.fallback import admissible
+from recon.estimator.fallback import HYSTERETIC_KINDS, admissible
 from shakerlab.run_data import Run
 
 NOISE_FACTOR = 5.0     # validation NRMSE up to 5 x the noise floor is explained by noise and filter error
@@ -52,10 +54,11 @@ def assess(model, validation: dict, run: Run, fallback: dict | None = None) -> d
         reasons.append(f"{len(model.fn_m)} fn terms, more than the {MAX_FN_TERMS} a TMP-like law needs")
     if validation.get("fitted_on_validation_stage"):
         reasons.append("no validation stage: the NRMSE is on the fitted nonlinear stage")
-    if fallback and fallback.get("used"):
+    simpler = bool(fallback and fallback.get("used") and fallback.get("kind") not in HYSTERETIC_KINDS)
+    if simpler:
         reasons.append(f"the full model was not admissible; this is the simpler {fallback['kind']} model")
     verdict = "adequate" if ok and math.isfinite(v) and v <= limit and len(model.fn_m) <= MAX_FN_TERMS \
-        and not (fallback and fallback.get("used")) else "inadequate"
+        and not simpler else "inadequate"
     out = {"verdict": verdict, "admissible": ok, "validation_nrmse": v, "noise_floor_nrmse": floor,
            "nrmse_limit": limit, "fn_terms": len(model.fn_m), "reasons": reasons}
     if verdict != "adequate":
