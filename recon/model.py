@@ -35,6 +35,7 @@ CONVENTION = ("per unit mass: every force term is divided by the mass m; base ex
 
 
 PARAMETER_NAMES = ("c_m", "k_m", "alpha_m", "gamma", "delta")   # the physical parameters, per unit mass
+NEAR_REST = 0.02    # a start with |y0|, |y'0| below 2 % of the stage's rms may be rest (stage_start)
 MAX_SUBSTEPS = 64   # RK4 sub-steps per sample at most (64 steps per period of a resonance at fs)
 
 
@@ -241,8 +242,23 @@ class HystereticModel:
         # start from rest exactly: an edge estimate of y'' (hence z0) is noisy.
         if abs(y0) < 5 * sigma and (abs(v0) < 0.05 * v_rms or abs(v0) < 4 * sig_v):
             return 0.0, 0.0, 0.0
-        z0 = self.start_z(u[0], y0, v0, a0)
-        return float(y0), float(v0), float(z0)
+        edge = (float(y0), float(v0), float(self.start_z(u[0], y0, v0, a0)))
+        # Near rest the edge estimate is mostly its own noise: at 80 dB a stage that starts 0.1 % of
+        # its amplitude away from rest failed the test above by a hair, and z0 from the noisy edge
+        # y'' (0.057 against 0.0009 m/s^2) cost a transient of NRMSE 0.0057, against 0.0002 from rest
+        # (an independent generator's paper-protocol record). So when y0 and y'0 are small against
+        # the stage's motion, the start that simulates the stage better is kept.
+        y_rms = float(np.std(stage.y))
+        if abs(y0) < NEAR_REST * y_rms and abs(v0) < NEAR_REST * v_rms:
+            t = stage.t - stage.t[0]
+            err = []
+            for init in (None, edge):
+                ys = self.simulate(t, u, initial=init)[0]
+                e = float(np.mean((ys - stage.y) ** 2))
+                err.append(e if np.isfinite(e) else np.inf)
+            if err[0] <= err[1]:
+                return 0.0, 0.0, 0.0
+        return edge
 
     def start_z(self, u0: float, y0: float, v0: float, a0: float) -> float:
         """z at a recorded start (y, y', y''): from the equation of motion when the model has
