@@ -18,6 +18,7 @@ import numpy as np
 
 from recon.library import monomials
 from recon.simulation.rk4 import simulate_sdof, substeps
+from recon.simulation.start_state import fit_start
 from recon.signals import stage_input, start_derivatives
 from shakerlab.errors import UserFacingError
 from shakerlab.output_files import check_output, write_text
@@ -35,7 +36,6 @@ CONVENTION = ("per unit mass: every force term is divided by the mass m; base ex
 
 
 PARAMETER_NAMES = ("c_m", "k_m", "alpha_m", "gamma", "delta")   # the physical parameters, per unit mass
-NEAR_REST = 0.02    # a start with |y0|, |y'0| below 2 % of the stage's rms may be rest (stage_start)
 MAX_SUBSTEPS = 64   # RK4 sub-steps per sample at most (64 steps per period of a resonance at fs)
 
 
@@ -243,22 +243,15 @@ class HystereticModel:
         if abs(y0) < 5 * sigma and (abs(v0) < 0.05 * v_rms or abs(v0) < 4 * sig_v):
             return 0.0, 0.0, 0.0
         edge = (float(y0), float(v0), float(self.start_z(u[0], y0, v0, a0)))
-        # Near rest the edge estimate is mostly its own noise: at 80 dB a stage that starts 0.1 % of
-        # its amplitude away from rest failed the test above by a hair, and z0 from the noisy edge
-        # y'' (0.057 against 0.0009 m/s^2) cost a transient of NRMSE 0.0057, against 0.0002 from rest
-        # (an independent generator's paper-protocol record). So when y0 and y'0 are small against
-        # the stage's motion, the start that simulates the stage better is kept.
-        y_rms = float(np.std(stage.y))
-        if abs(y0) < NEAR_REST * y_rms and abs(v0) < NEAR_REST * v_rms:
-            t = stage.t - stage.t[0]
-            err = []
-            for init in (None, edge):
-                ys = self.simulate(t, u, initial=init)[0]
-                e = float(np.mean((ys - stage.y) ** 2))
-                err.append(e if np.isfinite(e) else np.inf)
-            if err[0] <= err[1]:
-                return 0.0, 0.0, 0.0
-        return edge
+        # the edge estimate's z0 comes from the noisy edge y'': the start is fitted to the
+        # stage's first seconds instead, with rest as the other candidate (recon.simulation.start_state)
+        t = stage.t - stage.t[0]
+        y_rms = float(np.std(stage.y)) or 1.0
+        scales = (max(abs(edge[0]), 0.05 * y_rms), max(abs(edge[1]), 0.05 * v_rms),
+                  max(abs(edge[2]), 0.05 * abs(self.alpha_m) * y_rms, 1e-12))
+        start, _ = fit_start(lambda init, n: self.simulate(t[:n], u[:n], initial=init)[0], stage.y, stage.dt,
+                             edge, scales, n_free=2 if self.alpha_m == 0.0 else 3)
+        return start
 
     def start_z(self, u0: float, y0: float, v0: float, a0: float) -> float:
         """z at a recorded start (y, y', y''): from the equation of motion when the model has
