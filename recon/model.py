@@ -19,7 +19,7 @@ import numpy as np
 from recon.differentiation import choose_window, derivatives, undo_passband_loss
 from recon.library import monomials
 from recon.simulation.rk4 import simulate_sdof, substeps
-from recon.signals import measured_base_input
+from recon.signals import continuous_velocity_start, measured_base_input
 from shakerlab.errors import UserFacingError
 from shakerlab.output_files import check_output, write_text
 from shakerlab.quantities import DISPLACEMENT
@@ -246,6 +246,10 @@ class HystereticModel:
         z = g u - y'' - c y' - k y - fn(y, y'). A stage recorded from rest gives ~0."""
 
         u = self.stage_input(stage) if u is None else u
+        measured = continuous_velocity_start(stage)     # velocity recorded by the rig: its own rule
+        if measured is not None:
+            y0, v0, a0, _ = measured
+            return y0, v0, float(self.start_z(u[0], y0, v0, a0))
         y = stage.y
         ch = choose_window({"y": y}, stage.dt, deriv=2, for_regression=False)
         n = min(y.size, 4 * ch.window)
