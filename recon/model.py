@@ -248,8 +248,8 @@ class HystereticModel:
         u = self.stage_input(stage) if u is None else u
         measured = continuous_velocity_start(stage)     # velocity recorded by the rig: its own rule
         if measured is not None:
-            y0, v0, a0, _ = measured
-            return y0, v0, float(self.start_z(u[0], y0, v0, a0))
+            y0, v0, a0, at_rest = measured
+            return y0, v0, float(self.start_z(0.0 if at_rest else u[0], y0, v0, a0))
         y = stage.y
         ch = choose_window({"y": y}, stage.dt, deriv=2, for_regression=False)
         n = min(y.size, 4 * ch.window)

@@ -167,7 +167,10 @@ def continuous_velocity_start(stage: Stage):
     integral's own noise level is far below its start value's uncertainty, so the displacement
     rule (``|y0| < 5 sigma``) never saw a rest and took y''0 from two derivatives of the integral
     (z0 = 5.1 m/s^2 on the simulated rig's nonlinear stage, truth ~0). At rest (``|y'0| < 5 %``
-    of the stage's rms velocity or within 4 times its edge noise) y'0 = y''0 = 0."""
+    of the stage's rms velocity or within 4 times its edge noise) y'0 = y''0 = 0, and the caller
+    takes the input as 0 too (the stage starts from a static state, z0 = -k y0 - fn(y0)): a
+    Savitzky-Golay input's edge value is no rest value (u[0] = 0.95 m/s^2 at the simulated rig's
+    validation start, where its mean over 800 samples is 0.01)."""
     if stage.settings.get("integration") != CONTINUOUS:
         return None
     roles = ("x_tip", "x_base") if stage.excitation == BASE else ("x",)
