@@ -69,6 +69,10 @@ class HystereticModel:
     fn_m: dict = field(default_factory=dict)
     inv_m: float | None = None
     provenance: dict = field(default_factory=dict)
+    # optional constant offset b of the recorded input (its units: m/s^2 base, N force): the model
+    # is driven by g (u - b). None (the default) = no such parameter; every result without it is
+    # unchanged (ReconSettings.input_offset)
+    input_offset: float | None = None
 
     def __post_init__(self):
         if self.excitation not in (BASE, FORCE):
@@ -112,6 +116,9 @@ class HystereticModel:
         for k, a in self.fn_m.items():
             lhs += signed(a, " " + k.replace("dy", "y`").replace("`", chr(39)))
         rhs = "-x_base''" if self.excitation == BASE else f"{self.inv_m:.6g} F"
+        if self.input_offset is not None:
+            rhs = (f"-x_base''{signed(-self.input_offset, '')}" if self.excitation == BASE
+                   else f"{self.inv_m:.6g} (F{signed(-self.input_offset, '')})")
         zeq = (f"z' = {self.alpha_m:.6g} y'{signed(-self.gamma, ' |y' + chr(39) + '| z')}"
                f"{signed(-self.delta, ' y' + chr(39) + ' |z|')}")
         return f"{lhs} + z = {rhs}\n{zeq}"
@@ -128,8 +135,12 @@ class HystereticModel:
                   "gamma": self.gamma, "delta": self.delta, "fn_m": dict(self.fn_m)}
         if self.excitation == FORCE:
             params["inv_m"] = self.inv_m
+        units = UNITS
+        if self.input_offset is not None:
+            params["input_offset"] = self.input_offset
+            units = dict(UNITS, input_offset="m/s^2" if self.excitation == BASE else "N")
         return {"kind": "shakerlab.recon.HystereticModel", "excitation": self.excitation,
-                "parameters": params, "units": UNITS, "convention": CONVENTION,
+                "parameters": params, "units": units, "convention": CONVENTION,
                 "equation": self.equation(), "provenance": self.provenance}
 
     def to_json(self) -> str:
@@ -169,8 +180,11 @@ class HystereticModel:
         inv_m = p.get("inv_m")
         if inv_m is not None or d["excitation"] == FORCE:
             inv_m = finite_number(inv_m, "parameters.inv_m")
+        offset = p.get("input_offset")
+        if offset is not None:
+            offset = finite_number(offset, "parameters.input_offset")
         provenance = d.get("provenance", {})
-        return cls(excitation=d["excitation"], fn_m=fn_m, inv_m=inv_m,
+        return cls(excitation=d["excitation"], fn_m=fn_m, inv_m=inv_m, input_offset=offset,
                    provenance=provenance if isinstance(provenance, dict) else {}, **values)
 
     @classmethod
@@ -209,6 +223,8 @@ class HystereticModel:
 
         t = np.asarray(t, float)
         u = np.asarray(u, float)
+        if self.input_offset is not None:
+            u = u - self.input_offset
         if t.shape != u.shape or t.size < 2:
             raise UserFacingError(f"simulate: t and u must be 1-D arrays of equal length (got {t.shape}, {u.shape})")
         dts = np.diff(t)
@@ -283,6 +299,8 @@ class HystereticModel:
     def balance(self, u0: float, y0: float, v0: float, x: float) -> float:
         """g u - x - c y' - k y - fn(y, y') at one instant: the equation of motion gives z from
         y'' (x = y'') or y'' from z (x = z)."""
+        if self.input_offset is not None:
+            u0 = u0 - self.input_offset
         return self.input_gain * u0 - x - self.c_m * v0 - self.k_m * y0 - float(
             self.fn(np.array([y0]), np.array([v0]))[0])
 
