@@ -68,3 +68,14 @@ def test_the_refusal_under_a_multisine_names_the_noise_not_a_tone():
     # the same stage with the first rule's count gave the wrong cause
     with pytest.raises(UserFacingError, match="single tone"):
         fit_linear(y, dy, ddy, force, "force", noisy, "linear", 2)
+
+
+@pytest.mark.parametrize("snr_db", [40.0, 80.0])
+def test_a_chirp_is_many_lines_not_a_single_tone(snr_db):
+    from scipy.signal import chirp
+
+    t = np.arange(int(T * FS)) / FS
+    x = chirp(t, 5.0, T, 30.0) + np.random.default_rng(4).normal(0.0, 10 ** (-snr_db / 20), t.size)
+    n, spec = _count(x)
+    assert n >= 20                      # measured 38: 25 Hz of band, one line per Hann main lobe
+    assert count_lines(spec.freqs, 1.0 / T) <= 2      # the first rule: "a single tone"

@@ -59,7 +59,9 @@ def count_lines(freqs: np.ndarray, df: float, power: np.ndarray | None = None) -
     no peak however far they reach above the noise: a leaky 9-line multisine is 9 lines at any
     SNR, where the first rule (bins closer than 4 df merge, still used without ``power``) chained
     the lines whose skirts touch into 1-3 (tests/test_recon_lines.py). Measured: lines 5 bins
-    apart or more are counted exactly at 40-120 dB; 3 bins apart they merge in part."""
+    apart or more are counted exactly at 40-120 dB; 3 bins apart they merge in part. A broadband
+    input counts its bins within 10 dB of the strongest, one line per 4 bins (a 5-30 Hz chirp over
+    10 s: 38 at 40-80 dB; the first rule said 1-2, a single tone)."""
     if freqs.size == 0:
         return 0
     if power is None:
@@ -71,7 +73,10 @@ def count_lines(freqs: np.ndarray, df: float, power: np.ndarray | None = None) -
     dense = np.interp(grid, k, p)
     dense[0], dense[-1] = p[0] - 1.0, p[-1] - 1.0          # a valley beyond each end
     peaks, _ = find_peaks(dense, prominence=1.0)
-    return max(int(np.count_nonzero(grid[peaks] >= 3)), 1)
+    # a broadband input (a chirp, noise) has no peaks but many independent lines: its bins within
+    # 10 dB of the strongest, per Hann main lobe (4 bins)
+    band = int(np.count_nonzero(p >= p.max() - 1.0)) // 4
+    return max(int(np.count_nonzero(grid[peaks] >= 3)), band, 1)
 
 
 def fit_linear(y, dy, ddy, u, excitation: str, column_noise: dict | None = None,
