@@ -1,6 +1,10 @@
 """Driver for a laser displacement sensor controller (ASCII protocol, Keyence LK-G style).
 
-Readings travel in millimetres; this driver speaks metres.  Buffered
+Readings travel in millimetres (mm/s in velocity mode); this driver speaks
+metres (m/s).  The controller's measuring mode is a declared setting,
+:attr:`LaserSensor.quantity` (``"displacement"`` or ``"velocity"``, the
+``MD`` command, like a vibrometer's decoder setting); every reading, block and
+range is in that quantity's unit.  Buffered
 acquisition is armed with :meth:`LaserSensor.arm` and starts at the next pulse
 of the common trigger line (the signal generator's ``*TRG``), so two sensors
 armed before one trigger share a time base: ``SensorBlock.index0`` counts
@@ -17,6 +21,8 @@ from drivers.base import (Instrument, InstrumentError, InstrumentFault, Malforme
 from drivers.line_link import LineLink
 
 RATES = (1000, 2000, 5000, 10000, 20000, 50000)
+QUANTITIES = ("displacement", "velocity")  # MD,0 / MD,1
+UNITS = {"displacement": "m", "velocity": "m/s"}
 MAX_PER_REPLY = 100_000
 MAX_ARM = 1_000_000_000
 FLAG_OUT_OF_RANGE = 1
@@ -37,7 +43,8 @@ class SignalLoss(InstrumentError):
 
 @dataclass
 class SensorBlock:
-    """Consecutive samples: ``values[j]`` is sample ``index0 + j`` since the trigger [m]."""
+    """Consecutive samples: ``values[j]`` is sample ``index0 + j`` since the trigger [m, or m/s in
+    velocity mode]."""
 
     index0: int
     values: np.ndarray
@@ -88,6 +95,21 @@ class LaserSensor(Instrument):
                                              "Half measuring range [m] (readings span +-range about the "
                                              "reference distance).")
 
+    quantity = Instrument.control(lambda s: s._quantity(), "MD,{}",
+                                  "What the readings measure: 'displacement' [m] or 'velocity' [m/s] (the "
+                                  "controller's measuring mode; refused while acquiring).",
+                                  one_of(QUANTITIES), fmt=lambda v: str(QUANTITIES.index(v)))
+
+    velocity_range = Instrument.measurement(lambda s: s._float_field("VR") * 1e-3,
+                                            "Half measuring range in velocity mode [m/s] (readings span "
+                                            "+-range).")
+
+    def _quantity(self) -> str:
+        code = self._int_field("MD")
+        if code >= len(QUANTITIES):
+            raise MalformedReply(self.name, "MD", f"unknown measuring mode {code}")
+        return QUANTITIES[code]
+
     def _int_field(self, command: str) -> int:
         text = self._field(command)
         if not text.isdigit():
@@ -102,7 +124,7 @@ class LaserSensor(Instrument):
         return self._field("ID")
 
     def read(self) -> float:
-        """One reading now [m]; raises OutOfRange or SignalLoss."""
+        """One reading now [m, or m/s in velocity mode]; raises OutOfRange or SignalLoss."""
         text = self._field("M0")
         if text in ("+FFFFFFF", "-FFFFFFF"):
             raise OutOfRange(self.name, "M0", f"target outside the measuring range ({text[0]})")

@@ -19,7 +19,7 @@ import numpy as np
 from recon.library import monomials
 from recon.simulation.rk4 import simulate_sdof, substeps
 from recon.simulation.start_state import fit_start
-from recon.signals import stage_input, start_derivatives
+from recon.signals import continuous_velocity_start, stage_input, start_derivatives
 from shakerlab.errors import UserFacingError
 from shakerlab.output_files import check_output, write_text
 from shakerlab.run_data import BASE, FORCE, Stage
@@ -68,6 +68,10 @@ class HystereticModel:
     fn_m: dict = field(default_factory=dict)
     inv_m: float | None = None
     provenance: dict = field(default_factory=dict)
+    # optional constant offset b of the recorded input (its units: m/s^2 base, N force): the model
+    # is driven by g (u - b). None (the default) = no such parameter; every result without it is
+    # unchanged (ReconSettings.input_offset)
+    input_offset: float | None = None
 
     def __post_init__(self):
         if self.excitation not in (BASE, FORCE):
@@ -111,6 +115,9 @@ class HystereticModel:
         for k, a in self.fn_m.items():
             lhs += signed(a, " " + k.replace("dy", "y`").replace("`", chr(39)))
         rhs = "-x_base''" if self.excitation == BASE else f"{self.inv_m:.6g} F"
+        if self.input_offset is not None:
+            rhs = (f"-x_base''{signed(-self.input_offset, '')}" if self.excitation == BASE
+                   else f"{self.inv_m:.6g} (F{signed(-self.input_offset, '')})")
         zeq = (f"z' = {self.alpha_m:.6g} y'{signed(-self.gamma, ' |y' + chr(39) + '| z')}"
                f"{signed(-self.delta, ' y' + chr(39) + ' |z|')}")
         return f"{lhs} + z = {rhs}\n{zeq}"
@@ -127,8 +134,12 @@ class HystereticModel:
                   "gamma": self.gamma, "delta": self.delta, "fn_m": dict(self.fn_m)}
         if self.excitation == FORCE:
             params["inv_m"] = self.inv_m
+        units = UNITS
+        if self.input_offset is not None:
+            params["input_offset"] = self.input_offset
+            units = dict(UNITS, input_offset="m/s^2" if self.excitation == BASE else "N")
         return {"kind": "shakerlab.recon.HystereticModel", "excitation": self.excitation,
-                "parameters": params, "units": UNITS, "convention": CONVENTION,
+                "parameters": params, "units": units, "convention": CONVENTION,
                 "equation": self.equation(), "provenance": self.provenance}
 
     def to_json(self) -> str:
@@ -168,8 +179,11 @@ class HystereticModel:
         inv_m = p.get("inv_m")
         if inv_m is not None or d["excitation"] == FORCE:
             inv_m = finite_number(inv_m, "parameters.inv_m")
+        offset = p.get("input_offset")
+        if offset is not None:
+            offset = finite_number(offset, "parameters.input_offset")
         provenance = d.get("provenance", {})
-        return cls(excitation=d["excitation"], fn_m=fn_m, inv_m=inv_m,
+        return cls(excitation=d["excitation"], fn_m=fn_m, inv_m=inv_m, input_offset=offset,
                    provenance=provenance if isinstance(provenance, dict) else {}, **values)
 
     @classmethod
@@ -208,6 +222,8 @@ class HystereticModel:
 
         t = np.asarray(t, float)
         u = np.asarray(u, float)
+        if self.input_offset is not None:
+            u = u - self.input_offset
         if t.shape != u.shape or t.size < 2:
             raise UserFacingError(f"simulate: t and u must be 1-D arrays of equal length (got {t.shape}, {u.shape})")
         dts = np.diff(t)
@@ -235,6 +251,10 @@ class HystereticModel:
         z = g u - y'' - c y' - k y - fn(y, y'). A stage recorded from rest gives ~0."""
 
         u = self.stage_input(stage) if u is None else u
+        measured = continuous_velocity_start(stage)     # velocity recorded by the rig: its own rule
+        if measured is not None:
+            y0, v0, a0, at_rest = measured
+            return y0, v0, float(self.start_z(0.0 if at_rest else u[0], y0, v0, a0))
         y0, v0, a0, sigma, sig_v, v_rms = start_derivatives(stage)
         # recorded from rest: y0 within the noise and y'0 small against the stage's rms
         # velocity (a zero crossing mid-motion has y'0 near its peak) or within the noise of
@@ -264,6 +284,8 @@ class HystereticModel:
     def balance(self, u0: float, y0: float, v0: float, x: float) -> float:
         """g u - x - c y' - k y - fn(y, y') at one instant: the equation of motion gives z from
         y'' (x = y'') or y'' from z (x = z)."""
+        if self.input_offset is not None:
+            u0 = u0 - self.input_offset
         return self.input_gain * u0 - x - self.c_m * v0 - self.k_m * y0 - float(
             self.fn(np.array([y0]), np.array([v0]))[0])
 

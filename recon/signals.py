@@ -22,7 +22,8 @@ from scipy.signal import savgol_coeffs
 
 from recon.differentiation import (choose_window, derivatives, estimate_spectrum, stable_coefficients,
                                    stable_derivatives, undo_passband_loss)
-from shakerlab.quantities import DISPLACEMENT, ORDER, channel_name, integrate, integrated_noise_rms
+from shakerlab.quantities import (CONTINUOUS, DISPLACEMENT, ORDER, VELOCITY, channel_name, integrate,
+                                  integrated_noise_rms)
 from shakerlab.run_data import BASE, Stage
 
 
@@ -84,6 +85,8 @@ def channel_derivatives(stage: Stage, role: str, deriv: int, window: int, order:
     k = ORDER[q]
     measured = stage.channels[role] if k == 0 else stage.measured[channel_name(role, q)]
     lower = integrate(measured, stage.dt, q)[:-1]         # displacement, velocity, ... below q
+    if k:   # the stage's own displacement (integrated as its recording says: shakerlab.quantities)
+        lower[0] = stage.channels[role]
     out = [stable_derivatives(lower[d], stage.dt, window, order, 0)[0] for d in range(min(k, deriv + 1))]
     if deriv >= k:
         out += stable_derivatives(measured, stage.dt, window, order, deriv - k)
@@ -226,3 +229,39 @@ def start_derivatives(stage: Stage) -> tuple[float, float, float, float, float, 
     sig_v = sigma * float(np.linalg.norm(P[1])) / ((w - 1) * stage.dt)
     v_rms = float(np.sqrt(np.mean(derivatives(y, stage.dt, ch.window, ch.order, 1)[1] ** 2)))
     return d[0][0], d[1][0], d[2][0], sigma, sig_v, v_rms
+
+
+def continuous_velocity_start(stage: Stage):
+    """(y0, y'0, y''0, at_rest) at the first sample of a stage whose motion the rig recorded as
+    velocity and integrated continuously (``integration = "continuous"``,
+    :mod:`shakerlab.quantities`); None for any other stage.
+
+    y0 is the integrated displacement's first value (a real residual set: the rig integrated it
+    since the trigger). y'0 and y''0 come from the measured relative velocity (a polynomial fit at
+    the edge, the window chosen for its noise), never from differentiating the integral: the
+    integral's own noise level is far below its start value's uncertainty, so the displacement
+    rule (``|y0| < 5 sigma``) never saw a rest and took y''0 from two derivatives of the integral
+    (z0 = 5.1 m/s^2 on the simulated rig's nonlinear stage, truth ~0). At rest (``|y'0| < 5 %``
+    of the stage's rms velocity or within 4 times its edge noise) y'0 = y''0 = 0, and the caller
+    takes the input as 0 too (the stage starts from a static state, z0 = -k y0 - fn(y0)): a
+    Savitzky-Golay input's edge value is no rest value (u[0] = 0.95 m/s^2 at the simulated rig's
+    validation start, where its mean over 800 samples is 0.01)."""
+    if stage.settings.get("integration") != CONTINUOUS:
+        return None
+    roles = ("x_tip", "x_base") if stage.excitation == BASE else ("x",)
+    if any(stage.quantities.get(r) != VELOCITY for r in roles):
+        return None
+    v = {r: stage.measured[channel_name(r, VELOCITY)] for r in roles}
+    vel = v["x_tip"] - v["x_base"] if stage.excitation == BASE else v["x"]
+    ch = choose_window({"v": vel}, stage.dt, deriv=1, for_regression=False, coefficients=stable_coefficients)
+    n = min(vel.size, 4 * ch.window)
+    w = min(ch.window, n - (1 - n % 2))
+    P = np.linalg.pinv(np.vander(np.arange(w) / (w - 1), ch.order + 1, increasing=True))
+    c = P @ vel[:w]
+    v0, a0 = float(c[0]), float(c[1] / ((w - 1) * stage.dt))
+    sig_v = ch.noise_level["v"] * float(np.linalg.norm(P[0]))
+    v_rms = float(np.sqrt(np.mean(vel ** 2)))
+    y0 = float(stage.y[0])
+    if abs(v0) < 0.05 * v_rms or abs(v0) < 4 * sig_v:
+        return y0, 0.0, 0.0, True
+    return y0, v0, a0, False

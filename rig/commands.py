@@ -21,15 +21,18 @@ def register(subparsers) -> None:
         "to an HDF5 run file. Ctrl-C ramps the output down and stops; a second Ctrl-C cuts at once. "
         "Exit status: 0 complete, 1 error, 3 a limit tripped, 130 aborted.",
     )
-    p.add_argument("--config", type=Path, metavar="RIG.toml", help="rig config (addresses, limits); "
-                   "default: the simulated rig with rig/default_rig.toml's limits")
+    p.add_argument("--config", type=Path, metavar="RIG.toml", help="rig config (addresses, limits, sensor "
+                   "quantities); default: the simulated rig with rig/default_rig.toml's settings")
+    p.add_argument("--simulated", action="store_true",
+                   help="with --config: run its settings (limits, acquisition, sensor quantities) on a simulated "
+                        "rig started here (its addresses replace the config's)")
     p.add_argument("--protocol", type=Path, metavar="PROTOCOL.toml",
                    help="protocol (default: rig/default_protocol.toml)")
     p.add_argument("-o", "--output", type=Path, required=True, help="run file to write (.h5)")
     p.add_argument("--force", action="store_true", help="overwrite the output file")
     p.add_argument("--sim-speed", type=float, default=1.0, metavar="X",
-                   help="without --config: simulated time per wall time (1 = real time, 0 = as fast as possible)")
-    p.add_argument("--seed", type=int, default=0, help="without --config: the simulated rig's noise seed")
+                   help="simulated rig: simulated time per wall time (1 = real time, 0 = as fast as possible)")
+    p.add_argument("--seed", type=int, default=0, help="simulated rig: the noise seed")
     p.add_argument("--quiet", action="store_true", help="print only warnings, errors and the summary")
     p.set_defaults(handler=_acquire)
     register_gui(subparsers)
@@ -50,7 +53,10 @@ def _acquire(args) -> int:
     check_output(args.output, overwrite=args.force, what="run file")
     refuse_partial(args.output)
     progress = ConsoleProgress(quiet=args.quiet)
-    if args.config is not None:
+    if args.simulated and args.config is None:
+        raise UserFacingError("--simulated applies a --config to the simulated rig; without --config the "
+                              "simulated rig is used anyway")
+    if args.config is not None and not args.simulated:
         config = load_config(args.config)
         protocol.check_against_limits(config.limits, config.source)
         with sigint_aborts() as hook:
@@ -58,10 +64,12 @@ def _acquire(args) -> int:
                               on_runner=hook)
     else:
         speed = None if args.sim_speed == 0 else args.sim_speed
-        config = load_config(None)
+        config = load_config(args.config)
         protocol.check_against_limits(config.limits, config.source)
-        print(f"no --config: starting the simulated rig ({'as fast as possible' if speed is None else f'speed {speed:g}'})")
-        with simulated_rig(speed=speed, seed=args.seed) as (sim, config), sigint_aborts() as hook:
+        pace = 'as fast as possible' if speed is None else f'speed {speed:g}'
+        print(f"{'no --config' if args.config is None else f'{args.config} on'}: starting the simulated rig ({pace})")
+        with simulated_rig(speed=speed, seed=args.seed, rig_config=args.config) as (sim, config), \
+                sigint_aborts() as hook:
             outcome = acquire(config, protocol, args.output, lockstep=speed is None, overwrite=args.force,
                               observers=[progress], on_runner=hook,
                               attrs={"simulated": True, "seed": args.seed})

@@ -40,10 +40,20 @@ SCHEMA = {
         "base": {
             "url": Field("str", help="pyserial URL of the base laser sensor"),
             "timeout_s": Field("number", 1.0, min=0, min_exclusive=True, help="reply timeout"),
+            "quantity": Field("str", "displacement", choices=("displacement", "velocity"),
+                              help="what the base sensor reports (its measuring mode, set at start and read "
+                                   "back): displacement [m] or velocity [m/s]; velocity is integrated in real "
+                                   "time for the displacement limits and the plans' decisions, and recorded as "
+                                   "measured (v_base)"),
         },
         "tip": {
             "url": Field("str", help="pyserial URL of the tip laser sensor"),
             "timeout_s": Field("number", 1.0, min=0, min_exclusive=True, help="reply timeout"),
+            "quantity": Field("str", "displacement", choices=("displacement", "velocity"),
+                              help="what the tip sensor reports (its measuring mode, set at start and read "
+                                   "back): displacement [m] or velocity [m/s]; velocity is integrated in real "
+                                   "time for the displacement limits and the plans' decisions, and recorded as "
+                                   "measured (v_tip)"),
         },
     },
     "acquisition": {
@@ -100,6 +110,11 @@ class RigConfig:
     @property
     def acquisition(self) -> dict:
         return self.data["acquisition"]
+
+    @property
+    def quantities(self) -> dict:
+        """What each sensor reports: {"base": "displacement"|"velocity", "tip": ...}."""
+        return {k: self.data["sensors"][k]["quantity"] for k in ("base", "tip")}
 
     def addresses(self) -> dict:
         d = self.data

@@ -5,6 +5,12 @@ tip sensors) at the addresses of a :class:`~rig.config.RigConfig`, the
 amplifier heartbeat thread, and the alignment of the two sensor streams on
 their shared sample index (both are armed before one common trigger).
 
+A sensor set to report velocity (``[sensors.*] quantity = "velocity"``) is
+integrated here, block by block, into the displacement every consumer of a
+:class:`Block` works with (supervisor limits, plans, control, live plots; all in
+metres); the velocity itself travels in ``Block.measured`` to the recorder.
+See :class:`VelocityIntegrator` for the integrator and its error.
+
 The heartbeat feeds the amplifier's comms watchdog from a background thread
 only while the runner keeps making progress (:meth:`mark_alive`): if the
 controller process dies or its loop stalls for ``stall_timeout_s``, the
@@ -17,17 +23,58 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.signal import lfilter
 
+from drivers.base import InstrumentError
 from drivers.laser_sensor import LaserSensor
 from drivers.power_amplifier import PowerAmplifier
 from drivers.signal_generator import SignalGenerator
 
 MIN_VPP = 0.001  # the generator's lowest amplitude; "zero" = this, then output off
+# time constant of the real-time integration of a velocity sensor [s]: a leak that keeps an offset or
+# the integrated noise bounded, far below every drive frequency (see VelocityIntegrator)
+VELOCITY_LEAK_S = 10.0
+
+
+class VelocityIntegrator:
+    """Causal, real-time displacement from a velocity sensor's blocks [m/s -> m].
+
+    Trapezoidal integration with a leak: ``x[n] = a x[n-1] + dt (v[n] + v[n-1]) / 2``,
+    ``a = exp(-dt / tau)``, started at zero on the first sample (the rig starts at rest). For a
+    tone at ``f`` the leak scales the amplitude by ``1 / sqrt(1 + 1/(w tau)^2)`` and advances
+    the phase by ``atan(1/(w tau))``; the trapezoid scales it by ``(w dt/2) / tan(w dt/2)``:
+    at 5 Hz and tau = 10 s, 5e-6 and 3 mrad; at the highest drive frequency 500 Hz
+    (fs = 10 kHz), -0.8 %. Both sensors are integrated alike, so ratios and phases between
+    them (gain, transmissibility, loss factor) are unchanged. A constant velocity offset ``b``
+    becomes a displacement offset ``b tau`` (about the rest reading, which the supervisor
+    removes); white noise of std ``s`` becomes ``s sqrt(dt tau / 2)`` rms (2e-5 m/s at 10 kHz:
+    0.45 um)."""
+
+    def __init__(self, fs: float, tau_s: float = VELOCITY_LEAK_S):
+        self.dt = 1.0 / fs
+        self.a = float(np.exp(-self.dt / tau_s))
+        self.b = np.array([self.dt / 2, self.dt / 2])
+        self.den = np.array([1.0, -self.a])
+        self.zi: np.ndarray | None = None
+
+    def __call__(self, v: np.ndarray) -> np.ndarray:
+        v = np.asarray(v, dtype=float)
+        if v.size == 0:
+            return v.copy()
+        if self.zi is None:
+            self.zi = np.array([-self.dt / 2 * v[0]])   # x[0] = 0
+        x, self.zi = lfilter(self.b, self.den, v, zi=self.zi)
+        return x
 
 
 @dataclass
 class Block:
-    """Samples ``index0 .. index0+n-1`` of both sensors, aligned, plus the drive state."""
+    """Samples ``index0 .. index0+n-1`` of both sensors, aligned, plus the drive state.
+
+    ``x_base``/``x_tip`` are always displacement [m]: as measured, or integrated in real time
+    from a velocity sensor (:class:`VelocityIntegrator`). ``measured`` holds what a velocity
+    sensor reported, by channel name (``{"v_tip": ...}``, m/s); empty when both give
+    displacement."""
 
     index0: int
     fs: float
@@ -41,6 +88,7 @@ class Block:
     current_a: float | None = None
     amplifier_faults: list = field(default_factory=list)
     stage: str | None = None
+    measured: dict = field(default_factory=dict)
 
     @property
     def n(self) -> int:
@@ -140,6 +188,8 @@ class RigInstruments:
         self.heartbeat_stalled = False
         self.max_heartbeat_gap = 0.0  # longest time between two heartbeats [s] (diagnostic)
         self.identities: dict[str, str] = {}
+        self.quantities = config.quantities          # {"base": ..., "tip": ...}
+        self._integrators: dict[str, VelocityIntegrator] = {}
         self.vpp = 0.0
         self.frequency = 0.0
         self.output = False
@@ -169,8 +219,16 @@ class RigInstruments:
         half = lim["max_generator_vpp"] / 2
         gen.set_voltage_limits(-half, half)
         gen.check_errors()
-        for s in (self.base, self.tip):
+        for point, s in (("base", self.base), ("tip", self.tip)):
             s.sampling_rate = self.fs
+            if self.quantities[point] != "displacement":
+                # only then: a displacement-only controller (a real LK-G) does not know the MD command,
+                # and the displacement default sends exactly what it always sent
+                s.quantity = self.quantities[point]
+                got = s.quantity
+                if got != self.quantities[point]:
+                    raise InstrumentError(s.name, "MD", f"measuring mode reads back {got!r}, "
+                                                        f"[sensors.{point}] quantity asks {self.quantities[point]!r}")
         supervisor.check_gain(d["amplifier"]["gain"])
         with self.amp_lock:
             amp = self.amp
@@ -198,6 +256,9 @@ class RigInstruments:
         for name, s in (("sensor_base", self.base), ("sensor_tip", self.tip)):
             out[name] = {"address": self.config.data["sensors"][name.split("_")[1]]["url"],
                          "sampling_rate_hz": s.sampling_rate, "measuring_range_m": s.measuring_range}
+            if self.quantities[name.split("_")[1]] != "displacement":
+                # the displacement default keeps the settings it always had (the same run file)
+                out[name].update(quantity=s.quantity, velocity_range_m_s=s.velocity_range)
         return out
 
     # -- heartbeat --------------------------------------------------------------------------
@@ -242,6 +303,7 @@ class RigInstruments:
         self.tip.arm(None)
         self.gen.trigger()
         self._aligner = _Aligner()
+        self._integrators = {p: VelocityIntegrator(self.fs) for p, q in self.quantities.items() if q == "velocity"}
         self._last_fetch = time.monotonic()
 
     def fetch(self) -> Block:
@@ -261,13 +323,23 @@ class RigInstruments:
             if got is not None:
                 break
         index0, ((xb, fb), (xt, ft)) = got
+        measured = {}
+        if self._integrators:
+            readings = {"base": xb, "tip": xt}
+            for point, integrate in self._integrators.items():
+                v = readings[point]
+                measured[f"v_{point}"] = v
+                # a flagged (NaN) sample would poison the integrator for good: the supervisor trips on
+                # the flag in this block; the integrator carries on from zero velocity
+                readings[point] = integrate(np.where(np.isfinite(v), v, 0.0))
+            xb, xt = readings["base"], readings["tip"]
         with self.amp_lock:
             current = self.amp.output_current
             faults = self.amp.check_errors()
         self.mark_alive()
         return Block(index0=index0, fs=self.fs, x_base=xb, x_tip=xt, flags_base=fb, flags_tip=ft,
                      amplitude_vpp=self.vpp if self.output else 0.0, frequency_hz=self.frequency,
-                     output=self.output, current_a=current, amplifier_faults=list(faults))
+                     output=self.output, current_a=current, amplifier_faults=list(faults), measured=measured)
 
     # -- drive ----------------------------------------------------------------------------------
     def set_frequency(self, hz: float) -> None:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from shakerlab.quantities import CONTINUOUS, channel_name
 from shakerlab.runfile.writer import RunWriter
 
 # one row per closed-loop analysis window (rig.sine_control), dataset ``control`` of the stage group
@@ -18,12 +19,27 @@ class Recorder:
     Samples acquired outside a stage (rests between stages) are not written;
     the stage's ``start_index`` and the ``sample_index`` dataset keep the
     common time base.
+
+    ``quantities`` ({"base": "displacement"|"velocity", "tip": ...}, the rig config's sensor
+    quantities): a velocity sensor's channel is recorded as measured, ``v_base``/``v_tip``
+    (m/s, attributes ``quantity``/``units``), from ``Block.measured``; never the displacement
+    the rig integrated from it in real time.
     """
 
-    def __init__(self, path, *, overwrite: bool = False, flush_interval: float = 0.5, fs: float):
+    def __init__(self, path, *, overwrite: bool = False, flush_interval: float = 0.5, fs: float,
+                 quantities: dict | None = None):
         self.writer = RunWriter(path, overwrite=overwrite, flush_interval=flush_interval)
         self.path = self.writer.path
         self.fs = fs
+        quantities = quantities or {}
+        self.quantities = {f"x_{p}": q for p, q in quantities.items() if q != "displacement"}
+        # channel written per point: (name in the file, where the block holds it)
+        self.channels = [(channel_name(f"x_{p}", quantities.get(p, "displacement")), f"x_{p}")
+                         for p in ("base", "tip")]
+        # the running integral of each velocity channel since the trigger (every block, rests
+        # included; trapezoid): its value at a stage's first sample is the dataset's ``start_m``
+        self._position = {name: (0.0, None) for name, role in self.channels if name != role}
+        self._starts_pending = False
         self.stage = None
         self.discarded = False      # a run that recorded nothing did not replace the existing file
 
@@ -38,13 +54,40 @@ class Recorder:
         w.set_attrs(excitation="base", **{k: v for k, v in info.get("attrs", {}).items()})
 
     def on_stage_begin(self, name: str, settings: dict, index: int) -> None:
-        self.stage = self.writer.begin_stage(name, fs=self.fs, start_index=index, settings=settings)
+        if self.quantities:
+            # the velocity is integrated from the start value this recorder keeps (shakerlab.quantities)
+            settings = {**settings, "integration": CONTINUOUS}
+        self._starts_pending = bool(self.quantities)
+        self.stage = self.writer.begin_stage(name, fs=self.fs, start_index=index, settings=settings,
+                                             quantities=self.quantities)
 
     def on_block(self, block) -> None:
+        starts = self._integrate(block) if self._position else {}
         if self.stage is None or block.stage is None:
             return
-        self.stage.append(block.index0, {"x_base": block.x_base, "x_tip": block.x_tip},
-                          flags={"x_base": block.flags_base, "x_tip": block.flags_tip})
+        if self._starts_pending:
+            for name, x0 in starts.items():
+                self.stage.group[name].attrs["start_m"] = x0
+            self._starts_pending = False
+        values = {"x_base": block.x_base, "x_tip": block.x_tip, **block.measured}
+        flags = {"x_base": block.flags_base, "x_tip": block.flags_tip}
+        self.stage.append(block.index0, {name: values[name] for name, _ in self.channels},
+                          flags={name: flags[role] for name, role in self.channels})
+
+    def _integrate(self, block) -> dict:
+        """Advance the running integrals by this block; return their values at its first sample."""
+        dt = 1.0 / self.fs
+        out = {}
+        for name, (x_last, v_last) in self._position.items():
+            v = block.measured[name]
+            if not v.size:
+                continue
+            v = np.where(np.isfinite(v), v, 0.0)
+            x0 = 0.0 if v_last is None else x_last + 0.5 * dt * (v_last + v[0])   # 0 at the trigger
+            x_end = x0 + 0.5 * dt * float(np.sum(v[:-1] + v[1:]))
+            self._position[name] = (x_end, float(v[-1]))
+            out[name] = float(x0)
+        return out
 
     def on_setpoint(self, index: int, vpp: float, hz: float, label: str) -> None:
         if self.stage is not None:

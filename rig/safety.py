@@ -8,7 +8,8 @@ The :class:`Supervisor` checks
   (:meth:`rig.protocol.Protocol.check_against_limits`) uses the same checks
   before anything moves;
 - every acquired block while the output runs (interlocks): base and tip
-  displacement about their rest readings, sensor flags (out of range, signal
+  displacement about their rest readings (always metres: a velocity sensor's
+  readings arrive integrated, :class:`rig.instruments.VelocityIntegrator`), sensor flags (out of range, signal
   loss), the amplifier's measured output current and its fault bits.
 
 A crossed interlock returns a :class:`Trip` naming the limit, the measured
@@ -102,8 +103,11 @@ class Supervisor:
             i = int(np.argmax(dev))
             self.peak[ch] = max(self.peak[ch], float(dev[i]))
             if dev[i] > self.limits[key]:
+                point = ch.split("_")[1]
+                how = (f" (displacement integrated from sensor_{point}'s velocity)"
+                       if f"v_{point}" in getattr(block, "measured", {}) else "")
                 return Trip(key, f"|{ch}| = {dev[i] * 1e3:.3f} mm exceeds limits.{key} = "
-                                 f"{self.limits[key] * 1e3:g} mm at sample {block.index0 + i}", block.index0 + i)
+                                 f"{self.limits[key] * 1e3:g} mm at sample {block.index0 + i}{how}", block.index0 + i)
         end = block.index0 + block.x_base.size
         if block.current_a is not None:
             self.peak["current"] = max(self.peak["current"], abs(block.current_a))

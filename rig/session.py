@@ -43,7 +43,7 @@ def acquire(config: RigConfig, protocol: Protocol, output: str | Path, *, lockst
     try:
         check_device_settings(config, inst)
         recorder = Recorder(output, overwrite=overwrite, flush_interval=config.acquisition["flush_interval_s"],
-                            fs=inst.fs)
+                            fs=inst.fs, quantities=inst.quantities)
     except Exception:
         inst.close()
         raise

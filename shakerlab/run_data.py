@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shakerlab.errors import UserFacingError
-from shakerlab.quantities import DISPLACEMENT, PREFIX, channel_name, integrate, parse_channel
+from shakerlab.quantities import CONTINUOUS, DISPLACEMENT, PREFIX, channel_name, integrate, parse_channel
 
 BASE = "base"
 FORCE = "force"
@@ -78,7 +78,10 @@ class Stage:
         for role, quantity in self.quantities.items():
             if quantity != DISPLACEMENT:
                 self.measured[channel_name(role, quantity)] = self.channels.pop(channel_name(role, quantity))
-                self.channels[role] = integrate(self.measured[channel_name(role, quantity)], self.dt, quantity)[0]
+                name = channel_name(role, quantity)
+                start = (self.settings.get("integration_start_m", {}).get(name)
+                         if self.settings.get("integration") == CONTINUOUS else None)
+                self.channels[role] = integrate(self.measured[name], self.dt, quantity, start)[0]
 
     def _split_quantities(self) -> None:
         """Fill ``quantities`` from the channel names; one quantity per role."""

@@ -25,10 +25,11 @@ POSITIVE_FIELDS = {
     ("amplifier", "max_current_limit"), ("amplifier", "current_limit"),
     ("amplifier", "rail_voltage"), ("amplifier", "thermal_resistance"),
     ("amplifier", "thermal_time_constant"), ("sensors", "range"), ("sensors", "resolution"),
+    ("sensors", "velocity_range"),
 }
 NON_NEGATIVE_FIELDS = {
     ("specimen", "c_m"), ("shaker", "suspension_stiffness"), ("shaker", "suspension_damping"),
-    ("amplifier", "watchdog_timeout"), ("sensors", "noise_std"),
+    ("amplifier", "watchdog_timeout"), ("sensors", "noise_std"), ("sensors", "velocity_noise_std"),
     ("effects", "coulomb_friction"), ("effects", "contact_stiffness"), ("effects", "channel_delay"),
     ("effects", "higher_mode_frequency"), ("effects", "higher_mode_damping"),
 }

@@ -1,7 +1,8 @@
 """Simulated laser displacement sensor controller (ASCII protocol in the style of Keyence LK-G).
 
 Requests and replies end with CR.  Readings are in millimetres with five
-decimals (10 nm).  See docs/protocols.md for the command set.  Both simulated
+decimals (10 nm), or in mm/s in velocity mode (``MD,1``: the controller as a
+vibrometer's velocity decoder).  See docs/protocols.md for the command set.  Both simulated
 sensors read the same world, so buffered acquisitions armed before a common
 trigger (the generator's ``*TRG``) share one time base: sample ``n`` of either
 sensor is world step ``trigger_step + n * decimation``.
@@ -19,6 +20,7 @@ RATES = (1000, 2000, 5000, 10000, 20000, 50000)  # the controller's selectable s
 MAX_PER_REPLY = 100_000
 MAX_ARM = 1_000_000_000
 OVER_POS, OVER_NEG, LOSS = "+FFFFFFF", "-FFFFFFF", "XXXXXXXX"
+MODES = ("displacement", "velocity")  # MD,0 / MD,1
 
 E_COMMAND, E_PARAM, E_RANGE, E_STATE = "00", "20", "22", "30"
 INVALID_REQUEST = f"ER,??,{E_COMMAND}"   # a non-ASCII or control byte: the command cannot be named
@@ -38,6 +40,8 @@ class SimLaserSensor:
         self.name = name
         cfg = world.config["sensors"]
         self.range_m = float(cfg["range"])
+        self.velocity_range = float(cfg["velocity_range"])
+        self.mode = "displacement"
         self.resolution = float(cfg["resolution"])
         self.signal_loss = False  # test hook: the laser spot is lost (e.g. dust, specimen edge)
         self.rate = int(world.sample_rate) if int(world.sample_rate) in RATES else RATES[0]
@@ -75,6 +79,24 @@ class SimLaserSensor:
         self._no_args("RG", args)
         return f"RG,{self.range_m * 1e3:.3f}"
 
+    def _cmd_VR(self, args):
+        self._no_args("VR", args)
+        return f"VR,{self.velocity_range * 1e3:.3f}"
+
+    def _cmd_MD(self, args):
+        """Measuring mode: 0 displacement (mm), 1 velocity (mm/s); not while armed or running."""
+        if not args:
+            return f"MD,{MODES.index(self.mode)}"
+        if len(args) != 1 or not args[0].isdigit():
+            raise _Err("MD", E_PARAM)
+        code = int(args[0])
+        if code >= len(MODES):
+            raise _Err("MD", E_RANGE)
+        if self.state in ("ARMED", "RUNNING"):
+            raise _Err("MD", E_STATE)
+        self.mode = MODES[code]
+        return "MD"
+
     def _cmd_SS(self, args):
         if not args:
             return f"SS,{self.rate}"
@@ -95,7 +117,7 @@ class SimLaserSensor:
             w.catch_up()
             if w.step == 0:
                 w.advance(1)
-            value = w.readings(self.channel, np.array([w.step - 1]))[0]
+            value = w.readings(self.channel, np.array([w.step - 1]), self.mode == "velocity")[0]
         return "M0," + self._format(np.array([value]))[0]
 
     def _cmd_AS(self, args):
@@ -167,7 +189,7 @@ class SimLaserSensor:
             n = max(0, min(want, avail - self.next_index))
             index0 = self.next_index
             steps = self.start_step + (index0 + np.arange(n, dtype=np.int64)) * k
-            values = w.readings(self.channel, steps)
+            values = w.readings(self.channel, steps, self.mode == "velocity")
             self.next_index += n
             self._update_state()
         parts = self._format(values)
@@ -200,11 +222,12 @@ class SimLaserSensor:
             self.loss_seen = True
             return [LOSS] * len(values)
         q = np.round(values / self.resolution) * self.resolution
+        limit = self.velocity_range if self.mode == "velocity" else self.range_m
         out = []
         for v in q:
-            if v > self.range_m:
+            if v > limit:
                 out.append(OVER_POS)
-            elif v < -self.range_m:
+            elif v < -limit:
                 out.append(OVER_NEG)
             else:
                 out.append(f"{v * 1e3:+.5f}")

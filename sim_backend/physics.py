@@ -29,8 +29,11 @@ P_DT, P_M, P_C, P_K, P_ALPHA, P_GAMMA, P_DELTA, P_A2, P_A3, P_B2 = range(10)
 P_MA, P_KS, P_CS, P_KF, P_R = range(10, 15)
 P_GM, P_RAIL, P_RTH, P_TAU, P_TAMB, P_TMAX = range(15, 21)
 P_MU, P_C2, P_GAP, P_KC, P_DRIFT, P_W2, P_Z2, P_PHI2 = range(21, 29)
-P_SCALE_B, P_SCALE_T, P_NOISE, P_SEED = range(29, 33)
-N_P = 33
+P_SCALE_B, P_SCALE_T, P_NOISE, P_SEED, P_VNOISE = range(29, 34)
+N_P = 34
+# the velocity readings' noise is a second counter-based stream: (seed, step + VELOCITY_STREAM), so the
+# displacement readings (and their noise) are the same whether or not velocity is read
+VELOCITY_STREAM = 1 << 60
 
 # ---- state vector (X) --------------------------------------------------------------
 X_XB, X_VB, X_Y, X_VY, X_Z, X_Q, X_VQ, X_T = range(8)
@@ -140,6 +143,20 @@ def advance(P, X, G, A, step0, n, xb_out, xt_out):
     (noise and scale errors included, before range checks).  Returns nothing; X, G
     and A are updated in place.
     """
+    _advance(P, X, G, A, step0, n, xb_out, xt_out, xb_out[:0], xt_out[:0], False)
+
+
+@njit(cache=True)
+def advance_with_velocity(P, X, G, A, step0, n, xb_out, xt_out, vb_out, vt_out):
+    """:func:`advance`, also writing the base/tip velocity readings (a vibrometer's view of the
+    same points: the base velocity and base + relative (+ higher-mode) velocity, the same scale
+    errors, white noise ``P_VNOISE`` from its own stream). The displacement readings are exactly
+    those of :func:`advance`."""
+    _advance(P, X, G, A, step0, n, xb_out, xt_out, vb_out, vt_out, True)
+
+
+@njit(cache=True)
+def _advance(P, X, G, A, step0, n, xb_out, xt_out, vb_out, vt_out, with_velocity):
     dt = P[P_DT]
     k1 = np.empty(N_X - 1)
     k2 = np.empty(N_X - 1)
@@ -161,6 +178,17 @@ def advance(P, X, G, A, step0, n, xb_out, xt_out):
             nt = P[P_NOISE] * g1
         xb_out[j] = (1.0 + P[P_SCALE_B]) * xb + nb
         xt_out[j] = (1.0 + P[P_SCALE_T]) * xt + nt
+        if with_velocity:
+            vb = X[X_VB]
+            vt = vb + X[X_VY] + P[P_PHI2] * X[X_VQ]
+            mb = 0.0
+            mt = 0.0
+            if P[P_VNOISE] > 0.0:
+                h0, h1 = _gauss_pair(seed, step + VELOCITY_STREAM)
+                mb = P[P_VNOISE] * h0
+                mt = P[P_VNOISE] * h1
+            vb_out[j] = (1.0 + P[P_SCALE_B]) * vb + mb
+            vt_out[j] = (1.0 + P[P_SCALE_T]) * vt + mt
         # generator -> amplifier
         v_gen = _generator_voltage(G, dt)
         muted = A[A_ENABLE] == 0.0 or A[A_OC] != 0.0 or A[A_OT] != 0.0 or A[A_WD] != 0.0
@@ -238,4 +266,5 @@ def parameter_vector(cfg: dict, seed: int) -> np.ndarray:
     P[P_SCALE_T] = fx["tip_scale_error"]
     P[P_NOISE] = sen["noise_std"]
     P[P_SEED] = float(seed % (2**52))
+    P[P_VNOISE] = sen["velocity_noise_std"]
     return P

@@ -47,7 +47,8 @@ class World:
         self.A[ph.A_LIMIT] = cfg["amplifier"]["current_limit"]
         self.step = 0
         self.capacity = int(math.ceil(cfg["clock"]["ring_seconds"] * self.sample_rate))
-        self.ring = np.zeros((2, self.capacity))  # row 0 base reading, row 1 tip reading
+        # rows 0/1: base/tip displacement readings; rows 2/3: base/tip velocity readings (velocity mode)
+        self.ring = np.zeros((4, self.capacity))
         self.delay_steps = int(round(cfg["effects"]["channel_delay"] * self.sample_rate))
         self.lockstep_block = max(1, int(round(cfg["clock"]["lockstep_block_s"] * self.sample_rate)))
         self.trigger_step: int | None = None
@@ -60,7 +61,8 @@ class World:
         self.generator_alive = True
         self.amplifier_alive = True
         # compile (or load from cache) before any server starts answering
-        ph.advance(self.P, self.X.copy(), self.G.copy(), self.A.copy(), 0, 1, np.empty(1), np.empty(1))
+        ph.advance_with_velocity(self.P, self.X.copy(), self.G.copy(), self.A.copy(), 0, 1,
+                                 np.empty(1), np.empty(1), np.empty(1), np.empty(1))
 
     # ---- clock -----------------------------------------------------------------------
     @property
@@ -127,8 +129,9 @@ class World:
         while n > 0:
             pos = self.step % self.capacity
             chunk = min(n, self.capacity - pos, 1 << 16)
-            ph.advance(self.P, self.X, self.G, self.A, self.step, chunk,
-                       self.ring[0, pos:pos + chunk], self.ring[1, pos:pos + chunk])
+            ring = self.ring[:, pos:pos + chunk]
+            ph.advance_with_velocity(self.P, self.X, self.G, self.A, self.step, chunk,
+                                     ring[0], ring[1], ring[2], ring[3])
             self.step += chunk
             n -= chunk
 
@@ -148,13 +151,14 @@ class World:
             self.trigger_steps.append(self.step)
             self.trigger_count += 1
 
-    def readings(self, channel: int, steps: np.ndarray) -> np.ndarray:
+    def readings(self, channel: int, steps: np.ndarray, velocity: bool = False) -> np.ndarray:
         """Raw laser readings (0 base, 1 tip) at the given global steps (must be < self.step
-        and within the ring).  The tip channel includes the configured channel delay."""
+        and within the ring): displacement [m], or velocity [m/s] when ``velocity``.  The tip
+        channel includes the configured channel delay."""
         steps = np.asarray(steps, dtype=np.int64)
         if channel == 1 and self.delay_steps:
             steps = np.maximum(steps - self.delay_steps, 0)
-        return self.ring[channel, steps % self.capacity]
+        return self.ring[channel + (2 if velocity else 0), steps % self.capacity]
 
     def oldest_step(self) -> int:
         return max(0, self.step - self.capacity)

@@ -61,7 +61,8 @@ def linear_baseline(run: Run) -> HystereticModel:
     lines = None
     if st.excitation != BASE:
 
-        lines = count_lines(estimate_spectrum(st.channels["force"], st.dt).freqs, 1.0 / (st.t[-1] - st.t[0]))
+        spec = estimate_spectrum(st.channels["force"], st.dt)
+        lines = count_lines(spec.freqs, 1.0 / (st.t.size * st.dt), spec.power)
     lf = fit_linear(s.y[0], s.y[1], s.y[2], s.u[0], st.excitation, s.column_noise, name, lines)
     return HystereticModel(excitation=st.excitation, c_m=lf.c_m, k_m=lf.K_m, alpha_m=0.0, gamma=0.0, delta=0.0,
                            inv_m=None if st.excitation == BASE else lf.inv_m,

@@ -32,7 +32,8 @@ def reconstruct_pointwise(run: Run, s: ReconSettings, validate_model: bool = Tru
     lst = run.stage(s.linear_stage)
     lines = None
     if exc != BASE:
-        lines = count_lines(estimate_spectrum(lst.channels["force"], lst.dt).freqs, 1.0 / (lst.t[-1] - lst.t[0]))
+        spec = estimate_spectrum(lst.channels["force"], lst.dt)
+        lines = count_lines(spec.freqs, 1.0 / (lst.t.size * lst.dt), spec.power)
     lf = fit_linear(lin.y[0], lin.y[1], lin.y[2], lin.u[0], exc, lin.column_noise, s.linear_stage, lines)
     timings["linear"] = time.perf_counter() - t0
 

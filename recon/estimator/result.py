@@ -31,6 +31,10 @@ class ReconSettings:
     n_folds: int = 5
     window: int | None = None       # Savitzky-Golay window for the nonlinear stage (None: chosen from the data)
     sg_order: int | None = None
+    # fit a constant offset b of the recorded input with the output-error polish (the model is driven
+    # by g (u - b); for records whose input is not zero-mean, e.g. a force sensor's offset). Off by
+    # default: every result without it is unchanged
+    input_offset: bool = False
 
     FORMS = ("joint", "ab", "weak")
 

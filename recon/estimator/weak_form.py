@@ -32,7 +32,8 @@ def reconstruct_weak(run, s, validate_model: bool = True):
              "F": Ll.choice["noise_level"].get("force", 0.0)}
     lines = None
     if exc != BASE:
-        lines = count_lines(estimate_spectrum(lst.channels["force"], lst.dt).freqs, 1.0 / (lst.t[-1] - lst.t[0]))
+        spec = estimate_spectrum(lst.channels["force"], lst.dt)
+        lines = count_lines(spec.freqs, 1.0 / (lst.t.size * lst.dt), spec.power)
     width = linear_width(Ll.y_raw, lst.dt)
     lf = linear_weak(Ll.y_raw, Ll.D_raw, Ll.F, lst.dt, width, exc != BASE, noise, s.linear_stage, lines)
     timings["linear"] = time.perf_counter() - t0

@@ -43,6 +43,8 @@ def parameter_keys(model: HystereticModel, extra_terms=()) -> list[str]:
     keys += [f"fn:{k}" for k in extra_terms if k not in model.fn_m]
     if model.excitation != BASE:
         keys.append("inv_m")
+    if getattr(model, "input_offset", None) is not None:     # only when the model carries one
+        keys.append("input_offset")
     return keys
 
 
@@ -104,8 +106,11 @@ class OutputError:
         if free is not None:     # the other parameters stay at the model's values
             self.keys = [k for k in self.keys if k in free]
         self.x0 = np.array([get_parameter(model, k) for k in self.keys], float)
-        self.scale = parameter_scales(self.keys, self.x0, model.gamma + model.delta,
-                                      {f"fn:{k}": s for k, s in extra_terms.items() if k not in model.fn_m})
+        overrides = {f"fn:{k}": s for k, s in extra_terms.items() if k not in model.fn_m}
+        if "input_offset" in self.keys:      # an offset starting at 0: on the scale of the input itself
+            overrides["input_offset"] = max(abs(self.x0[self.keys.index("input_offset")]),
+                                            0.1 * max(float(np.std(d[1])) for d in data)) or 1.0
+        self.scale = parameter_scales(self.keys, self.x0, model.gamma + model.delta, overrides)
         self.masks = masks if masks is not None else [None] * len(data)
         self.rms = [float(np.sqrt(np.mean((d[2] - d[2].mean()) ** 2))) or 1.0 for d in data]
         self.n_rows = sum(int(d[2].size if m is None else np.count_nonzero(m)) for d, m in zip(data, self.masks))
@@ -119,7 +124,8 @@ class OutputError:
         fn = {k: v for k, v in m.fn_m.items() if f"fn:{k}" not in self.keys}   # fixed terms (``free``)
         fn.update({k[3:]: float(x[i]) for i, k in enumerate(self.keys) if k.startswith("fn:")})
         return HystereticModel(excitation=m.excitation, fn_m=fn, provenance=m.provenance,
-                               inv_m=kw.pop("inv_m", m.inv_m), **kw)
+                               inv_m=kw.pop("inv_m", m.inv_m),
+                               input_offset=kw.pop("input_offset", m.input_offset), **kw)
 
     @staticmethod
     def response(m: HystereticModel, t, u, start=None) -> np.ndarray:

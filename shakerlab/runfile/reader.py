@@ -100,6 +100,9 @@ def _read_run(path: Path, stages: list[str] | None) -> Run:
                  "frequency_hz": float(r["frequency_hz"]), "label": text(r["label"])}
                 for r in (dataset(g, "steps", path) if "steps" in g else [])
             ]
+            starts = {ch: float(g[ch].attrs["start_m"]) for ch in stored if "start_m" in g[ch].attrs}
+            if starts:      # velocity integrated by the recorder since the trigger (shakerlab.quantities)
+                settings["integration_start_m"] = starts
             out[name] = Stage(name=name, t=t, channels=channels, excitation=excitation,
                               settings=settings)
         attrs = {k: text(v) if isinstance(v, bytes) else (v.item() if isinstance(v, np.generic) else v)
