@@ -31,13 +31,15 @@ from recon.output_error.problem import DIVERGED_RESIDUAL, parameter_scales
 from recon.regression.criteria import bic, effective_samples
 from recon.regression.sparse import scaled_lstsq
 from recon.simulation.imposed import hysteretic_state
+from recon.steps.bouc_wen import NEGLIGIBLE, term_contributions
 
 
 class ForceOutputError:
     """The projected output-error problem of a law's structure on records ``items``.
 
-    Structure: the fn terms of ``law``, damping if ``law.c`` (or a command law), offset if
-    ``law.f0``, the command law if ``law.eta`` > 0 (its records must have a command)."""
+    Structure: the fn terms of ``law``, damping if ``law.c`` (or a command law), the offset
+    f0 always (a force sensor's offset costs one column), the command law if ``law.eta`` > 0
+    (its records must have a command)."""
 
     def __init__(self, law: ConstitutiveLaw, items: list[ComponentSignals], fit_eta: bool = True):
         self.law = law
@@ -49,7 +51,7 @@ class ForceOutputError:
         self.decimation = [max(1, int((1.0 / s.dt) // POLISH_FS)) for s in items]
         self.terms = list(law.fn)
         self.has_c = bool(law.c) or law.commanded
-        self.has_f0 = bool(law.f0)
+        self.has_f0 = True
         self.commanded = law.commanded
         self.keys = ["gamma", "delta"] + (["eta"] if self.commanded and fit_eta else []) + \
             [f"w0:{i}" for i in range(len(items))]
@@ -149,9 +151,24 @@ def score(law: ConstitutiveLaw, items: list[ComponentSignals]) -> tuple[float, f
 
 def revise_terms(law: ConstitutiveLaw, items: list[ComponentSignals], max_nfev: int = 30):
     """Drop fn terms (one at a time, the one whose removal lowers the BIC most) while the
-    output error's BIC does not grow; each trial is polished. Returns (law, steps)."""
+    output error's BIC does not grow; each trial is polished. First, the terms whose rms force
+    is below recon.steps.bouc_wen.NEGLIGIBLE of the elastic force K x go at once (kept only if
+    the BIC does not grow). Returns (law, steps)."""
     steps = []
     mse, n_eff, k = score(law, items)
+    share = {}
+    for it in items:
+        for t, v in term_contributions(law.fn, law.K, it.y, it.dy).items():
+            share[t] = max(share.get(t, 0.0), v)
+    small = sorted(t for t, v in share.items() if v < NEGLIGIBLE)
+    if small:
+        trial = ConstitutiveLaw(**{**law.__dict__, "fn": {t: v for t, v in law.fn.items() if t not in small}})
+        trial, _ = polish(trial, items, max_nfev=max_nfev)
+        m2, _, k2 = score(trial, items)
+        if bic(m2, int(k2), n_eff) <= bic(mse, int(k), n_eff):
+            steps.append({"drop": small, "reason": "negligible", "bic_before": bic(mse, int(k), n_eff),
+                          "bic_after": bic(m2, int(k2), n_eff), "mse_after": m2})
+            law, mse, k = trial, m2, k2
     current = bic(mse, int(k), n_eff)
     while law.fn:
         best = None
