@@ -1,0 +1,139 @@
+"""Constitutive mode in the application: reconstruct and report of a component test's run file.
+
+``shakerlab reconstruct`` and ``shakerlab report`` come here when the run file's mode is
+``constitutive`` (shakerlab.modes); the law comes from recon.constitutive.estimator. The
+report is one self-contained ``index.html`` (figures embedded), ``result.json`` and the PNG
+figures, each written through a temporary file (shakerlab.output_files).
+"""
+from __future__ import annotations
+
+import base64
+import html
+import json
+from pathlib import Path
+
+from recon.constitutive.estimator import ConstitutiveSettings, predict, reconstruct_constitutive
+from shakerlab import __version__
+from shakerlab.errors import UserFacingError
+from shakerlab.jsonsafe import clean
+from shakerlab.output_files import check_directory, write_text
+from workflows.figures import plot_force_law
+
+
+def settings_from(args) -> ConstitutiveSettings:
+    order = getattr(args, "library_order", 5)
+    if order < 2 or order > 8:
+        raise UserFacingError(f"--library-order must be between 2 and 8, got {order}")
+    return ConstitutiveSettings(library_order=order, polish=not getattr(args, "no_polish", False))
+
+
+def law_plots(result, run, outdir) -> list[Path]:
+    """Force history and force-displacement loop, recorded vs law, for the validation stages and
+    the fitted stage."""
+    outdir = Path(outdir)
+    names = [n for n in run.stages if n.startswith("validation")]
+    names += [result.settings.fit_stage]
+    paths = []
+    for name in names:
+        t, F, Fp, x = predict(result.law, run.stage(name), result.settings)
+        nr = result.validation.get("per_stage", {}).get(name)
+        what = "fitted" if name == result.settings.fit_stage else "held out"
+        paths.append(plot_force_law(outdir / f"{name}_force.png", t, x, F, Fp,
+                                    title=f"{name} ({what}): recorded vs law"
+                                    + (f" (NRMSE {nr:.3g})" if nr is not None else "")))
+    return paths
+
+
+def reconstruct_command(args, run) -> int:
+    result = reconstruct_constitutive(run, settings_from(args))
+    out = result.to_dict()
+    out["warnings"] = []
+    if getattr(args, "uncertainty", False):
+        out["warnings"].append("--uncertainty: intervals are not computed for a constitutive law yet")
+    if args.plots:
+        out["plots"] = [str(p) for p in law_plots(result, run, Path(args.plots))]
+    if args.save_model:
+        write_text(args.save_model, json.dumps(clean(result.law.to_dict()), indent=1),
+                   overwrite=getattr(args, "force", False), never_hdf5=True)
+    if args.json:
+        print(json.dumps(clean(out)))
+        return 0
+    print(f"{run.source}: component test (constitutive mode), force law in SI units")
+    print(result.law.equation())
+    v = result.validation
+    print(f"validation NRMSE of the force on stage {v['stage']!r}: {v['nrmse']:.4g}"
+          + (" (no validation stage: fitted stage)" if v.get("fitted_on_validation_stage") else ""))
+    a = result.adequacy
+    print(f"admissible: {'yes' if a['admissible'] else 'NO'}; adequacy: {a['verdict']}"
+          + (f" ({'; '.join(a['reasons'])})" if a["reasons"] else ""))
+    d = result.differentiation
+    print(f"Savitzky-Golay: window {d['window']}, order {d['order']}; sparse regression: "
+          f"{result.sparse['n_terms']} library terms")
+    for p in out.get("plots", []):
+        print(f"plot: {p}")
+    return 0
+
+
+def _img(path: Path) -> str:
+    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    return f"<p><img alt='{html.escape(path.stem)}' src='data:image/png;base64,{data}'></p>"
+
+
+def make_report(run, outdir, settings: ConstitutiveSettings | None = None, overwrite: bool = False) -> dict:
+    """Reconstruct the law of ``run`` and write the report into ``outdir``; returns the result JSON
+    with ``report`` (the files written)."""
+    outdir = check_directory(outdir, option="-o")
+    if outdir.is_dir() and any(outdir.iterdir()) and not overwrite:
+        raise UserFacingError(f"-o {outdir}: the directory exists and is not empty (an earlier report?); "
+                              f"--force replaces its report files, or choose another -o")
+    result = reconstruct_constitutive(run, settings)
+    d = clean(result.to_dict())
+    try:
+        outdir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserFacingError(f"-o {outdir}: cannot create the report directory ({exc})") from None
+    figures = law_plots(result, run, outdir)
+    p = d["parameters"]
+    rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{v:.6g}</td><td>{html.escape(str(d['units'].get(k, '')))}"
+                   f"</td></tr>" for k, v in p.items() if isinstance(v, (int, float)))
+    rows += "".join(f"<tr><td>fn {html.escape(k)}</td><td>{v:.6g}</td><td>N/(m^p (m/s)^r)</td></tr>"
+                    for k, v in p.get("fn", {}).items())
+    v = d["validation"]
+    stages = "".join(f"<tr><td>{html.escape(n)}</td><td>{st.fs:.6g}</td><td>{st.t.size}</td>"
+                     f"<td>{st.t[-1] - st.t[0]:.4g}</td><td>{html.escape(', '.join(st.channels))}</td></tr>"
+                     for n, st in run.stages.items())
+    a = d["adequacy"]
+    doc = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>shakerlab report: "
+           f"{html.escape(Path(run.source).name)}</title></head><body>"
+           f"<h1>Constitutive law: {html.escape(Path(run.source).name)}</h1>"
+           f"<p>Run file <code>{html.escape(run.source)}</code>; component test (displacement imposed, force "
+           f"measured); shakerlab {__version__}.</p>"
+           f"<h2>Stages</h2><table border=1><tr><th>stage</th><th>fs [Hz]</th><th>samples</th><th>duration [s]</th>"
+           f"<th>channels</th></tr>{stages}</table>"
+           f"<h2>Identified law</h2><pre>{html.escape(d['equation'])}</pre>"
+           f"<table border=1><tr><th>parameter</th><th>value</th><th>units</th></tr>{rows}</table>"
+           f"<h2>Validation</h2><p>NRMSE of the predicted force on stage {html.escape(str(v['stage']))}: "
+           f"{v['nrmse']:.4g}{' (the fitted stage: no validation stage)' if v.get('fitted_on_validation_stage') else ''}"
+           f". Verdict: {html.escape(a['verdict'])}{': ' + html.escape('; '.join(a['reasons'])) if a['reasons'] else ''}.</p>"
+           + "".join(_img(f) for f in figures)
+           + f"<h2>Timings</h2><p>{html.escape(json.dumps({k: round(t, 3) for k, t in d['timings_s'].items()}))} s</p>"
+           "<p>The full result is in <code>result.json</code> next to this file; the method in "
+           "docs/constitutive.md.</p></body></html>")
+    written = [write_text(outdir / "index.html", doc), write_text(outdir / "result.json", json.dumps(d, indent=1))]
+    d["report"] = {"html": str(outdir / "index.html"), "files": [str(f) for f in written + figures],
+                   "note": "constitutive mode: no parameter intervals and no write-back into the run file yet"}
+    return d
+
+
+def report_command(args, run) -> int:
+    d = make_report(run, args.output, settings_from(args), overwrite=args.force)
+    if args.json:
+        print(json.dumps(d))
+        return 0
+    print(d["equation"])
+    v = d["validation"]
+    print(f"validation NRMSE of the force on stage {v['stage']!r}: {v['nrmse']:.4g}")
+    print(d["report"]["note"])
+    print(f"report: {d['report']['html']}")
+    return 0
+
