@@ -1,0 +1,206 @@
+"""Constitutive mode (issue 16): force laws of component tests, against an independent truth,
+through the real import / reconstruct / report command line."""
+from __future__ import annotations
+
+import ast
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from recon.constitutive.estimator import reconstruct_constitutive
+from recon.constitutive.signals import component_signals
+from recon.library.agent import AgentLibrary
+from recon.testing import component_tests as ct
+from shakerlab.cli import main
+from shakerlab.modes import COMMAND_CHANNEL, CONSTITUTIVE
+from shakerlab.run_data import Run, Stage
+from shakerlab.runfile.reader import load_run, read_info
+
+ROOT = Path(__file__).resolve().parents[1]
+GEN = ROOT / "recon" / "testing" / "component_tests.py"
+
+
+def _stage(name, rec):
+    ch = {"x": rec["x"], "force": rec["force"]}
+    if "cmd" in rec:
+        ch[COMMAND_CHANNEL] = rec["cmd"]
+    return Stage(name, rec["t"], ch, excitation="force")
+
+
+def _run(case):
+    return Run({"nonlinear": _stage("nonlinear", case["fit"]), "validation": _stage("validation", case["validation"])},
+               attrs={"mode": CONSTITUTIVE}, source="synthetic")
+
+
+def _rel_errors(law, truth, force_rms, rms_v):
+    """Relative error of every parameter; a parameter whose truth is 0 (no viscous force in a
+    quasi-static law) is judged by its force: |value| * rms(x') against rms(F)."""
+    p = law.parameters()
+    out = {}
+    for k, v in truth.items():
+        if k == "fn":
+            for t, b in v.items():
+                out[f"fn:{t}"] = abs(p["fn"].get(t, 0.0) - b) / abs(b)
+        elif v:
+            out[k] = abs(p.get(k, 0.0) - v) / abs(v)
+        elif k == "c":
+            out[k] = abs(p["c"]) * rms_v / force_rms
+    return out
+
+
+# --------------------------------------------------------------------------- the truth
+def test_generator_imports_only_numpy_scipy_and_the_standard_library():
+    tops = set()
+    for node in ast.walk(ast.parse(GEN.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            tops |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            assert node.level == 0
+            tops.add(node.module.split(".")[0])
+    assert tops <= {"__future__", "math", "numpy", "scipy"}, tops
+
+
+def test_generator_obeys_the_bouc_wen_law():
+    law = ct.bouc_wen_law()
+    rec = ct.simulate(law, "random", duration=4.0)
+    z, v, t = rec["z"], rec["v"], rec["t"]
+    dz = np.gradient(z, t)
+    rhs = law["alpha"] * v - law["gamma"] * np.abs(v) * z - law["delta"] * v * np.abs(z)
+    inner = slice(5, -5)
+    assert np.sqrt(np.mean((dz - rhs)[inner] ** 2)) < 2e-3 * np.sqrt(np.mean(rhs ** 2))
+    # the loop saturates near alpha / (gamma + delta)
+    assert np.max(np.abs(z)) < law["alpha"] / (law["gamma"] + law["delta"]) * 1.001
+
+
+def test_agent_identity_of_the_force_holds_on_exact_signals():
+    """s F' equals the constitutive columns times the true coefficients where z has the sign of
+    x' (the algebra of recon.constitutive.equation_error), and fails with the sign of z flipped."""
+    law = ct.bouc_wen_law()
+    rec = ct.simulate(law, "random", duration=4.0)
+    x, v, z = rec["x"], rec["v"], rec["z"]
+    a = np.gradient(v, rec["t"])
+    c, k, al, g, d, f0 = (law[n] for n in ("c", "k", "alpha", "gamma", "delta", "f0"))
+    dz = al * v - g * np.abs(v) * z - d * v * np.abs(z)
+    F, dF = rec["force"], c * a + k * v + dz
+    h = np.where((np.sign(z) == np.sign(v)) & (np.abs(z) > 1.0), np.sign(v), 0).astype(int)
+    lib = AgentLibrary(3, "joint", linear_correction=True)
+    theta, target = lib.build(x, v, a, F, dF, h)
+    lam, K = g + d, k + al
+    coef = {"s*ddy": c, "s*dy": K, "y*dy": lam * k, "dy*Fn": -lam, "dy^2": lam * c}
+    pred = sum(theta[:, lib.names.index(n)] * val for n, val in coef.items()) + lam * f0 * v[h != 0]
+    assert np.max(np.abs(pred - target)) < 1e-6 * np.max(np.abs(target))
+    bad = sum(theta[:, lib.names.index(n)] * val for n, val in dict(coef, **{"dy*Fn": lam}).items())
+    assert np.max(np.abs(bad - target)) > 0.1 * np.max(np.abs(target))
+
+
+# --------------------------------------------------------------------------- recovery
+CASES = {
+    "bouc_wen_random": (ct.bouc_wen_law, False, "random"),
+    "bouc_wen_fn_sines": (ct.bouc_wen_law, True, "sines"),
+    "friction_fn_quasi_static": (ct.friction_law, None, "quasi_static"),
+    "mr_damper_switched_command": (ct.mr_damper_law, None, "random"),
+}
+
+
+def _case(name, snr, seed=0):
+    make, fn, kind = CASES[name]
+    law = make(fn) if fn is not None else make()
+    return ct.component_test(law, kind, snr, seed)
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_parameters_within_2_percent_and_held_out_force_within_1_percent_at_60_db(name):
+    case = _case(name, 60.0)
+    r = reconstruct_constitutive(_run(case))
+    fit = case["fit"]
+    errs = _rel_errors(r.law, case["truth"], np.std(fit["force"]), np.std(fit["v"]))
+    assert max(errs.values()) < 0.02, errs
+    assert set(r.law.fn) == set(case["truth"]["fn"])
+    assert r.law.commanded == ("eta" in case["truth"])
+    assert r.validation["stage"] == "validation" and r.validation["nrmse"] < 0.01
+    assert r.adequacy["verdict"] == "adequate"
+
+
+@pytest.mark.parametrize("snr,tol,nrmse", [(80.0, 0.005, 0.002), (40.0, 0.10, 0.03)])
+def test_the_mr_law_from_80_to_40_db(snr, tol, nrmse):
+    case = _case("mr_damper_switched_command", snr, seed=3)
+    r = reconstruct_constitutive(_run(case))
+    errs = _rel_errors(r.law, case["truth"], np.std(case["fit"]["force"]), np.std(case["fit"]["v"]))
+    assert max(errs.values()) < tol, errs
+    assert r.validation["nrmse"] < nrmse
+
+
+def test_measured_velocity_is_used_when_recorded():
+    case = _case("bouc_wen_random", 60.0)
+    rec = case["fit"]
+    st = Stage("nonlinear", rec["t"], {"x": rec["x"], "force": rec["force"], "velocity": rec["v"]}, excitation="force")
+    sig = component_signals(st)
+    assert sig.choice["velocity"] == "measured"
+    half = (rec["t"].size - sig.t.size) // 2
+    true_v = case["fit"]["v"][half:half + sig.t.size]
+    assert np.sqrt(np.mean((sig.dy - true_v) ** 2)) < 0.01 * np.std(true_v)
+
+
+def test_a_structure_run_is_refused():
+    case = _case("bouc_wen_random", 60.0)
+    run = _run(case)
+    run.attrs = {}
+    with pytest.raises(Exception, match="import --constitutive"):
+        reconstruct_constitutive(run)
+
+
+# --------------------------------------------------------------------------- command line
+def test_import_reconstruct_report_end_to_end(tmp_path, capsys):
+    case = _case("mr_damper_switched_command", 60.0, seed=1)
+    ct.write_csv(case["fit"], tmp_path / "fit.csv")
+    ct.write_csv(case["validation"], tmp_path / "val.csv", velocity=True)
+    run_file = tmp_path / "mr.h5"
+    assert main(["import", "--constitutive", "-o", str(run_file), "--nonlinear", str(tmp_path / "fit.csv"),
+                 "--validation", str(tmp_path / "val.csv")]) == 0
+    assert read_info(run_file)["mode"] == CONSTITUTIVE
+    run = load_run(run_file)
+    assert set(run.stage("validation").channels) == {"x", "force", "velocity", "command"}
+    capsys.readouterr()
+    law_file = tmp_path / "law.json"
+    assert main(["reconstruct", str(run_file), "--json", "--save-model", str(law_file)]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert set(d) >= {"excitation", "parameters", "units", "convention", "equation", "validation", "linear_step",
+                      "nonlinear_step", "settings", "adequacy", "timings_s", "software", "warnings"}
+    assert d["excitation"] == CONSTITUTIVE and d["validation"]["quantity"] == "force"
+    assert d["validation"]["nrmse"] < 0.01
+    truth = case["truth"]
+    for k in ("c", "k", "alpha", "gamma", "delta", "c1", "alpha1", "eta"):
+        assert abs(d["parameters"][k] - truth[k]) < 0.02 * abs(truth[k]), k
+    saved = json.loads(law_file.read_text())
+    assert saved["kind"] == CONSTITUTIVE and saved["parameters"]["eta"] == pytest.approx(d["parameters"]["eta"])
+    out = tmp_path / "report"
+    assert main(["report", str(run_file), "-o", str(out), "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    html = (out / "index.html").read_text()
+    assert "Constitutive law" in html and "data:image/png;base64" in html
+    assert json.loads((out / "result.json").read_text())["parameters"]["k"] == pytest.approx(rep["parameters"]["k"])
+
+
+def test_refusals_name_the_problem(tmp_path, capsys):
+    rec = ct.simulate(ct.bouc_wen_law(), "random", duration=2.0)
+    np.savetxt(tmp_path / "noforce.csv", np.column_stack([rec["t"], rec["x"]]), delimiter=",", header="t,x",
+               comments="")
+    assert main(["import", "--constitutive", "-o", str(tmp_path / "a.h5"), "--nonlinear",
+                 str(tmp_path / "noforce.csv")]) == 2
+    assert "needs a measured force" in capsys.readouterr().err
+    t = rec["t"].copy()
+    t[200:] += 0.3 * (t[1] - t[0])
+    np.savetxt(tmp_path / "jitter.csv", np.column_stack([t, rec["x"], rec["force"]]), delimiter=",",
+               header="t,x,force", comments="", fmt="%.12g")
+    assert main(["import", "--constitutive", "-o", str(tmp_path / "b.h5"), "--nonlinear",
+                 str(tmp_path / "jitter.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "not uniform" in err and "jitter.csv" in err
+    np.savetxt(tmp_path / "extra.csv", np.column_stack([rec["t"], rec["x"], rec["force"]]), delimiter=",",
+               header="t,x,torque", comments="")
+    assert main(["import", "--constitutive", "-o", str(tmp_path / "c.h5"), "--nonlinear",
+                 str(tmp_path / "extra.csv")]) == 2
+    assert "torque" in capsys.readouterr().err
+    assert not any(tmp_path.glob("*.h5"))
