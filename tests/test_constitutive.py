@@ -123,7 +123,8 @@ def test_parameters_within_2_percent_and_held_out_force_within_1_percent_at_60_d
     assert r.adequacy["verdict"] == "adequate"
 
 
-@pytest.mark.parametrize("snr,tol,nrmse", [(80.0, 0.005, 0.002), (40.0, 0.10, 0.03)])
+# at 80 dB the damper's eta keeps a bias of up to 1.2 % (bench/component.py, docs/constitutive.md)
+@pytest.mark.parametrize("snr,tol,nrmse", [(80.0, 0.015, 0.002), (40.0, 0.10, 0.03)])
 def test_the_mr_law_from_80_to_40_db(snr, tol, nrmse):
     case = _case("mr_damper_switched_command", snr, seed=3)
     r = reconstruct_constitutive(_run(case))
