@@ -111,7 +111,9 @@ def admissible(law: ConstitutiveLaw) -> bool:
 
 def _wants_command(stage, setting) -> bool:
     cmd = stage.channels.get(COMMAND_CHANNEL)
-    varies = cmd is not None and float(np.ptp(cmd)) > 10 * float(estimate_spectrum(cmd, stage.dt).noise_std)
+    # noise of the command from its first differences (robust: a switched command's steps are rare)
+    noise = float(np.median(np.abs(np.diff(cmd)))) * 1.4826 / np.sqrt(2) if cmd is not None else 0.0
+    varies = cmd is not None and float(np.ptp(cmd)) > 10 * noise
     if setting == "auto":
         return bool(varies)
     if setting and cmd is None:
@@ -134,6 +136,27 @@ def command_start(law: ConstitutiveLaw, items: list[ComponentSignals]):
     return best[1], {"eta_grid": [float(e) for e in ETA_GRID], "eta_start": best[1].eta}
 
 
+def grid_start(items: list[ComponentSignals], commanded: bool):
+    """A start for the projected polish without the equation-error estimate: the (gamma, delta)
+    of a grid (lambda = gamma + delta from 0.3 to 30 over the rms displacement, gamma/lambda 0.5,
+    0.75, 1) whose projected output error is lowest; no fn terms, damping and offset in."""
+    rms = float(np.sqrt(np.mean(np.concatenate([it.y - it.y.mean() for it in items]) ** 2))) or 1.0
+    best = None
+    for lam in np.geomspace(0.3, 30.0, 9) / rms:
+        for share in (0.5, 0.75, 1.0):
+            trial = ConstitutiveLaw(c=1.0, k=0.0, alpha=1.0, gamma=share * lam, delta=(1 - share) * lam, f0=0.0,
+                                    eta=float(ETA_GRID[6]) if commanded else 0.0)
+            prob = ForceOutputError(trial, items, fit_eta=False)
+            r = prob.residual(np.zeros(len(prob.keys)))
+            cost = float(r @ r)
+            if best is None or cost < best[0]:
+                best = (cost, prob.build(np.zeros(len(prob.keys))))
+    law = best[1]
+    if commanded:
+        law = ConstitutiveLaw(**{**law.__dict__, "c1": 0.0, "alpha1": 0.0, "eta": 0.0})
+    return law
+
+
 @single_thread_blas
 def reconstruct_constitutive(run: Run, settings: ConstitutiveSettings | None = None,
                              validate_law: bool = True) -> ConstitutiveResult:
@@ -154,11 +177,19 @@ def reconstruct_constitutive(run: Run, settings: ConstitutiveSettings | None = N
                       "software": f"shakerlab {__version__}", "settings": s.to_dict(), "source": run.source,
                       "differentiation": sig.choice, "equation_error_estimate": law.parameters()}
     info["equation_error_admissible"] = admissible(law)
-    if s.polish and info["equation_error_admissible"]:
+    commanded = _wants_command(stage, s.command_law)
+    if s.polish:
         t2 = time.perf_counter()
         prov = law.provenance
+        start = "equation-error estimate"
+        if not info["equation_error_admissible"]:
+            # a law the agent model does not hold for (a command-dependent one: the regression is of
+            # the constant law) can give an inadmissible estimate; the projected fit needs only
+            # gamma and delta, so a grid start is cheap
+            law, start = grid_start([sig], commanded), "grid (the equation-error estimate is not admissible)"
         law, pinfo = polish(law, [sig])
-        if _wants_command(stage, s.command_law):
+        pinfo["start"] = start
+        if commanded:
             start, cinfo = command_start(law, [sig])
             law, cp = polish(start, [sig], max_nfev=100)
             pinfo = {"constant_law": pinfo, "command_law": dict(cp, **cinfo)}
@@ -169,9 +200,6 @@ def reconstruct_constitutive(run: Run, settings: ConstitutiveSettings | None = N
             law, steps = revise_terms(law, [sig])
             timings["term_revision"] = time.perf_counter() - t3
         law.provenance = dict(prov, output_error_polish=pinfo, term_revision=steps)
-    elif s.polish:
-        law.provenance["output_error_polish"] = {"applied": False,
-                                                 "skipped": "the equation-error estimate is not admissible"}
     t4 = time.perf_counter()
     val = validate(law, run, s) if validate_law else {"nrmse": float("nan"), "stage": None}
     timings["validation"] = time.perf_counter() - t4
