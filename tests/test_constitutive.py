@@ -222,3 +222,54 @@ def test_refusals_name_the_problem(tmp_path, capsys):
                  str(tmp_path / "extra.csv")]) == 2
     assert "torque" in capsys.readouterr().err
     assert not any(tmp_path.glob("*.h5"))
+
+
+# --------------------------------------------------------------------------- bridge to the shaker
+def test_a_component_law_is_the_baseline_of_a_shaker_run(tmp_path, capsys):
+    """The same specimen on the bench (law in N) and on the shaker (independent generator, base
+    excitation, with a support stiffness the bench does not see): the law JSON as diagnose's
+    baseline gets the specimen's mass and the support fitted on the shaker run."""
+    from recon.diagnosis.diagnose import resolve_baseline
+    from recon.testing import independent as ind
+    from shakerlab.runfile.writer import RunWriter
+
+    system = ind.random_system(np.random.default_rng(4), hysteresis=True, quadratic=False, cubic=True)
+    k_support = 0.15 * (system["k"] + system["alpha"])
+    rec = ind.add_noise(ind.simulate(dict(system, k=system["k"] + k_support), "paper", fs=1000.0, seed=1), 60.0, 1)
+    shaker = tmp_path / "shaker.h5"
+    with RunWriter(shaker, attrs={"source": "test"}) as w:
+        for name, st in rec["stages"].items():
+            sw = w.begin_stage(name, fs=1000.0, excitation="base")
+            sw.append(0, {"x_base": st["x_base"], "x_tip": st["x_tip"]}, time_s=st["t"] - st["t"][0])
+            sw.close("complete")
+    law = {"c": system["c"], "k": system["k"], "alpha": system["alpha"], "gamma": system["gamma"],
+           "delta": system["delta"], "f0": 0.0, "fn": [(3, 0, system["k3"])], "c1": 0.0, "alpha1": 0.0, "eta": 0.0}
+    case = ct.component_test(law, "random", 60.0, 0, amplitude=1.5 * system["Y"])
+    r = reconstruct_constitutive(_run(case))
+    law_file = tmp_path / "law.json"
+    law_file.write_text(json.dumps(r.law.to_dict()))
+    run = load_run(shaker)
+    base, kind = resolve_baseline(run, str(law_file))
+    assert "mass and support" in kind
+    m = r.law.alpha / base.baseline.alpha_m
+    assert abs(m / system["m"] - 1) < 0.01
+    assert abs((m * base.baseline.k_m - r.law.k) / k_support - 1) < 0.03
+    assert base.baseline.gamma == r.law.gamma and base.baseline.delta == r.law.delta
+    info = base.baseline.provenance["bridge"]
+    assert info["nrmse"]["validation"] < 0.01
+    # a component test's run is no structure: diagnose says what to do instead
+    case_file = tmp_path / "fit.csv"
+    ct.write_csv(case["fit"], case_file)
+    assert main(["import", "--constitutive", "-o", str(tmp_path / "bench.h5"), "--nonlinear", str(case_file)]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", str(tmp_path / "bench.h5")]) == 2
+    assert "--baseline LAW.json" in capsys.readouterr().err
+
+
+def test_a_command_dependent_law_is_refused_as_a_shaker_baseline():
+    from recon.constitutive.bridge import shaker_baseline
+    from recon.constitutive.law import ConstitutiveLaw
+
+    law = ConstitutiveLaw(**{k: v for k, v in ct.truth(ct.mr_damper_law()).items() if k != "fn"})
+    with pytest.raises(Exception, match="command"):
+        shaker_baseline(law, Run({}, source="x"))

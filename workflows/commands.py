@@ -115,7 +115,9 @@ def register_diagnosis(subparsers) -> None:
     )
     p.add_argument("run", metavar="RUN", help="run file (.h5 or .npz)")
     p.add_argument("--baseline", default="paper", metavar="paper|linear|MODEL.json",
-                   help="model to test: 'paper' (reconstructed from RUN, default), 'linear', or a saved model JSON")
+                   help="model to test: 'paper' (reconstructed from RUN, default), 'linear', a saved model JSON, or "
+                        "a component test's law JSON (reconstruct --save-model of a constitutive run: its mass "
+                        "and support are fitted on RUN)")
     p.add_argument("--json", action="store_true", help="print one JSON object (machine-readable)")
     p.add_argument("--report", metavar="DIR", help="write PNG figures and diagnosis.json to DIR")
     p.add_argument("--save-model", metavar="PATH", help="write the augmented model as JSON to PATH")

@@ -16,7 +16,9 @@ all scale linearly with u. fn monomials use the library's names with y for x and
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -90,6 +92,25 @@ class ConstitutiveLaw:
                    mass=float(p.get("mass", 0.0)), **{k: float(p[k]) for k in COMMAND_NAMES if k in p},
                    provenance=dict(d.get("provenance", {})))
 
+    @classmethod
+    def load(cls, path) -> "ConstitutiveLaw":
+        """A law saved by ``reconstruct --save-model`` of a component test."""
+        path = Path(path)
+        try:
+            d = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise UserFacingError(f"{path}: no such law file") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise UserFacingError(f"{path}: cannot read the law file ({exc})") from None
+        if not isinstance(d, dict):
+            raise UserFacingError(f"{path}: not a constitutive law (a JSON object with kind 'constitutive')")
+        try:
+            return cls.from_dict(d)
+        except (TypeError, ValueError) as exc:
+            raise UserFacingError(f"{path}: bad constitutive law ({exc})") from None
+        except UserFacingError as exc:
+            raise UserFacingError(f"{path}: {exc}") from None
+
     def equation(self) -> str:
         fn = " ".join(f"{'+' if v >= 0 else '-'} {abs(v):.6g} {k}" for k, v in self.fn.items())
         c = f"({self.c:.6g} + {self.c1:.6g} u)" if self.commanded else f"{self.c:.6g}"
@@ -129,3 +150,12 @@ class ConstitutiveLaw:
         """(F, w, u) along an imposed motion (y, y' sampled at ``dt``) from the state w0."""
         w, u = hysteretic_state(dy, dt, self.gamma, self.delta, w0, cmd if self.commanded else None, self.eta)
         return self.force(y, dy, w, u, ddy), w, u
+
+
+def is_law_file(path) -> bool:
+    """Does ``path`` hold a constitutive law (JSON with kind 'constitutive')? False for anything else."""
+    try:
+        d = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return False
+    return isinstance(d, dict) and d.get("kind") == KIND
