@@ -24,7 +24,13 @@ def settings_from(args) -> ConstitutiveSettings:
     order = getattr(args, "library_order", 5)
     if order < 2 or order > 8:
         raise UserFacingError(f"--library-order must be between 2 and 8, got {order}")
-    return ConstitutiveSettings(library_order=order, polish=not getattr(args, "no_polish", False))
+    inertia = getattr(args, "inertia", "none")
+    if inertia not in ("none", "fit"):
+        try:
+            inertia = float(inertia)
+        except ValueError:
+            raise UserFacingError(f"--inertia {inertia!r}: expected none, fit or a mass in kg") from None
+    return ConstitutiveSettings(library_order=order, polish=not getattr(args, "no_polish", False), inertia=inertia)
 
 
 def law_plots(result, run, outdir) -> list[Path]:

@@ -32,6 +32,8 @@ def reconstruct_command(args) -> int:
     run = load_run(args.run)
     if run_mode(run) == CONSTITUTIVE:       # a component test: the force law (docs/constitutive.md)
         return constitutive.reconstruct_command(args, run)
+    if getattr(args, "inertia", "none") != "none":
+        raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
     result = reconstruct(run, ReconSettings(library_order=args.library_order, polish=not args.no_polish,
                                             form=getattr(args, "form", "joint")))
     out = result.to_dict()
@@ -105,6 +107,8 @@ def report_command(args) -> int:
     rs = _recon_settings(args)
     if read_info(args.run)["mode"] == CONSTITUTIVE:
         return constitutive.report_command(args, load_run(args.run))
+    if getattr(args, "inertia", "none") != "none":
+        raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
     d = make_report(args.run, args.output, settings=ReconSettings(**rs), uncertainty=not args.no_uncertainty,
                     uncertainty_settings=UncertaintySettings(n_resamples=args.resamples),
                     write_back=not args.no_write_back, progress=StepProgress(enabled=not args.json),

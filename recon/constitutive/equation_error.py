@@ -19,6 +19,9 @@ linear step's stiffness error). Damping (``s*ddy``, ``dy^2``) and offset (``dy``
 as groups to the sparse selector (a quasi-static test has no viscous force), the rest of the
 core is always in.
 
+Inertia (``fit_mass``): a term m x'' adds m s x''' and (lambda m) x' x'' to the right side,
+two more columns offered as a group (x''' from the same filter).
+
 Rows: the library's kernel needs the sign of z where y and y' agree. A component test need
 not be centred on x = 0, so the first pass clusters on the displacement about its mid-range
 (recon.library.clustering), and a second pass on the sign of z implied by the first pass's
@@ -42,23 +45,25 @@ from shakerlab.errors import UserFacingError
 Z_MARGIN = 0.1     # second pass: rows with |z| below this fraction of its range are left out
 
 
-def regress(sig: ComponentSignals, h: np.ndarray, order: int, n_folds: int):
-    """One pass of the sparse regression on the rows ``h != 0`` (s = h). Returns (law, info)."""
+def regress(sig: ComponentSignals, h: np.ndarray, order: int, n_folds: int, fit_mass: bool = False):
+    """One pass of the sparse regression on the rows ``h != 0`` (s = h). Returns (law, info).
+    ``fit_mass``: an inertia term m x'' too, columns s x''' (m) and x' x'' (lambda m), a group."""
     y, dy, ddy, F, dF = sig.y, sig.dy, sig.ddy, sig.F, sig.dF
     lib = AgentLibrary(order, "joint", linear_correction=True)
     theta, target = lib.build(y, dy, ddy, F, dF, h)
     mask = lib.rows(h)
-    theta = np.column_stack([theta, dy[mask]])
+    extra = [dy[mask]] + ([(h[mask] * sig.dddy[mask]), dy[mask] * ddy[mask]] if fit_mass else [])
+    theta = np.column_stack([theta] + extra)
     n_lib = len(lib.columns)
     if theta.shape[0] < 4 * theta.shape[1]:
         raise UserFacingError(f"only {theta.shape[0]} samples where the force and the velocity agree in sign for "
                               f"{theta.shape[1]} library columns: record more loops or lower --library-order")
-    names = lib.names + ["dy (offset)"]
+    names = lib.names + ["dy (offset)"] + (["s*dddy (mass)", "dy*ddy"] if fit_mass else [])
     idx = {c.name: k for k, c in enumerate(lib.columns)}
     k_c, k_K, k_c2, k_f0 = idx["s*ddy"], idx["s*dy"], idx["dy^2"], n_lib
     groups, core = lib.groups()
     core = [k for k in core if k not in (k_c, k_c2)]
-    groups = groups + [[k_c, k_c2], [k_f0]]
+    groups = groups + [[k_c, k_c2], [k_f0]] + ([[n_lib + 1, n_lib + 2]] if fit_mass else [])
     selector = GroupedSparseSelector(groups, core, n_folds=n_folds, corr_len=filter_correlation_length(sig.choice))
     sp = selector.fit(theta, target)
     hp = extract(lib, sp.coef[:n_lib], sp.stderr[:n_lib], sp.support[:n_lib])
@@ -68,16 +73,24 @@ def regress(sig: ComponentSignals, h: np.ndarray, order: int, n_folds: int):
     c = float(sp.coef[k_c]) if sp.support[k_c] else (float(sp.coef[k_c2]) / hp.lam if has_c else 0.0)
     K = float(sp.coef[k_K])
     f0 = float(sp.coef[k_f0]) / hp.lam if has_f0 else 0.0
+    m = 0.0
+    if fit_mass and (sp.support[n_lib + 1] or sp.support[n_lib + 2]):
+        m = float(sp.coef[n_lib + 1]) if sp.support[n_lib + 1] else float(sp.coef[n_lib + 2]) / hp.lam
     info = {"library": dict(zip(names, (float(v) for v in sp.coef))), "sparse_regression": sp.summary(),
             "damping_selected": has_c, "offset_selected": has_f0, "rows": int(mask.sum()),
-            "equation_error": {"lambda": hp.lam, "alpha": hp.alpha, "c": c, "K": K, "f0": f0, "fn": dict(hp.fn)}}
+            "equation_error": {"lambda": hp.lam, "alpha": hp.alpha, "c": c, "K": K, "f0": f0, "fn": dict(hp.fn),
+                               **({"mass": m} if fit_mass else {})}}
     s = h[mask].astype(float)
-    hp, c, K, f0 = refit(hp, y[mask], dy[mask], ddy[mask], F[mask], dF[mask], s, c, K, f0, has_c, has_f0)
-    Fn = F - f0 - c * dy - K * y
-    dFn = dF - c * ddy - K * dy
+    Fi, dFi = F, dF
+    if m:   # the inertia force stays at the regression's m in the refit (the polish fits it)
+        Fi, dFi = F - m * ddy, dF - m * sig.dddy
+    hp, c, K, f0 = refit(hp, y[mask], dy[mask], ddy[mask], Fi[mask], dFi[mask], s, c, K, f0, has_c, has_f0)
+    Fn = Fi - f0 - c * dy - K * y
+    dFn = dFi - c * ddy - K * dy
     hp = estimate_delta(hp, y, dy, ddy, Fn, dFn, h)
     info["hysteresis"] = hp.info
-    law = ConstitutiveLaw(c=c, k=K - hp.alpha, alpha=hp.alpha, gamma=hp.gamma, delta=hp.delta, f0=f0, fn=dict(hp.fn))
+    law = ConstitutiveLaw(c=c, k=K - hp.alpha, alpha=hp.alpha, gamma=hp.gamma, delta=hp.delta, f0=f0, fn=dict(hp.fn),
+                          mass=m)
     return law, info, sp
 
 
@@ -108,23 +121,24 @@ def refit(params: HysteresisParams, y, dy, ddy, F, dF, s, c, K, f0, has_c: bool,
 def z_sign_clusters(sig: ComponentSignals, law: ConstitutiveLaw) -> np.ndarray:
     """h = sign(x') where the hysteretic force implied by ``law`` has the sign of x' (and is not
     near 0), else 0."""
-    z = sig.F - law.f0 - law.c * sig.dy - law.k * sig.y - fn_values(law.fn, sig.y, sig.dy)
+    z = sig.F - law.f0 - law.c * sig.dy - law.k * sig.y - fn_values(law.fn, sig.y, sig.dy) - law.mass * sig.ddy
     s = np.sign(sig.dy)
     lo, hi = np.percentile(z, [1, 99])
     margin = Z_MARGIN * 0.5 * (hi - lo)
     return np.where((np.sign(z) == s) & (np.abs(z) > margin), s, 0.0).astype(int)
 
 
-def equation_error(sig: ComponentSignals, order: int = 5, n_folds: int = 5, passes: int = 2):
-    """The law from the agent-model regression (``passes`` clusterings, module docstring).
-    Returns (law, info, sparse fit of the last pass)."""
+def equation_error(sig: ComponentSignals, order: int = 5, n_folds: int = 5, passes: int = 2, fit_mass: bool = False):
+    """The law from the agent-model regression (``passes`` clusterings, module docstring;
+    ``fit_mass``: with an inertia term, ``sig`` must carry x'''). Returns (law, info, sparse fit
+    of the last pass)."""
     centre = 0.5 * (float(np.max(sig.y)) + float(np.min(sig.y)))
     h = cluster(sig.y - centre, sig.dy)
     history = []
     law = info = sp = None
     for k in range(passes):
         try:
-            law_k, info_k, sp_k = regress(sig, h, order, n_folds)
+            law_k, info_k, sp_k = regress(sig, h, order, n_folds, fit_mass)
         except UserFacingError:
             if law is None:
                 raise

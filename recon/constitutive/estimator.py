@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -52,8 +52,19 @@ class ConstitutiveSettings:
     term_selection: bool = True
     command_law: bool | str = "auto"   # "auto": when the fitted stage has a command that varies
     fit_stage: str = "nonlinear"
+    # inertia of the moving parts: "none", "fit" (a term m x'', m fitted) or a known mass [kg]
+    inertia: str | float = "none"
     window: int | None = None
     sg_order: int | None = None
+
+    def __post_init__(self):
+        if not (self.inertia in ("none", "fit") or (isinstance(self.inertia, (int, float))
+                                                     and math.isfinite(self.inertia) and self.inertia >= 0)):
+            raise UserFacingError(f"inertia must be 'none', 'fit' or a mass >= 0 in kg, got {self.inertia!r}")
+
+    @property
+    def known_mass(self) -> float:
+        return float(self.inertia) if isinstance(self.inertia, (int, float)) else 0.0
 
     def to_dict(self):
         return asdict(self)
@@ -167,11 +178,15 @@ def reconstruct_constitutive(run: Run, settings: ConstitutiveSettings | None = N
     timings = {}
     stage = run.stage(s.fit_stage)
     t0 = time.perf_counter()
-    sig = component_signals(stage, s.window, s.sg_order)
+    fit_mass = s.inertia == "fit"
+    sig = component_signals(stage, s.window, s.sg_order, third=fit_mass or s.known_mass > 0)
+    if s.known_mass:      # a known inertia force is taken off the recorded force
+        m = s.known_mass
+        sig = replace(sig, F=sig.F - m * sig.ddy, dF=sig.dF - m * sig.dddy, F_raw=sig.F_raw - m * sig.ddy)
     timings["signals"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        law, info, sp = equation_error(sig, s.library_order, s.n_folds)
+        law, info, sp = equation_error(sig, s.library_order, s.n_folds, fit_mass=fit_mass)
     timings["equation_error"] = time.perf_counter() - t1
     law.provenance = {"method": "agent-model sparse regression of the force (shakerlab recon.constitutive)",
                       "software": f"shakerlab {__version__}", "settings": s.to_dict(), "source": run.source,
@@ -187,6 +202,8 @@ def reconstruct_constitutive(run: Run, settings: ConstitutiveSettings | None = N
             # the constant law) can give an inadmissible estimate; the projected fit needs only
             # gamma and delta, so a grid start is cheap
             law, start = grid_start([sig], commanded), "grid (the equation-error estimate is not admissible)"
+            if fit_mass:
+                law = ConstitutiveLaw(**{**law.__dict__, "mass": 1e-9})
         law, pinfo = polish(law, [sig])
         pinfo["start"] = start
         if commanded:
@@ -200,6 +217,8 @@ def reconstruct_constitutive(run: Run, settings: ConstitutiveSettings | None = N
             law, steps = revise_terms(law, [sig])
             timings["term_revision"] = time.perf_counter() - t3
         law.provenance = dict(prov, output_error_polish=pinfo, term_revision=steps)
+    if s.known_mass:
+        law.mass = s.known_mass
     t4 = time.perf_counter()
     val = validate(law, run, s) if validate_law else {"nrmse": float("nan"), "stage": None}
     timings["validation"] = time.perf_counter() - t4
@@ -220,8 +239,8 @@ def predict(law: ConstitutiveLaw, stage, settings: ConstitutiveSettings | None =
     if law.commanded and cmd is None:
         raise UserFacingError(f"stage {stage.name!r}: the law depends on a command and the stage has none")
     u0 = None if cmd is None else float(cmd[0])
-    w0 = law.start_state(sig.F[0], sig.y[0], sig.dy[0], u0)
-    F, _, _ = law.simulate(sig.dt, sig.y, sig.dy, cmd, w0)
+    w0 = law.start_state(sig.F[0], sig.y[0], sig.dy[0], u0, sig.ddy[0])
+    F, _, _ = law.simulate(sig.dt, sig.y, sig.dy, cmd, w0, sig.ddy)
     return sig.t, sig.F_raw, F, sig.y
 
 

@@ -7,7 +7,7 @@ predicted force
     F = c x' + k x + sum_j a_j phi_j(x, x') + alpha w + f0   [+ c1 u x' + alpha1 u w]
 
 is linear in every parameter except gamma, delta (and eta, and the start state w0 of each
-record), so for each trial of those the rest is solved by least squares and the residual is
+record), and so is a fitted inertia term m x'' (a column x''), so for each trial of those the rest is solved by least squares and the residual is
 (F_pred - F_recorded) / rms(F) over the record (variable projection). The nonlinear search is
 ``scipy.optimize.least_squares`` on scaled parameters (recon.output_error.problem's scaling rule
 and diverged-trial residual). Records faster than the polish rate are decimated as in
@@ -47,17 +47,18 @@ class ForceOutputError:
         for s in items:
             q = max(1, int((1.0 / s.dt) // POLISH_FS))
             self.items.append((s.dt * q, s.y[::q], s.dy[::q], s.F_raw[::q], None if s.cmd is None else s.cmd[::q],
-                               s.F[0], s.y[0], s.dy[0]))
+                               s.F[0], s.y[0], s.dy[0], s.ddy[::q]))
         self.decimation = [max(1, int((1.0 / s.dt) // POLISH_FS)) for s in items]
         self.terms = list(law.fn)
         self.has_c = bool(law.c) or law.commanded
         self.has_f0 = True
+        self.has_m = bool(law.mass)
         self.commanded = law.commanded
         self.keys = ["gamma", "delta"] + (["eta"] if self.commanded and fit_eta else []) + \
             [f"w0:{i}" for i in range(len(items))]
         x0 = [law.gamma, law.delta] + ([law.eta] if "eta" in self.keys else []) + \
-            [law.start_state(F0, y0, dy0, None if cmd is None else cmd[0])
-             for _, _, _, _, cmd, F0, y0, dy0 in self.items]
+            [law.start_state(F0, y0, dy0, None if cmd is None else cmd[0], ddy[0])
+             for _, _, _, _, cmd, F0, y0, dy0, ddy in self.items]
         self.x0 = np.array(x0, float)
         lam = law.lam if law.lam else 1.0
         self.scale = parameter_scales(self.keys, self.x0, lam,
@@ -76,7 +77,7 @@ class ForceOutputError:
         """Per record: (A, names) of the linear problem at the nonlinear parameters p (None: diverged)."""
         gamma, delta, eta, w0 = self.values(p)
         out = []
-        for (dt, y, dy, F, cmd, _, _, _), w_start in zip(self.items, w0):
+        for (dt, y, dy, F, cmd, _, _, _, ddy), w_start in zip(self.items, w0):
             w, u = hysteretic_state(dy, dt, gamma, delta, w_start, cmd if self.commanded else None, eta)
             if not np.all(np.isfinite(w)) or (u is not None and not np.all(np.isfinite(u))):
                 return None
@@ -85,6 +86,8 @@ class ForceOutputError:
                 cols.append(dy); names.append("c")
             if self.has_f0:
                 cols.append(np.ones_like(y)); names.append("f0")
+            if self.has_m:
+                cols.append(ddy); names.append("mass")
             if self.commanded:
                 cols += [u * dy, u * w]; names += ["c1", "alpha1"]
             for t in self.terms:
@@ -115,7 +118,7 @@ class ForceOutputError:
         law = self.law
         return ConstitutiveLaw(c=coef.get("c", 0.0), k=coef["k"], alpha=coef["alpha"], gamma=float(gamma),
                                delta=float(delta), f0=coef.get("f0", 0.0),
-                               fn={t: coef[f"fn:{t}"] for t in self.terms}, mass=law.mass,
+                               fn={t: coef[f"fn:{t}"] for t in self.terms}, mass=coef.get("mass", law.mass),
                                c1=coef.get("c1", 0.0), alpha1=coef.get("alpha1", 0.0),
                                eta=float(eta) if self.commanded else 0.0, provenance=dict(law.provenance))
 
@@ -145,7 +148,7 @@ def score(law: ConstitutiveLaw, items: list[ComponentSignals]) -> tuple[float, f
         return float("inf"), 1.0, 0.0
     r = np.concatenate(res)
     n_eff = sum(effective_samples(e) for e in res)
-    k = len(prob.terms) + 2 + prob.has_c + prob.has_f0 + 2 * prob.commanded + len(prob.keys)
+    k = len(prob.terms) + 2 + prob.has_c + prob.has_f0 + prob.has_m + 2 * prob.commanded + len(prob.keys)
     return float(np.mean(r * r)), n_eff, float(k)
 
 

@@ -20,8 +20,8 @@ smooth ramp):
   hysteresis, the inertia and viscous force negligible);
 - ``sines``: a 0.5-2 Hz tone whose amplitude steps through several levels, plus a slower tone
   that moves the loops' centre (a friction-damper bench);
-- ``random``: band-limited random displacement, a sum of many random-phase sines (an MR
-  damper under a white-noise displacement).
+- ``random``: band-limited random displacement, a sum of many random-phase sines from 0.3 Hz
+  to ``f_max`` (6 Hz by default; an MR damper under a white-noise displacement).
 
 The command ``v`` (if the law has ``eta``) is a switched square signal with random levels and
 dwell times. The ODE for (w, u) is integrated with ``solve_ivp`` (DOP853, tight tolerances)
@@ -54,6 +54,12 @@ def bouc_wen_law(fn: bool = False) -> dict:
     return law
 
 
+def isolator_with_fixture(mass: float = 8.0) -> dict:
+    """A Bouc-Wen isolator tested with a heavy moving fixture: F includes m x'' (use a random
+    history with f_max of a few tens of Hz for the inertia to show)."""
+    return dict(bouc_wen_law(), m=float(mass))
+
+
 def friction_law() -> dict:
     """Rate-independent friction-like hysteresis (quasi-static, no viscous term)."""
     return {"c": 0.0, "k": 5.0e3, "alpha": 1.2e5, "gamma": 1500.0, "delta": 500.0, "f0": 4.0,
@@ -69,6 +75,8 @@ def truth(law: dict) -> dict:
     out["fn"] = {name(p, r): float(b) for p, r, b in law["fn"]}
     if law.get("eta"):
         out.update(c1=float(law["c1"]), alpha1=float(law["alpha1"]), eta=float(law["eta"]))
+    if law.get("m"):
+        out["mass"] = float(law["m"])
     return out
 
 
@@ -145,7 +153,7 @@ class History:
         return e * s, de * s + e * ds, dde * s + 2 * de * ds + e * dds
 
 
-def history(kind: str, rng, amplitude: float, duration: float) -> History:
+def history(kind: str, rng, amplitude: float, duration: float, f_max: float = 6.0) -> History:
     if kind == "quasi_static":
         f = 0.1
         levels = (np.arange(1, 4) * duration / 4, [0.35, 0.6, 0.8, 1.0], 0.5 / f)
@@ -164,7 +172,7 @@ def history(kind: str, rng, amplitude: float, duration: float) -> History:
                        1.5 / f, duration, (times, list(gains), 1.0 / f))
     if kind == "random":
         n = 40
-        f = np.geomspace(0.3, 6.0, n)
+        f = np.geomspace(0.3, f_max, n)
         A = f ** -1.0
         A = A / np.sqrt(0.5 * np.sum(A ** 2))        # unit rms
         comps = [(amplitude / 2.2 * a, 2 * math.pi * fi, p) for a, fi, p in
@@ -185,12 +193,12 @@ def command(rng, duration: float, levels=(0.0, 0.5, 1.0, 1.5, 2.0), dwell=(0.4, 
 
 # --------------------------------------------------------------------------- integration
 def simulate(law: dict, kind: str, fs: float | None = None, duration: float | None = None, amplitude: float = 0.01,
-             seed: int = 0) -> dict:
+             seed: int = 0, f_max: float = 6.0) -> dict:
     """A noise-free component test: {"t", "x", "v", "force", ["cmd"], "z", "truth", "law", "history"}."""
     rng = np.random.default_rng(seed)
     duration = duration or (40.0 if kind == "quasi_static" else 12.0)
     fs = fs or (250.0 if kind == "quasi_static" else 1000.0)
-    hist = history(kind, rng, amplitude, duration)
+    hist = history(kind, rng, amplitude, duration, f_max)
     t = np.arange(int(round(duration * fs))) / fs
     mr = bool(law.get("eta"))
     if mr:
