@@ -14,7 +14,9 @@ of the identified law, the held-out force NRMSE, the fit time; and the yardstick
 NRMSE: a linear-plus-Coulomb law F = c x' + k x + Fc tanh(x'/v0) + f0 fitted by least
 squares on the same fitted record (v0 chosen on a grid, x' a Savitzky-Golay derivative), with the command as
 F += (c1 x' + Fc1 tanh(x'/v0)) v for the MR damper (the command without its lag).
-The times exclude numba's first compilation (one warm-up fit first).
+The times exclude numba's first compilation (one warm-up fit first). Last column: how many of
+the 95 % intervals (recon.constitutive.output_error.intervals) hold the true value, over the
+seeds and parameters.
 """
 from __future__ import annotations
 
@@ -29,6 +31,8 @@ import numpy as np  # noqa: E402
 from scipy.signal import savgol_filter  # noqa: E402
 
 from recon.constitutive.estimator import reconstruct_constitutive  # noqa: E402
+from recon.constitutive.output_error import intervals  # noqa: E402
+from recon.constitutive.signals import component_signals  # noqa: E402
 from recon.testing import component_tests as ct  # noqa: E402
 from recon.validation import nrmse  # noqa: E402
 from shakerlab.modes import COMMAND_CHANNEL, CONSTITUTIVE  # noqa: E402
@@ -72,6 +76,12 @@ def yardstick(fit, val):
     return nrmse(cols(val, v0) @ coef, val["force"])
 
 
+def flat(truth):
+    out = {k: v for k, v in truth.items() if k != "fn"}
+    out.update({f"fn:{k}": v for k, v in truth["fn"].items()})
+    return out
+
+
 def max_error(law, truth, fit):
     p = law.parameters()
     errs = {}
@@ -96,7 +106,7 @@ def main():
     warm = ct.component_test(ct.bouc_wen_law(), "random", 60.0, 99)
     reconstruct_constitutive(Run({"nonlinear": stage("nonlinear", warm["fit"])}, attrs={"mode": CONSTITUTIVE}))
     print(f"{'case':30s} {'SNR':>4s} | {'max param err %':>22s} {'worst':>8s} | {'held-out NRMSE %':>17s} "
-          f"{'time s':>11s} | {'yardstick NRMSE %':>17s}")
+          f"{'time s':>11s} | {'yardstick NRMSE %':>17s} | 95 % intervals holding the truth")
     for name, (make, kind) in CASES.items():
         for snr in args.snr:
             rows = []
@@ -108,17 +118,21 @@ def main():
                 r = reconstruct_constitutive(run)
                 dt = time.perf_counter() - t0
                 err, worst, extra = max_error(r.law, case["truth"], case["fit"])
+                iv = intervals(r.law, [component_signals(run.stage("nonlinear"))])["parameters"]
+                cover = [iv[k]["low"] <= v <= iv[k]["high"] for k, v in flat(case["truth"]).items() if v and k in iv]
                 rows.append((err, worst, r.validation["nrmse"], dt, yardstick(case["fit"], case["validation"]),
-                             extra))
+                             extra, cover))
             e = np.array([r[0] for r in rows]) * 100
             v = np.array([r[2] for r in rows]) * 100
             tt = np.array([r[3] for r in rows])
             y = np.array([r[4] for r in rows]) * 100
             worst = rows[int(np.argmax(e))][1]
             extra = sorted({t for r in rows for t in r[5]})
+            cov = [c for r in rows for c in r[6]]
             print(f"{name:30s} {snr:4.0f} | {np.median(e):10.3f} [{e.max():9.3f}] {worst:>8s} | "
                   f"{np.median(v):7.3f} [{v.max():7.3f}] {np.median(tt):5.2f} [{tt.max():4.2f}] | "
-                  f"{np.median(y):7.2f} [{y.max():7.2f}]" + (f"  extra terms: {', '.join(extra)}" if extra else ""))
+                  f"{np.median(y):7.2f} [{y.max():7.2f}] | {sum(cov):3d}/{len(cov):3d}"
+                  + (f"  extra terms: {', '.join(extra)}" if extra else ""))
 
 
 if __name__ == "__main__":

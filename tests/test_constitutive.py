@@ -299,3 +299,20 @@ def test_a_fitted_inertia_term_with_a_measured_velocity(tmp_path, capsys):
             assert abs(d["parameters"][k] - v) < 0.02 * abs(v), k
     assert main(["reconstruct", str(run_file), "--inertia", "heavy"]) == 2
     assert "--inertia 'heavy'" in capsys.readouterr().err
+
+
+def test_intervals_contain_the_truth_and_shrink_with_the_noise():
+    from recon.constitutive.output_error import intervals
+
+    se = {}
+    for snr in (60.0, 80.0):
+        case = _case("bouc_wen_random", snr)
+        run = _run(case)
+        r = reconstruct_constitutive(run, validate_law=False)
+        iv = intervals(r.law, [component_signals(run.stage("nonlinear"))])["parameters"]
+        se[snr] = {k: iv[k]["se"] for k in ("k", "alpha", "gamma", "delta")}
+        if snr == 60.0:
+            for k in se[snr]:
+                assert iv[k]["low"] <= case["truth"][k] <= iv[k]["high"], (k, iv[k], case["truth"][k])
+    for k in se[60.0]:
+        assert 4.0 < se[60.0][k] / se[80.0][k] < 25.0, (k, se)

@@ -13,6 +13,8 @@ import json
 from pathlib import Path
 
 from recon.constitutive.estimator import ConstitutiveSettings, predict, reconstruct_constitutive
+from recon.constitutive.output_error import intervals
+from recon.constitutive.signals import component_signals
 from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
@@ -50,12 +52,18 @@ def law_plots(result, run, outdir) -> list[Path]:
     return paths
 
 
+def law_intervals(result, run) -> dict:
+    """95 % intervals of the law's parameters on the fitted stage (recon.constitutive.output_error.intervals)."""
+    sig = component_signals(run.stage(result.settings.fit_stage), result.settings.window, result.settings.sg_order)
+    return intervals(result.law, [sig])
+
+
 def reconstruct_command(args, run) -> int:
     result = reconstruct_constitutive(run, settings_from(args))
     out = result.to_dict()
     out["warnings"] = []
     if getattr(args, "uncertainty", False):
-        out["warnings"].append("--uncertainty: intervals are not computed for a constitutive law yet")
+        out["uncertainty"] = law_intervals(result, run)
     if args.plots:
         out["plots"] = [str(p) for p in law_plots(result, run, Path(args.plots))]
     if args.save_model:
@@ -75,6 +83,8 @@ def reconstruct_command(args, run) -> int:
     d = result.differentiation
     print(f"Savitzky-Golay: window {d['window']}, order {d['order']}; sparse regression: "
           f"{result.sparse['n_terms']} library terms")
+    for name, q in out.get("uncertainty", {}).get("parameters", {}).items():
+        print(f"  {name:12s} {q['value']:.6g}  [{q['low']:.6g}, {q['high']:.6g}]")
     for p in out.get("plots", []):
         print(f"plot: {p}")
     return 0
@@ -93,17 +103,26 @@ def make_report(run, outdir, settings: ConstitutiveSettings | None = None, overw
         raise UserFacingError(f"-o {outdir}: the directory exists and is not empty (an earlier report?); "
                               f"--force replaces its report files, or choose another -o")
     result = reconstruct_constitutive(run, settings)
-    d = clean(result.to_dict())
+    d = result.to_dict()
+    d["uncertainty"] = law_intervals(result, run)
+    d = clean(d)
     try:
         outdir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserFacingError(f"-o {outdir}: cannot create the report directory ({exc})") from None
     figures = law_plots(result, run, outdir)
     p = d["parameters"]
-    rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{v:.6g}</td><td>{html.escape(str(d['units'].get(k, '')))}"
-                   f"</td></tr>" for k, v in p.items() if isinstance(v, (int, float)))
-    rows += "".join(f"<tr><td>fn {html.escape(k)}</td><td>{v:.6g}</td><td>N/(m^p (m/s)^r)</td></tr>"
-                    for k, v in p.get("fn", {}).items())
+    iv = d["uncertainty"].get("parameters", {})
+
+    def interval(key):
+        q = iv.get(key)
+        return f"[{q['low']:.6g}, {q['high']:.6g}]" if q else ""
+
+    rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{v:.6g}</td><td>{interval(k)}</td>"
+                   f"<td>{html.escape(str(d['units'].get(k, '')))}</td></tr>"
+                   for k, v in p.items() if isinstance(v, (int, float)))
+    rows += "".join(f"<tr><td>fn {html.escape(k)}</td><td>{v:.6g}</td><td>{interval('fn:' + k)}</td>"
+                    f"<td>N/(m^p (m/s)^r)</td></tr>" for k, v in p.get("fn", {}).items())
     v = d["validation"]
     stages = "".join(f"<tr><td>{html.escape(n)}</td><td>{st.fs:.6g}</td><td>{st.t.size}</td>"
                      f"<td>{st.t[-1] - st.t[0]:.4g}</td><td>{html.escape(', '.join(st.channels))}</td></tr>"
@@ -117,7 +136,8 @@ def make_report(run, outdir, settings: ConstitutiveSettings | None = None, overw
            f"<h2>Stages</h2><table border=1><tr><th>stage</th><th>fs [Hz]</th><th>samples</th><th>duration [s]</th>"
            f"<th>channels</th></tr>{stages}</table>"
            f"<h2>Identified law</h2><pre>{html.escape(d['equation'])}</pre>"
-           f"<table border=1><tr><th>parameter</th><th>value</th><th>units</th></tr>{rows}</table>"
+           f"<table border=1><tr><th>parameter</th><th>value</th><th>95 % interval</th><th>units</th></tr>{rows}</table>"
+           f"<p>Intervals: {html.escape(str(d['uncertainty'].get('method', '')))}.</p>"
            f"<h2>Validation</h2><p>NRMSE of the predicted force on stage {html.escape(str(v['stage']))}: "
            f"{v['nrmse']:.4g}{' (the fitted stage: no validation stage)' if v.get('fitted_on_validation_stage') else ''}"
            f". Verdict: {html.escape(a['verdict'])}{': ' + html.escape('; '.join(a['reasons'])) if a['reasons'] else ''}.</p>"
@@ -127,7 +147,7 @@ def make_report(run, outdir, settings: ConstitutiveSettings | None = None, overw
            "docs/constitutive.md.</p></body></html>")
     written = [write_text(outdir / "index.html", doc), write_text(outdir / "result.json", json.dumps(d, indent=1))]
     d["report"] = {"html": str(outdir / "index.html"), "files": [str(f) for f in written + figures],
-                   "note": "constitutive mode: no parameter intervals and no write-back into the run file yet"}
+                   "note": "constitutive mode: the result is not written back into the run file yet"}
     return d
 
 
