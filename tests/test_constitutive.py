@@ -197,8 +197,15 @@ def test_import_reconstruct_report_end_to_end(tmp_path, capsys):
     assert main(["report", str(run_file), "-o", str(out), "--json"]) == 0
     rep = json.loads(capsys.readouterr().out)
     html = (out / "index.html").read_text()
-    assert "Constitutive law" in html and "data:image/png;base64" in html
+    assert "Constitutive law" in html and "data:image/png;base64" in html and "95 % interval" in html
     assert json.loads((out / "result.json").read_text())["parameters"]["k"] == pytest.approx(rep["parameters"]["k"])
+    assert read_info(run_file)["results"] == ["reconstruction_000"]      # the report wrote the result back
+    csv = tmp_path / "summary.csv"
+    assert main(["reprocess", str(run_file), "--serial", "--quiet", "--force", "--csv", str(csv)]) == 0
+    header, row = csv.read_text().splitlines()[:2]
+    cols = dict(zip(header.split(","), row.split(",")))
+    assert cols["status"] == "ok" and float(cols["k_low"]) < float(cols["k"]) < float(cols["k_high"])
+    assert abs(float(cols["eta"]) / truth["eta"] - 1) < 0.02
 
 
 def test_refusals_name_the_problem(tmp_path, capsys):

@@ -19,6 +19,7 @@ from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
 from shakerlab.output_files import check_directory, write_text
+from shakerlab.runfile.results import store_result
 from workflows.figures import plot_force_law
 
 
@@ -95,9 +96,11 @@ def _img(path: Path) -> str:
     return f"<p><img alt='{html.escape(path.stem)}' src='data:image/png;base64,{data}'></p>"
 
 
-def make_report(run, outdir, settings: ConstitutiveSettings | None = None, overwrite: bool = False) -> dict:
+def make_report(run, outdir, settings: ConstitutiveSettings | None = None, overwrite: bool = False,
+                write_back: bool = True) -> dict:
     """Reconstruct the law of ``run`` and write the report into ``outdir``; returns the result JSON
-    with ``report`` (the files written)."""
+    with ``report`` (the files written and where the result went). With ``write_back`` the result
+    is stored in the run file (entry/results/reconstruction_NNN) once the report is complete."""
     outdir = check_directory(outdir, option="-o")
     if outdir.is_dir() and any(outdir.iterdir()) and not overwrite:
         raise UserFacingError(f"-o {outdir}: the directory exists and is not empty (an earlier report?); "
@@ -146,13 +149,18 @@ def make_report(run, outdir, settings: ConstitutiveSettings | None = None, overw
            "<p>The full result is in <code>result.json</code> next to this file; the method in "
            "docs/constitutive.md.</p></body></html>")
     written = [write_text(outdir / "index.html", doc), write_text(outdir / "result.json", json.dumps(d, indent=1))]
-    d["report"] = {"html": str(outdir / "index.html"), "files": [str(f) for f in written + figures],
-                   "note": "constitutive mode: the result is not written back into the run file yet"}
+    note = "not written back (--no-write-back)"
+    if write_back:
+        group, note = store_result(run.source, "reconstruction", d, text=str(result.law))
+        if group is not None:
+            note = f"result written back into {run.source} (entry/results/{group})"
+    d["report"] = {"html": str(outdir / "index.html"), "files": [str(f) for f in written + figures], "note": note}
     return d
 
 
 def report_command(args, run) -> int:
-    d = make_report(run, args.output, settings_from(args), overwrite=args.force)
+    d = make_report(run, args.output, settings_from(args), overwrite=args.force,
+                    write_back=not getattr(args, "no_write_back", False))
     if args.json:
         print(json.dumps(d))
         return 0

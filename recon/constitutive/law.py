@@ -92,6 +92,9 @@ class ConstitutiveLaw:
                    mass=float(p.get("mass", 0.0)), **{k: float(p[k]) for k in COMMAND_NAMES if k in p},
                    provenance=dict(d.get("provenance", {})))
 
+    def __str__(self) -> str:
+        return self.equation()
+
     @classmethod
     def load(cls, path) -> "ConstitutiveLaw":
         """A law saved by ``reconstruct --save-model`` of a component test."""
