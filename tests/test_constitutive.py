@@ -323,3 +323,35 @@ def test_intervals_contain_the_truth_and_shrink_with_the_noise():
                 assert iv[k]["low"] <= case["truth"][k] <= iv[k]["high"], (k, iv[k], case["truth"][k])
     for k in se[60.0]:
         assert 4.0 < se[60.0][k] / se[80.0][k] < 25.0, (k, se)
+
+
+def test_the_operator_window_shows_a_component_test(qtbot, tmp_path):
+    """`shakerlab gui --open RUN.h5` of a component test: the law, the recorded vs predicted
+    force and the force-displacement loop, the result written back."""
+    from rig.gui.window import MainWindow
+
+    case = _case("bouc_wen_fn_sines", 60.0)
+    ct.write_csv(case["fit"], tmp_path / "fit.csv")
+    ct.write_csv(case["validation"], tmp_path / "val.csv")
+    run_file = tmp_path / "iso.h5"
+    assert main(["import", "--constitutive", "-o", str(run_file), "--nonlinear", str(tmp_path / "fit.csv"),
+                 "--validation", str(tmp_path / "val.csv")]) == 0
+    w = MainWindow(output_dir=tmp_path / "runs", speed=1.0, seed=2, auto_reconstruct=False)
+    qtbot.addWidget(w)
+    try:
+        assert w.open_run(run_file)
+        qtbot.waitUntil(lambda: w.last_view is not None or bool(w.last_error), timeout=60000)
+        assert not w.last_error
+        r = w.results
+        assert r.equation.toPlainText().startswith("F = ")
+        names = [r.table.item(i, 0).text() for i in range(r.table.rowCount())]
+        assert {"c", "k", "alpha", "gamma", "delta", "f0", "fn[y^3]", "fn[y^2*dy]"} <= set(names)
+        assert w.last_view.nrmse < 0.01
+        assert r.c_meas.yData.size == r.c_sim.yData.size > 1000
+        assert np.ptp(r.c_zsim.yData) == pytest.approx(np.ptp(r.c_zmeas.yData), rel=0.02)
+        assert r.p_loop.getAxis("left").labelText == "F"
+        legend = {sample.item: label.text for sample, label in r.p_loop.legend.items}
+        assert legend[r.c_zmeas] == "recorded force"
+        assert read_info(run_file)["results"] == ["reconstruction_000"]
+    finally:
+        w.shutdown()
