@@ -40,7 +40,8 @@ def register(subparsers) -> None:
         p.add_argument(f"--{stage}", type=Path, nargs="+", metavar="FILE",
                        help=f"file(s) of the {stage} stage (several files: their channels are pooled)")
     p.add_argument("--map", action="append", metavar="ROLE=CHANNEL[:Q]", default=None,
-                   help="channel for a role: t, force, x_base, x_tip, x; Q = x|v|a (displacement, velocity, "
+                   help="channel for a role: t, force, x_base, x_tip, x (and velocity, command with --constitutive); "
+                        "Q = x|v|a (displacement, velocity, "
                         "acceleration), e.g. --map x=Time_Laser__X:v --map force=Time_Shaker__X")
     p.add_argument("--map-file", type=Path, metavar="TOML", help="the channel map as a [map] table")
     p.add_argument("--fs", type=float, metavar="HZ",
@@ -109,7 +110,7 @@ def _stage_from_map(files: list[Path], mapping: dict):
             raise UserFacingError(f"--map {role}={channel}: no channel {channel!r} in {', '.join(map(str, files))} "
                                   f"(channels: {', '.join(sorted(pool))})")
         roles[role] = pool[channel]
-        if role != "force":
+        if role not in ("force", "velocity", "command"):
             quantities[role] = quantity or pool[channel].quantity or "displacement"
     time_sig = None
     if "t" in mapping:
@@ -199,6 +200,9 @@ def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False
             kind, roles, quantities, time_sig = _stage_from_map(files, mapping)
             if constitutive:
                 component_roles(stage, files, roles, quantities)
+            elif {"velocity", "command"} & set(roles):
+                raise UserFacingError(f"--map {'/'.join(sorted({'velocity', 'command'} & set(roles)))}: these roles "
+                                      f"belong to a component test; add --constitutive")
         elif constitutive:
             kind, roles, quantities, time_sig = _component_csv(stage, files)
         else:

@@ -355,3 +355,21 @@ def test_the_operator_window_shows_a_component_test(qtbot, tmp_path):
         assert read_info(run_file)["results"] == ["reconstruction_000"]
     finally:
         w.shutdown()
+
+
+def test_a_lab_file_through_the_channel_map(tmp_path, capsys):
+    """A component test in another CSV layout (channel names of a bench's software) mapped with
+    --map, its command and velocity included; the extra roles are refused without --constitutive."""
+    rec = ct.add_noise(ct.simulate(ct.mr_damper_law(), "random", duration=3.0), 60.0, 0)
+    np.savetxt(tmp_path / "bench.csv", np.column_stack([rec["t"], rec["cmd"], rec["x"], rec["v"], rec["force"]]),
+               delimiter=",", header="Time,Coil_V,LVDT,Vel,LoadCell", comments="", fmt="%.12g")
+    maps = ["--map", "t=Time", "--map", "x=LVDT", "--map", "force=LoadCell", "--map", "velocity=Vel",
+            "--map", "command=Coil_V"]
+    out = tmp_path / "bench.h5"
+    assert main(["import", "--constitutive", "-o", str(out), "--nonlinear", str(tmp_path / "bench.csv")] + maps) == 0
+    st = load_run(out).stage("nonlinear")
+    assert set(st.channels) == {"x", "force", "velocity", "command"}
+    assert np.allclose(st.channels["command"], rec["cmd"], atol=1e-9)
+    capsys.readouterr()
+    assert main(["import", "-o", str(tmp_path / "b.h5"), "--nonlinear", str(tmp_path / "bench.csv")] + maps) == 2
+    assert "--constitutive" in capsys.readouterr().err
