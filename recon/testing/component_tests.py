@@ -16,8 +16,8 @@ stiffness and its amplitude alpha/(gamma + delta) alike) scale with u.
 Displacement histories (analytic, so x' and x'' are exact; each starts from rest with a
 smooth ramp):
 
-- ``quasi_static``: a slow sine whose amplitude steps through several levels (rate-independent
-  hysteresis, the inertia and viscous force negligible);
+- ``quasi_static``: a slow sine (``f_qs``, 0.1 Hz by default) whose amplitude steps through
+  several levels (rate-independent hysteresis, the inertia and viscous force small);
 - ``sines``: a 0.5-2 Hz tone whose amplitude steps through several levels, plus a slower tone
   that moves the loops' centre (a friction-damper bench);
 - ``random``: band-limited random displacement, a sum of many random-phase sines from 0.3 Hz
@@ -153,9 +153,9 @@ class History:
         return e * s, de * s + e * ds, dde * s + 2 * de * ds + e * dds
 
 
-def history(kind: str, rng, amplitude: float, duration: float, f_max: float = 6.0) -> History:
+def history(kind: str, rng, amplitude: float, duration: float, f_max: float = 6.0, f_qs: float = 0.1) -> History:
     if kind == "quasi_static":
-        f = 0.1
+        f = f_qs
         levels = (np.arange(1, 4) * duration / 4, [0.35, 0.6, 0.8, 1.0], 0.5 / f)
         return History([(amplitude, 2 * math.pi * f, 0.0)], 1.0 / f, duration, levels)
     if kind == "sines":
@@ -193,12 +193,12 @@ def command(rng, duration: float, levels=(0.0, 0.5, 1.0, 1.5, 2.0), dwell=(0.4, 
 
 # --------------------------------------------------------------------------- integration
 def simulate(law: dict, kind: str, fs: float | None = None, duration: float | None = None, amplitude: float = 0.01,
-             seed: int = 0, f_max: float = 6.0) -> dict:
+             seed: int = 0, f_max: float = 6.0, f_qs: float = 0.1) -> dict:
     """A noise-free component test: {"t", "x", "v", "force", ["cmd"], "z", "truth", "law", "history"}."""
     rng = np.random.default_rng(seed)
     duration = duration or (40.0 if kind == "quasi_static" else 12.0)
     fs = fs or (250.0 if kind == "quasi_static" else 1000.0)
-    hist = history(kind, rng, amplitude, duration, f_max)
+    hist = history(kind, rng, amplitude, duration, f_max, f_qs)
     t = np.arange(int(round(duration * fs))) / fs
     mr = bool(law.get("eta"))
     if mr:
