@@ -138,7 +138,7 @@ def test_the_grid_start_alone_recovers_the_command_law():
     """The start used when the equation-error estimate is not admissible (at 4 kHz the constant-law
     regression of this damper gave alpha < 0): the (gamma, delta) grid, then the projected polish
     and the command law, without the equation-error estimate."""
-    case = _case("mr_damper_switched_command", 60.0, seed=2)
+    case = ct.component_test(ct.mr_damper_law(), "random", 60.0, 2, duration=6.0)
     sig = component_signals(_stage("nonlinear", case["fit"]))
     law = grid_start([sig], commanded=True)
     assert not law.fn and law.eta == 0
@@ -171,7 +171,7 @@ def test_a_structure_run_is_refused():
 
 # --------------------------------------------------------------------------- command line
 def test_import_reconstruct_report_end_to_end(tmp_path, capsys):
-    case = _case("mr_damper_switched_command", 60.0, seed=1)
+    case = ct.component_test(ct.mr_damper_law(), "random", 60.0, 1, duration=8.0)
     ct.write_csv(case["fit"], tmp_path / "fit.csv")
     ct.write_csv(case["validation"], tmp_path / "val.csv", velocity=True)
     run_file = tmp_path / "mr.h5"
@@ -251,7 +251,7 @@ def test_a_component_law_is_the_baseline_of_a_shaker_run(tmp_path, capsys):
             sw.close("complete")
     law = {"c": system["c"], "k": system["k"], "alpha": system["alpha"], "gamma": system["gamma"],
            "delta": system["delta"], "f0": 0.0, "fn": [(3, 0, system["k3"])], "c1": 0.0, "alpha1": 0.0, "eta": 0.0}
-    case = ct.component_test(law, "random", 60.0, 0, amplitude=1.5 * system["Y"])
+    case = ct.component_test(law, "random", 60.0, 0, amplitude=1.5 * system["Y"], duration=6.0)
     r = reconstruct_constitutive(_run(case))
     law_file = tmp_path / "law.json"
     law_file.write_text(json.dumps(r.law.to_dict()))
