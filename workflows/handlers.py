@@ -11,7 +11,7 @@ from recon.estimator.adequacy import one_line
 from recon.output_error.uncertainty import UncertaintySettings, parameter_intervals
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
-from shakerlab.output_files import check_directory, check_output
+from shakerlab.output_files import check_directory, check_output, is_hdf5
 from shakerlab.modes import CONSTITUTIVE, run_mode
 from shakerlab.runfile.reader import load_run, read_info
 from workflows import constitutive
@@ -105,7 +105,7 @@ def _term_models(args) -> int:
 def report_command(args) -> int:
 
     rs = _recon_settings(args)
-    if read_info(args.run)["mode"] == CONSTITUTIVE:
+    if is_hdf5(args.run) and read_info(args.run)["mode"] == CONSTITUTIVE:
         return constitutive.report_command(args, load_run(args.run))
     if getattr(args, "inertia", "none") != "none":
         raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
