@@ -63,6 +63,8 @@ def reconstruct_command(args, run) -> int:
     result = reconstruct_constitutive(run, settings_from(args))
     out = result.to_dict()
     out["warnings"] = []
+    if getattr(args, "form", "joint") != "joint":
+        out["warnings"].append(f"--form {args.form}: a component test's law uses the joint pointwise form; ignored")
     if getattr(args, "uncertainty", False):
         out["uncertainty"] = law_intervals(result, run)
     if args.plots:
@@ -75,6 +77,8 @@ def reconstruct_command(args, run) -> int:
         return 0
     print(f"{run.source}: component test (constitutive mode), force law in SI units")
     print(result.law.equation())
+    for w in out["warnings"]:
+        print(f"warning: {w}")
     v = result.validation
     print(f"validation NRMSE of the force on stage {v['stage']!r}: {v['nrmse']:.4g}"
           + (" (no validation stage: fitted stage)" if v.get("fitted_on_validation_stage") else ""))
