@@ -124,7 +124,7 @@ def _wants_command(stage, setting) -> bool:
     cmd = stage.channels.get(COMMAND_CHANNEL)
     # noise of the command from its first differences (robust: a switched command's steps are rare)
     noise = float(np.median(np.abs(np.diff(cmd)))) * 1.4826 / np.sqrt(2) if cmd is not None else 0.0
-    varies = cmd is not None and float(np.ptp(cmd)) > 10 * noise
+    varies = cmd is not None and float(np.ptp(cmd)) > 20 * noise     # white noise alone: ptp ~ 8-11 x
     if setting == "auto":
         return bool(varies)
     if setting and cmd is None:
