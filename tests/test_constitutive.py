@@ -376,7 +376,7 @@ def test_a_lab_file_through_the_channel_map(tmp_path, capsys):
 
 
 def test_a_command_law_only_for_a_command_that_varies():
-    from recon.constitutive.estimator import _wants_command
+    from recon.constitutive.estimator import wants_command
 
     rng = np.random.default_rng(0)
     t = np.arange(20000) / 1000.0
@@ -384,6 +384,6 @@ def test_a_command_law_only_for_a_command_that_varies():
     steady = Stage("s", t, {"x": x, "force": f, "command": 1.0 + 1e-3 * rng.normal(size=t.size)}, excitation="force")
     switched = Stage("s", t, {"x": x, "force": f, "command": (np.sin(3 * t) > 0) * 2.0 + 1e-3 * rng.normal(size=t.size)},
                      excitation="force")
-    assert not _wants_command(steady, "auto") and _wants_command(switched, "auto")
+    assert not wants_command(steady, "auto") and wants_command(switched, "auto")
     with pytest.raises(Exception, match="command channel"):
-        _wants_command(Stage("s", t, {"x": x, "force": f}, excitation="force"), True)
+        wants_command(Stage("s", t, {"x": x, "force": f}, excitation="force"), True)

@@ -120,7 +120,9 @@ def admissible(law: ConstitutiveLaw) -> bool:
     return bool(all(math.isfinite(v) for v in vals) and law.alpha > 0 and law.lam > 0 and law.K > 0)
 
 
-def _wants_command(stage, setting) -> bool:
+def wants_command(stage, setting) -> bool:
+    """Fit the command-dependent law? ``setting`` "auto": when the stage's command varies (its
+    range over 20 times its sample noise); True needs a command channel; False never."""
     cmd = stage.channels.get(COMMAND_CHANNEL)
     # noise of the command from its first differences (robust: a switched command's steps are rare)
     noise = float(np.median(np.abs(np.diff(cmd)))) * 1.4826 / np.sqrt(2) if cmd is not None else 0.0
@@ -192,7 +194,7 @@ def reconstruct_constitutive(run: Run, settings: ConstitutiveSettings | None = N
                       "software": f"shakerlab {__version__}", "settings": s.to_dict(), "source": run.source,
                       "differentiation": sig.choice, "equation_error_estimate": law.parameters()}
     info["equation_error_admissible"] = admissible(law)
-    commanded = _wants_command(stage, s.command_law)
+    commanded = wants_command(stage, s.command_law)
     if s.polish:
         t2 = time.perf_counter()
         prov = law.provenance
