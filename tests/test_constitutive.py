@@ -232,18 +232,19 @@ def test_refusals_name_the_problem(tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- bridge to the shaker
-def test_a_component_law_is_the_baseline_of_a_shaker_run(tmp_path, capsys):
-    """The same specimen on the bench (law in N) and on the shaker (independent generator, base
-    excitation, with a support stiffness the bench does not see): the law JSON as diagnose's
-    baseline gets the specimen's mass and the support fitted on the shaker run."""
-    from recon.diagnosis.diagnose import resolve_baseline
+@pytest.fixture(scope="module")
+def specimen(tmp_path_factory):
+    """The same specimen on the shaker (independent generator, base excitation, with a support
+    stiffness the bench does not see) and on the bench (its law identified from a component test
+    of this page's truth): (shaker run file, law JSON, law, system, support stiffness)."""
     from recon.testing import independent as ind
     from shakerlab.runfile.writer import RunWriter
 
+    tmp = tmp_path_factory.mktemp("specimen")
     system = ind.random_system(np.random.default_rng(4), hysteresis=True, quadratic=False, cubic=True)
     k_support = 0.15 * (system["k"] + system["alpha"])
     rec = ind.add_noise(ind.simulate(dict(system, k=system["k"] + k_support), "paper", fs=1000.0, seed=1), 60.0, 1)
-    shaker = tmp_path / "shaker.h5"
+    shaker = tmp / "shaker.h5"
     with RunWriter(shaker, attrs={"source": "test"}) as w:
         for name, st in rec["stages"].items():
             sw = w.begin_stage(name, fs=1000.0, excitation="base")
@@ -253,24 +254,54 @@ def test_a_component_law_is_the_baseline_of_a_shaker_run(tmp_path, capsys):
            "delta": system["delta"], "f0": 0.0, "fn": [(3, 0, system["k3"])], "c1": 0.0, "alpha1": 0.0, "eta": 0.0}
     case = ct.component_test(law, "random", 60.0, 0, amplitude=1.5 * system["Y"], duration=6.0)
     r = reconstruct_constitutive(_run(case))
-    law_file = tmp_path / "law.json"
+    law_file = tmp / "law.json"
     law_file.write_text(json.dumps(r.law.to_dict()))
-    run = load_run(shaker)
-    base, kind = resolve_baseline(run, str(law_file))
+    return shaker, law_file, r.law, system, k_support
+
+
+def test_a_component_law_is_the_baseline_of_a_shaker_run(specimen, tmp_path, capsys):
+    """The law JSON as diagnose's baseline gets the specimen's mass and the support fitted on the
+    shaker run."""
+    from recon.diagnosis.diagnose import resolve_baseline
+
+    shaker, law_file, law, system, k_support = specimen
+    base, kind = resolve_baseline(load_run(shaker), str(law_file))
     assert "mass and support" in kind
-    m = r.law.alpha / base.baseline.alpha_m
+    m = law.alpha / base.baseline.alpha_m
     assert abs(m / system["m"] - 1) < 0.01
-    assert abs((m * base.baseline.k_m - r.law.k) / k_support - 1) < 0.03
-    assert base.baseline.gamma == r.law.gamma and base.baseline.delta == r.law.delta
-    info = base.baseline.provenance["bridge"]
-    assert info["nrmse"]["validation"] < 0.01
+    assert abs((m * base.baseline.k_m - law.k) / k_support - 1) < 0.03
+    assert base.baseline.gamma == law.gamma and base.baseline.delta == law.delta
+    assert base.baseline.provenance["bridge"]["nrmse"]["validation"] < 0.01
     # a component test's run is no structure: diagnose says what to do instead
-    case_file = tmp_path / "fit.csv"
-    ct.write_csv(case["fit"], case_file)
-    assert main(["import", "--constitutive", "-o", str(tmp_path / "bench.h5"), "--nonlinear", str(case_file)]) == 0
+    rec = ct.simulate(ct.bouc_wen_law(), "random", duration=2.0)
+    ct.write_csv(rec, tmp_path / "fit.csv")
+    assert main(["import", "--constitutive", "-o", str(tmp_path / "bench.h5"), "--nonlinear",
+                 str(tmp_path / "fit.csv")]) == 0
     capsys.readouterr()
     assert main(["diagnose", str(tmp_path / "bench.h5")]) == 2
     assert "--baseline LAW.json" in capsys.readouterr().err
+
+
+def test_the_operator_window_takes_a_component_law_as_baseline(specimen, qtbot, tmp_path):
+    from rig.gui.window import MainWindow
+
+    shaker, law_file, law, system, _ = specimen
+    w = MainWindow(output_dir=tmp_path / "runs", speed=1.0, seed=2, auto_reconstruct=False)
+    qtbot.addWidget(w)
+    try:
+        assert w.open_run(shaker, law=law_file)
+        qtbot.waitUntil(lambda: w.last_view is not None or bool(w.last_error), timeout=60000)
+        assert not w.last_error
+        header = w.results.header.text()
+        assert "component law law.json" in header and "not written back" in header
+        names = [w.results.table.item(i, 0).text() for i in range(w.results.table.rowCount())]
+        alpha_m = float(w.results.table.item(names.index("alpha_m"), 1).text())
+        assert abs(law.alpha / alpha_m / system["m"] - 1) < 0.01
+        assert w.last_view.nrmse < 0.01
+        assert w.results.law_button.isEnabled()
+        assert read_info(shaker)["results"] == []
+    finally:
+        w.shutdown()
 
 
 def test_a_command_dependent_law_is_refused_as_a_shaker_baseline():

@@ -65,15 +65,15 @@ def shaker_baseline(law: ConstitutiveLaw, run: Run, stages=None, max_nfev: int =
     m0 = linear_mass(law, run, "linear" if "linear" in run.stages else names[0])
     c_ref = max(abs(law.c), 0.02 * 2.0 * np.sqrt(abs(law.K) * m0))
     probe = structure_model(law, excitation, m0)
-    inputs = [probe.stage_input(run.stage(n)) for n in names]
+    # the data items (input, start state) once, from the start model, as the polish does: each trial
+    # still gets its own z0 from the recorded start (OutputError.response)
+    items = [decimate(probe.fit_item(run.stage(n)))[0] for n in names]
 
     def model(p):
         return structure_model(law, excitation, m0 * float(np.exp(p[0])), float(p[1]) * law.K, float(p[2]) * c_ref)
 
     def residual(p):
-        m = model(p)
-        items = [decimate(m.fit_item(run.stage(n), u))[0] for n, u in zip(names, inputs)]
-        prob = OutputError(m, items)
+        prob = OutputError(model(p), items)
         return prob.residual(np.zeros(len(prob.keys)))
 
     r0 = residual(np.zeros(3))

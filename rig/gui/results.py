@@ -94,11 +94,14 @@ def data_loop(model, stage):
 
 
 def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bool = True,
-                     truth: dict | None = None) -> ResultView:
+                     truth: dict | None = None, law: str | Path | None = None) -> ResultView:
     """The results view of a run file (see the module docstring). Raises UserFacingError on bad files.
 
     ``truth``: the simulated specimen's true parameters (runs on the simulated rig); shown beside the
     identified ones and stored with a new result.
+    ``law``: a component test's law JSON (docs/constitutive.md): the model shown is that law with
+    the specimen's mass and support fitted on this run (recon.constitutive.bridge); nothing is
+    written back.
     """
     from recon.model import HystereticModel  # heavy: recon, loaded when a result is shown
     from shakerlab.jsonsafe import clean  # heavy: recon, loaded when a result is shown
@@ -119,7 +122,16 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
         return component_view(path, run, info, results, reconstruct, write_back)
     group, payload = _latest(results, "reconstruction")
     measured_loop = None
-    if payload is None or reconstruct:
+    if law is not None:
+        from recon.constitutive.bridge import shaker_baseline  # heavy: recon, loaded when a result is shown
+        from recon.constitutive.law import ConstitutiveLaw  # heavy: recon, loaded when a result is shown
+
+        model, bridge = shaker_baseline(ConstitutiveLaw.load(law), run)
+        payload = dict(model.to_dict(), validation={})
+        origin = (f"baseline from the component law {Path(law).name}: mass {bridge['mass']:.4g} kg, support "
+                  f"stiffness {bridge['support_stiffness']:.4g} N/m and damping {bridge['support_damping']:.4g} "
+                  f"N s/m fitted on this run (not written back)")
+    elif payload is None or reconstruct:
         from recon.estimator.pipeline import reconstruct as run_recon  # heavy: recon, loaded when a result is shown
 
         result = run_recon(run)
