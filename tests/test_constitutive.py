@@ -272,14 +272,6 @@ def test_a_component_law_is_the_baseline_of_a_shaker_run(specimen, tmp_path, cap
     assert abs((m * base.baseline.k_m - law.k) / k_support - 1) < 0.03
     assert base.baseline.gamma == law.gamma and base.baseline.delta == law.delta
     assert base.baseline.provenance["bridge"]["nrmse"]["validation"] < 0.01
-    # a component test's run is no structure: diagnose says what to do instead
-    rec = ct.simulate(ct.bouc_wen_law(), "random", duration=2.0)
-    ct.write_csv(rec, tmp_path / "fit.csv")
-    assert main(["import", "--constitutive", "-o", str(tmp_path / "bench.h5"), "--nonlinear",
-                 str(tmp_path / "fit.csv")]) == 0
-    capsys.readouterr()
-    assert main(["diagnose", str(tmp_path / "bench.h5")]) == 2
-    assert "--baseline LAW.json" in capsys.readouterr().err
 
 
 def test_the_operator_window_takes_a_component_law_as_baseline(specimen, qtbot, tmp_path):
@@ -418,3 +410,28 @@ def test_a_command_law_only_for_a_command_that_varies():
     assert not wants_command(steady, "auto") and wants_command(switched, "auto")
     with pytest.raises(Exception, match="command channel"):
         wants_command(Stage("s", t, {"x": x, "force": f}, excitation="force"), True)
+
+
+def test_diagnose_names_the_end_stop_the_law_lacks(tmp_path, capsys):
+    """An isolator hitting an end stop (a gap the library cannot express): `shakerlab diagnose` of
+    the component test names the contact first, with its gap and stiffness, and the held-out force
+    falls to the noise; on the same isolator without the stop it names nothing."""
+    for name, law in (("stop", ct.isolator_with_end_stop()), ("clean", ct.bouc_wen_law())):
+        case = ct.component_test(law, "random", 60.0, 0, duration=5.0)
+        ct.write_csv(case["fit"], tmp_path / f"{name}_fit.csv")
+        ct.write_csv(case["validation"], tmp_path / f"{name}_val.csv")
+        run_file = tmp_path / f"{name}.h5"
+        assert main(["import", "--constitutive", "-o", str(run_file), "--nonlinear", str(tmp_path / f"{name}_fit.csv"),
+                     "--validation", str(tmp_path / f"{name}_val.csv")]) == 0
+        capsys.readouterr()
+        assert main(["diagnose", str(run_file), "--json"]) == 0
+        d = json.loads(capsys.readouterr().out)
+        if name == "stop":
+            top = d["missing_physics"][0]
+            assert top["id"] == "contact_stiffness" and [m["id"] for m in d["missing_physics"]] == ["contact_stiffness"]
+            kc, gap = case["truth"]["contact"]["kc"], case["truth"]["contact"]["gap"]
+            assert abs(top["shape"]["gap [m]"] / gap - 1) < 0.02 and abs(top["coefficient"] / kc - 1) < 0.05
+            assert d["fit_before"]["held_out_nrmse"] > 0.05 and top["held_out_nrmse"] < 0.01
+        else:
+            assert d["missing_physics"] == [] and d["fit_before"]["held_out_nrmse"] < 0.01
+    assert main(["diagnose", str(run_file), "--report", str(tmp_path / "rep")]) == 2

@@ -12,7 +12,9 @@ import html
 import json
 from pathlib import Path
 
+from recon.constitutive.diagnosis import diagnose_law
 from recon.constitutive.estimator import ConstitutiveSettings, predict, reconstruct_constitutive
+from recon.constitutive.law import ConstitutiveLaw
 from recon.constitutive.output_error import intervals
 from recon.constitutive.signals import component_signals
 from shakerlab import __version__
@@ -175,3 +177,32 @@ def report_command(args, run) -> int:
     print(f"report: {d['report']['html']}")
     return 0
 
+
+
+def diagnose_command(args, run) -> int:
+    """``shakerlab diagnose`` of a component test: the candidates the law lacks (recon.constitutive.diagnosis)."""
+    if getattr(args, "report", None) or getattr(args, "save_model", None):
+        raise UserFacingError(f"{args.run}: a component test: --report and --save-model are not available for its "
+                              f"diagnosis yet (use --json)")
+    baseline = getattr(args, "baseline", "paper")
+    if baseline in (None, "paper"):
+        law = None
+    elif baseline == "linear":
+        raise UserFacingError("--baseline linear: a component test's diagnosis starts from its law ('paper', the "
+                              "default) or a saved law JSON")
+    else:
+        law = ConstitutiveLaw.load(baseline)
+    d = diagnose_law(run, law, settings_from(args) if hasattr(args, "library_order") else None)
+    out = d.to_dict()
+    if args.json:
+        print(json.dumps(clean(out)))
+        return 0
+    print(f"{run.source}: component test, baseline law ({d.baseline_kind}, refitted on the fitted stage)")
+    print(out["baseline"])
+    print(f"  held-out force NRMSE ({', '.join(d.held_out)}): {d.fit_before['held_out_nrmse']:.4g}")
+    for c in d.candidates:
+        shape = ", ".join(f"{k} = {v:.4g}" for k, v in (c["shape"] or {}).items())
+        print(f"  {c['id']:18s} {c['coefficient']:.4g} {c['unit']}{' (' + shape + ')' if shape else ''}: held-out "
+              f"{c['held_out_nrmse']:.4g} ({100 * c['gain']:+.1f} %)")
+    print(out["result"])
+    return 0

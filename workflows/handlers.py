@@ -161,11 +161,8 @@ def diagnose_command(args) -> int:
 
     check_outputs(args)
     run = load_run(args.run)
-    if run_mode(run) == CONSTITUTIVE:
-        raise UserFacingError(f"{args.run}: a component test (constitutive mode); diagnose works on a structure's run. "
-                              f"Its law can be the baseline of a shaker run of the same specimen: "
-                              f"shakerlab reconstruct {args.run} --save-model LAW.json, then "
-                              f"shakerlab diagnose SHAKER_RUN.h5 --baseline LAW.json")
+    if run_mode(run) == CONSTITUTIVE:       # a component test: what its force law leaves out
+        return constitutive.diagnose_command(args, run)
     d = diagnose(run, baseline=args.baseline)
     out = d.to_dict()
     out["warnings"] = warnings_for(run)

@@ -41,8 +41,12 @@ class ForceOutputError:
     f0 always (a force sensor's offset costs one column), the command law if ``law.eta`` > 0
     (its records must have a command)."""
 
-    def __init__(self, law: ConstitutiveLaw, items: list[ComponentSignals], fit_eta: bool = True):
+    def __init__(self, law: ConstitutiveLaw, items: list[ComponentSignals], fit_eta: bool = True,
+                 extras: dict | None = None):
+        """``extras`` {name: f(y, dy, ddy) -> array}: further linear force terms (the constitutive
+        diagnosis's candidates, recon.constitutive.diagnosis), coefficients named ``x:<name>``."""
         self.law = law
+        self.extras = dict(extras or {})
         self.items = []
         for s in items:
             q = max(1, int((1.0 / s.dt) // POLISH_FS))
@@ -92,6 +96,8 @@ class ForceOutputError:
                 cols += [u * dy, u * w]; names += ["c1", "alpha1"]
             for t in self.terms:
                 cols.append(phi(y, dy, *monomials.parse(t))); names.append(f"fn:{t}")
+            for name, f in self.extras.items():
+                cols.append(f(y, dy, ddy)); names.append(f"x:{name}")
             out.append((np.column_stack(cols), names))
         return out
 
@@ -123,9 +129,11 @@ class ForceOutputError:
                                eta=float(eta) if self.commanded else 0.0, provenance=dict(law.provenance))
 
 
-def polish(law: ConstitutiveLaw, items: list[ComponentSignals], max_nfev: int = 60, fit_eta: bool = True):
-    """(law, info): the projected output-error fit of ``law``'s structure on ``items``."""
-    prob = ForceOutputError(law, items, fit_eta)
+def polish(law: ConstitutiveLaw, items: list[ComponentSignals], max_nfev: int = 60, fit_eta: bool = True,
+           extras: dict | None = None):
+    """(law, info): the projected output-error fit of ``law``'s structure on ``items`` (with
+    ``extras``: their coefficients in ``info["extras"]``)."""
+    prob = ForceOutputError(law, items, fit_eta, extras)
     p0 = np.zeros(len(prob.keys))
     r0 = prob.residual(p0)
     sol = least_squares(prob.residual, p0, method="trf", diff_step=1e-6, max_nfev=max_nfev, xtol=1e-10,
@@ -134,7 +142,11 @@ def polish(law: ConstitutiveLaw, items: list[ComponentSignals], max_nfev: int = 
     cost1 = float(np.sqrt(sol.fun @ sol.fun / len(items)))
     info = {"nrmse_before": cost0, "nrmse_after": cost1, "nfev": int(sol.nfev), "decimation": prob.decimation,
             "nonlinear_parameters": prob.keys}
-    if not (cost1 <= cost0 and cost1 < DIVERGED_RESIDUAL):
+    p = sol.x if (cost1 <= cost0 and cost1 < DIVERGED_RESIDUAL) else p0
+    if extras:
+        coef, _ = prob.solve(p)
+        info["extras"] = {k[2:]: v for k, v in (coef or {}).items() if k.startswith("x:")}
+    if p is p0:
         # the start's own projected fit (the equation-error structure, linear parameters re-solved)
         return prob.build(p0) if cost0 < DIVERGED_RESIDUAL else law, dict(info, applied=False)
     return prob.build(sol.x), dict(info, applied=True)

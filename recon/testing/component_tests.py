@@ -60,6 +60,11 @@ def isolator_with_fixture(mass: float = 8.0) -> dict:
     return dict(bouc_wen_law(), m=float(mass))
 
 
+def isolator_with_end_stop(gap: float = 0.0075, kc: float = 2.0e5) -> dict:
+    """The Bouc-Wen isolator hitting an end stop at |x| = gap (a physics the law's library lacks)."""
+    return dict(bouc_wen_law(), contact=(float(kc), float(gap)))
+
+
 def friction_law() -> dict:
     """Rate-independent friction-like hysteresis (quasi-static, no viscous term)."""
     return {"c": 0.0, "k": 5.0e3, "alpha": 1.2e5, "gamma": 1500.0, "delta": 500.0, "f0": 4.0,
@@ -77,6 +82,8 @@ def truth(law: dict) -> dict:
         out.update(c1=float(law["c1"]), alpha1=float(law["alpha1"]), eta=float(law["eta"]))
     if law.get("m"):
         out["mass"] = float(law["m"])
+    if law.get("contact"):
+        out["contact"] = {"kc": float(law["contact"][0]), "gap": float(law["contact"][1])}
     return out
 
 
@@ -237,6 +244,9 @@ def simulate(law: dict, kind: str, fs: float | None = None, duration: float | No
         fn += b * x ** p * xd ** r
     z = a * w
     force = c * xd + law["k"] * x + fn + z + law["f0"] + law.get("m", 0.0) * xdd
+    if law.get("contact"):         # an end stop: extra stiffness beyond a gap (not in the library)
+        kc, gap = law["contact"]
+        force = force + kc * np.sign(x) * np.maximum(np.abs(x) - gap, 0.0)
     out = {"t": t, "x": x, "v": xd, "force": force, "z": z, "u": u, "truth": truth(law), "law": dict(law),
            "history": kind}
     if mr:
