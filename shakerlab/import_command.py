@@ -40,7 +40,8 @@ def register(subparsers) -> None:
         p.add_argument(f"--{stage}", type=Path, nargs="+", metavar="FILE",
                        help=f"file(s) of the {stage} stage (several files: their channels are pooled)")
     p.add_argument("--map", action="append", metavar="ROLE=CHANNEL[:Q]", default=None,
-                   help="channel for a role: t, force, x_base, x_tip, x; Q = x|v|a (displacement, velocity, "
+                   help="channel for a role: t, force, x_base, x_tip, x (and velocity, command with --constitutive); "
+                        "Q = x|v|a (displacement, velocity, "
                         "acceleration), e.g. --map x=Time_Laser__X:v --map force=Time_Shaker__X")
     p.add_argument("--map-file", type=Path, metavar="TOML", help="the channel map as a [map] table")
     p.add_argument("--fs", type=float, metavar="HZ",
@@ -50,6 +51,10 @@ def register(subparsers) -> None:
                    help="interpolate (cubic) unevenly sampled records onto a uniform grid instead of refusing them")
     p.add_argument("--recover", type=Path, metavar="RUN.h5",
                    help="instead: copy an interrupted run file into a cleanly closed one")
+    p.add_argument("--constitutive", action="store_true",
+                   help="a component test (displacement imposed, force measured): CSV 't,x,force[,v][,cmd]' "
+                        "(v a measured velocity, cmd an extra input such as an MR damper's command); the run file "
+                        "records the mode and reconstruct identifies the force law (docs/constitutive.md)")
     p.add_argument("--force", action="store_true", help="overwrite the output file")
     p.set_defaults(handler=_handle)
 
@@ -105,7 +110,7 @@ def _stage_from_map(files: list[Path], mapping: dict):
             raise UserFacingError(f"--map {role}={channel}: no channel {channel!r} in {', '.join(map(str, files))} "
                                   f"(channels: {', '.join(sorted(pool))})")
         roles[role] = pool[channel]
-        if role != "force":
+        if role not in ("force", "velocity", "command"):
             quantities[role] = quantity or pool[channel].quantity or "displacement"
     time_sig = None
     if "t" in mapping:
@@ -170,11 +175,13 @@ def _time_base(stage: str, roles: dict, time_sig, fs, resample):
 
 
 def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False, mapping: dict | None = None,
-               fs: float | None = None, resample: bool = False) -> Path:
+               fs: float | None = None, resample: bool = False, constitutive: bool = False) -> Path:
     """Write a run file from ``{stage name: file path or list of paths}``; return the output path.
 
     Without ``mapping`` every file is a shakerlab CSV (header names the roles); with it, the
-    files of a stage (any supported format) are pooled and the map picks the roles."""
+    files of a stage (any supported format) are pooled and the map picks the roles.
+    ``constitutive``: component-test files (``t,x,force[,v][,cmd]``, or a map with x and force);
+    the run file's ``mode`` attribute says so (shakerlab.modes)."""
     import numpy as np  # heavy: numpy, h5py; loaded when the command runs
 
     from shakerlab.errors import UserFacingError  # heavy: numpy, h5py; loaded when the command runs
@@ -191,6 +198,13 @@ def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False
         files = [Path(f) for f in (files if isinstance(files, (list, tuple)) else [files])]
         if mapping:
             kind, roles, quantities, time_sig = _stage_from_map(files, mapping)
+            if constitutive:
+                component_roles(stage, files, roles, quantities)
+            elif {"velocity", "command"} & set(roles):
+                raise UserFacingError(f"--map {'/'.join(sorted({'velocity', 'command'} & set(roles)))}: these roles "
+                                      f"belong to a component test; add --constitutive")
+        elif constitutive:
+            kind, roles, quantities, time_sig = _component_csv(stage, files)
         else:
             if len(files) != 1 or files[0].suffix.lower() not in (".csv", ".txt", ""):
                 raise UserFacingError(f"--{stage} {' '.join(map(str, files))}: without --map, one shakerlab CSV "
@@ -220,7 +234,12 @@ def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False
         desc = ", ".join(f"{' '.join(map(str, p[0]))} is {p[1]} excitation" for p in parsed.values())
         raise UserFacingError(f"the stage files mix excitation kinds ({desc}); one run has one kind")
     output = Path(output)
-    with RunWriter(output, overwrite=overwrite, attrs={"source": "import"}) as writer:
+    attrs = {"source": "import"}
+    if constitutive:
+        from shakerlab.modes import CONSTITUTIVE, MODE_ATTR  # heavy: loaded when the command runs
+
+        attrs[MODE_ATTR] = CONSTITUTIVE
+    with RunWriter(output, overwrite=overwrite, attrs=attrs) as writer:
         writer.log("info", f"imported with shakerlab import from {len(parsed)} stage file set(s)"
                    if mapping else f"imported with shakerlab import from {len(parsed)} CSV file(s)")
         for stage, (files, kind, t, rate, info, values, quantities) in parsed.items():
@@ -231,14 +250,57 @@ def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False
             settings.update(info)
             if mapping:
                 settings["channel_map"] = {r: f"{c}:{q}" if q else c for r, (c, q) in mapping.items()}
+            extra = {c: EXTRA_UNITS[c] for c in values if c in EXTRA_UNITS} if constitutive else {}
             sw = writer.begin_stage(stage, fs=rate, excitation=kind, settings=settings,
-                                    quantities={r: q for r, q in quantities.items() if q != "displacement"})
+                                    quantities={r: q for r, q in quantities.items() if q != "displacement"},
+                                    extra_channels=extra)
             sw.append(0, values, time_s=t)
             sw.close("complete", summary={"n_samples": int(t.size), "duration_s": float(t[-1] - t[0])})
             qs = ", ".join(f"{r} {q}" for r, q in quantities.items() if q != "displacement")
             writer.log("info", f"stage {stage!r}: {t.size} samples from {', '.join(map(str, files))} ({kind} "
                                f"excitation{', ' + qs if qs else ''}, fs {rate:.6g} Hz)")
     return output
+
+
+# a component test's CSV columns -> the run file's channels (shakerlab.modes), and their units
+COMPONENT_COLUMNS = {"x": "x", "force": "force", "v": "velocity", "cmd": "command"}
+EXTRA_UNITS = {"velocity": "m/s", "command": "command units"}
+
+
+def component_roles(stage: str, files, roles: dict, quantities: dict) -> None:
+    """Refuse a component test without a force or a displacement channel (names the files)."""
+    from shakerlab.errors import UserFacingError  # heavy: loaded when the command runs
+
+    where = " ".join(map(str, files))
+    if "force" not in roles:
+        raise UserFacingError(f"--{stage} {where}: a component test (--constitutive) needs a measured force: "
+                              f"a column 'force' [N] (CSV 't,x,force[,v][,cmd]') or --map force=CHANNEL")
+    if "x" not in roles or quantities.get("x", "displacement") != "displacement":
+        raise UserFacingError(f"--{stage} {where}: a component test (--constitutive) needs the imposed displacement "
+                              f"x [m] (CSV 't,x,force[,v][,cmd]'; a measured velocity goes in column v beside it)")
+
+
+def _component_csv(stage: str, files):
+    """(kind, roles, quantities, time Signal) of one component-test CSV ``t,x,force[,v][,cmd]``."""
+    from shakerlab.errors import UserFacingError  # heavy: loaded when the command runs
+    from shakerlab.importers import csv_file  # heavy: numpy; loaded when the command runs
+    from shakerlab.importers.signal import Signal  # heavy: numpy; loaded when the command runs
+
+    if len(files) != 1 or files[0].suffix.lower() not in (".csv", ".txt", ""):
+        raise UserFacingError(f"--{stage} {' '.join(map(str, files))}: with --constitutive and without --map, one "
+                              f"CSV 't,x,force[,v][,cmd]' per stage")
+    header, data, lines, quanta = csv_file.parse(files[0], any_header=True)
+    names = [h.lower() for h in header]
+    unknown = [h for h in names[1:] if h not in COMPONENT_COLUMNS]
+    if names[0] != "t" or unknown:
+        raise UserFacingError(f"{files[0]}: header {','.join(header)!r}: a component test's CSV has the columns "
+                              f"t,x,force and optionally v (measured velocity) and cmd (command)"
+                              + (f"; unknown column(s) {', '.join(unknown)}" if unknown else "; the first is t"))
+    time_sig = Signal(name="t", values=data[:, 0], source=str(files[0]), time=data[:, 0], quantum=quanta, lines=lines)
+    roles = {COMPONENT_COLUMNS[h]: Signal(name=h, values=data[:, i], source=str(files[0]), time=time_sig.time,
+                                          quantum=quanta, lines=lines) for i, h in enumerate(names) if i}
+    component_roles(stage, files, roles, {})
+    return "force", roles, {}, time_sig
 
 
 def _handle(args) -> int:
@@ -257,7 +319,7 @@ def _handle(args) -> int:
     files = {s: getattr(args, s) for s in STAGE_OPTIONS if getattr(args, s) is not None}
     cmap = mapping.parse(args.map, args.map_file)
     out = import_csv(args.output, files, overwrite=args.force, mapping=cmap or None, fs=args.fs,
-                     resample=args.resample)
+                     resample=args.resample, constitutive=args.constitutive)
     info = read_info(out)
     for name, st in info["stages"].items():
         print(f"{name}: {st['n_samples']} samples at {st['fs']:.6g} Hz")

@@ -35,18 +35,25 @@ from pathlib import Path
 from dask.distributed import Client, LocalCluster, as_completed
 
 from recon import ReconSettings, reconstruct
+from recon.constitutive.estimator import ConstitutiveSettings, reconstruct_constitutive
+from recon.constitutive.output_error import intervals
+from recon.constitutive.signals import component_signals
 from recon.output_error.uncertainty import (UncertaintySettings, parameter_intervals, reconstruct_capturing,
                                             term_inclusion)
 from recon.testing.truth import sdof_run
 from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
+from shakerlab.modes import CONSTITUTIVE, run_mode
 from shakerlab.runfile.reader import load_run
 from shakerlab.runfile.results import find_result, store_result
 from shakerlab.runfile.writer import RunWriter
 
 RESULT_KIND = "reconstruction"
-PARAMS = ("c_m", "k_m", "alpha_m", "gamma", "delta", "inv_m")
+PARAMS = ("c_m", "k_m", "alpha_m", "gamma", "delta", "inv_m",
+          # a component test's law (constitutive mode, recon.constitutive), in N, m, s
+          "c", "k", "alpha", "f0", "mass", "c1", "alpha1", "eta")
+FN_KEYS = ("fn_m", "fn")      # a structure's fn per unit mass, a law's in N
 
 
 @dataclass
@@ -102,6 +109,18 @@ def _fill(row: dict, payload: dict) -> dict:
 def reconstruct_payload(run, job: dict):
     """(result, payload) for one run: the reconstruction's JSON, plus ``uncertainty`` when asked."""
 
+    if run_mode(run) == CONSTITUTIVE:      # a component test: its force law (docs/constitutive.md)
+        rs = job.get("recon", {})
+        cs = ConstitutiveSettings(library_order=rs.get("library_order", 5), polish=rs.get("polish", True))
+        result = reconstruct_constitutive(run, cs)
+        payload = result.to_dict()
+        if job.get("uncertainty"):
+            sig = component_signals(run.stage(cs.fit_stage))
+            iv = intervals(result.law, [sig])
+            q = {k: [v["low"], v["high"]] for k, v in iv["parameters"].items() if not k.startswith("fn:")}
+            q["fn"] = {k[3:]: [v["low"], v["high"]] for k, v in iv["parameters"].items() if k.startswith("fn:")}
+            payload["uncertainty"] = dict(iv, intervals=q)
+        return result, clean(payload)
     settings = ReconSettings(**job.get("recon", {}))
     if job.get("term_models"):
 
@@ -281,25 +300,32 @@ def run_batch(paths: list[str], settings: BatchSettings | None = None, progress:
 def _columns(rows: list[dict]) -> list[str]:
     fn = []
     for r in rows:
-        for k in (r.get("parameters") or {}).get("fn_m", {}):
-            if k not in fn:
-                fn.append(k)
+        for key in FN_KEYS:
+            for k in (r.get("parameters") or {}).get(key, {}):
+                if f"{key}[{k}]" not in fn:
+                    fn.append(f"{key}[{k}]")
     params = [p for p in PARAMS if any(p in (r.get("parameters") or {}) for r in rows)]
-    return params + [f"fn_m[{k}]" for k in fn]
+    return params + fn
+
+
+def _split(col: str):
+    """("fn_m", "y^3") for "fn_m[y^3]" (or "fn"), (None, col) for a plain parameter."""
+    for key in FN_KEYS:
+        if col.startswith(f"{key}["):
+            return key, col[len(key) + 1:-1]
+    return None, col
 
 
 def _value(row: dict, col: str):
     p = row.get("parameters") or {}
-    if col.startswith("fn_m["):
-        return (p.get("fn_m") or {}).get(col[5:-1])
-    return p.get(col)
+    key, name = _split(col)
+    return (p.get(key) or {}).get(name) if key else p.get(col)
 
 
 def _interval(row: dict, col: str):
     iv = row.get("intervals") or {}
-    if col.startswith("fn_m["):
-        return (iv.get("fn_m") or {}).get(col[5:-1])
-    return iv.get(col)
+    key, name = _split(col)
+    return (iv.get(key) or {}).get(name) if key else iv.get(col)
 
 
 def write_csv(rows: list[dict], path: str | Path) -> Path:

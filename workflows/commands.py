@@ -42,6 +42,7 @@ def register(subparsers) -> None:
                         "(needs no third derivative; holds to 40 dB SNR, see docs/method.md) or the paper's AB-only form")
     p.add_argument("--uncertainty", action="store_true",
                    help="add 95%% intervals of every parameter (key 'uncertainty'; see docs/reprocessing.md)")
+    _inertia_option(p)
     p.set_defaults(handler=_handler("reconstruct_command"))
     register_reprocessing(subparsers)
     register_diagnosis(subparsers)
@@ -68,6 +69,7 @@ def register_reprocessing(subparsers) -> None:
     p.add_argument("--term-models", metavar="N", type=int, default=0,
                    help="term-selection ensemble size (row-subsampled reselections, ~1 s each; default 0: off)")
     p.add_argument("--json", action="store_true", help="print the result JSON instead of a summary")
+    _inertia_option(p)
     p.set_defaults(handler=_handler("report_command"))
 
     p = subparsers.add_parser(
@@ -115,7 +117,9 @@ def register_diagnosis(subparsers) -> None:
     )
     p.add_argument("run", metavar="RUN", help="run file (.h5 or .npz)")
     p.add_argument("--baseline", default="paper", metavar="paper|linear|MODEL.json",
-                   help="model to test: 'paper' (reconstructed from RUN, default), 'linear', or a saved model JSON")
+                   help="model to test: 'paper' (reconstructed from RUN, default), 'linear', a saved model JSON, or "
+                        "a component test's law JSON (reconstruct --save-model of a constitutive run: its mass "
+                        "and support are fitted on RUN)")
     p.add_argument("--json", action="store_true", help="print one JSON object (machine-readable)")
     p.add_argument("--report", metavar="DIR", help="write PNG figures and diagnosis.json to DIR")
     p.add_argument("--save-model", metavar="PATH", help="write the augmented model as JSON to PATH")
@@ -141,3 +145,9 @@ def register_demo(subparsers) -> None:
     d.add_argument("--seed", type=int, default=0, help="noise seed of the simulated rig")
     d.add_argument("--quiet", action="store_true", help="print only warnings, errors and the results")
     d.set_defaults(handler=_handler("demo_command"))
+
+
+def _inertia_option(p) -> None:
+    p.add_argument("--inertia", metavar="none|fit|KG", default="none",
+                   help="component tests only (docs/constitutive.md): the inertia of the moving parts, a term "
+                        "m x'' with m fitted ('fit') or known (a mass in kg); default none")

@@ -73,3 +73,24 @@ def write_validation_plots(result, run, outdir):
                               z_meas=z_meas, z_sim=zsim[half:half + sig["t"].size],
                               title="fitted stage: z from the measurement vs simulated"))
     return paths
+
+
+def plot_force_law(path, t, x, F_meas, F_pred, title=""):
+    """A component test: the force's time history and the force-displacement loop, recorded
+    and predicted by a constitutive law, to a PNG."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    axes[0].plot(t, F_meas, lw=0.8, label="recorded")
+    axes[0].plot(t, F_pred, lw=0.8, ls="--", label="law")
+    axes[0].set_xlabel("t [s]")
+    axes[0].set_ylabel("F [N]")
+    axes[0].legend(loc="upper right")
+    axes[1].plot(1e3 * x, F_meas, lw=0.6, label="recorded")
+    axes[1].plot(1e3 * x, F_pred, lw=0.6, ls="--", label="law")
+    axes[1].set_xlabel("x [mm]")
+    axes[1].set_ylabel("F [N]")
+    axes[1].legend(loc="upper left")
+    fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return savefig(fig, path, dpi=90)

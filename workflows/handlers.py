@@ -11,8 +11,10 @@ from recon.estimator.adequacy import one_line
 from recon.output_error.uncertainty import UncertaintySettings, parameter_intervals
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
-from shakerlab.output_files import check_directory, check_output
-from shakerlab.runfile.reader import load_run
+from shakerlab.output_files import check_directory, check_output, is_hdf5
+from shakerlab.modes import CONSTITUTIVE, run_mode
+from shakerlab.runfile.reader import load_run, read_info
+from workflows import constitutive
 from workflows.batch import (BatchSettings, TextProgress, diagnosis_available, expand, format_table, run_batch,
                              run_loop, write_csv)
 from workflows.demo import run_demo
@@ -28,6 +30,10 @@ def reconstruct_command(args) -> int:
         raise UserFacingError(f"--library-order must be between 2 and 8, got {args.library_order}")
     check_outputs(args)
     run = load_run(args.run)
+    if run_mode(run) == CONSTITUTIVE:       # a component test: the force law (docs/constitutive.md)
+        return constitutive.reconstruct_command(args, run)
+    if getattr(args, "inertia", "none") != "none":
+        raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
     result = reconstruct(run, ReconSettings(library_order=args.library_order, polish=not args.no_polish,
                                             form=getattr(args, "form", "joint")))
     out = result.to_dict()
@@ -99,6 +105,10 @@ def _term_models(args) -> int:
 def report_command(args) -> int:
 
     rs = _recon_settings(args)
+    if is_hdf5(args.run) and read_info(args.run)["mode"] == CONSTITUTIVE:
+        return constitutive.report_command(args, load_run(args.run))
+    if getattr(args, "inertia", "none") != "none":
+        raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
     d = make_report(args.run, args.output, settings=ReconSettings(**rs), uncertainty=not args.no_uncertainty,
                     uncertainty_settings=UncertaintySettings(n_resamples=args.resamples),
                     write_back=not args.no_write_back, progress=StepProgress(enabled=not args.json),
@@ -151,6 +161,8 @@ def diagnose_command(args) -> int:
 
     check_outputs(args)
     run = load_run(args.run)
+    if run_mode(run) == CONSTITUTIVE:       # a component test: what its force law leaves out
+        return constitutive.diagnose_command(args, run)
     d = diagnose(run, baseline=args.baseline)
     out = d.to_dict()
     out["warnings"] = warnings_for(run)

@@ -1,7 +1,8 @@
 """Mismatch diagnosis: locate, name the missing physics, model it, show the fit improve.
 
     from recon.diagnosis.diagnose import diagnose
-    d = diagnose(run, baseline="paper")       # or "linear", a model JSON path, a HystereticModel
+    d = diagnose(run, baseline="paper")       # or "linear", a model JSON path, a HystereticModel,
+                                              # a component test's law JSON (recon.constitutive.bridge)
     d.to_dict()                               # the JSON contract of ``shakerlab diagnose --json``
 
 Steps: the baseline is refitted by output error (the *null* model, so that every
@@ -20,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.constitutive.bridge import KIND, shaker_baseline
+from recon.constitutive.law import ConstitutiveLaw, is_law_file
 from recon.determinism import single_thread_blas
 from recon.diagnosis import rank
 from recon.diagnosis.ambiguity import ambiguous_pair, separating_stage
@@ -82,6 +85,9 @@ def resolve_baseline(run: Run, baseline) -> tuple[AugmentedModel, str]:
     path = Path(str(baseline))
     if path.suffix != ".json" and not path.exists():
         raise UserFacingError(f"--baseline must be 'paper', 'linear' or a model JSON file, got {baseline!r}")
+    if is_law_file(path):      # a component test's law: its mass and support are fitted on this run
+        model, _ = shaker_baseline(ConstitutiveLaw.load(path), run)
+        return AugmentedModel(model), f"{path} ({KIND})"
     return AugmentedModel.load(path), str(path)
 
 

@@ -7,6 +7,8 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from rig.gui.results import STRUCTURE_LABELS
+
 STAGE_COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#17becf"]
 LIGHT_COLORS = {"off": "#9a9a9a", "ok": "#21a336", "warn": "#e0a800", "bad": "#d62020"}
 INSTRUMENTS = (("generator", "signal generator"), ("amplifier", "power amplifier"),
@@ -256,11 +258,16 @@ class ResultsPanel(QtWidgets.QWidget):
         self.open_button = QtWidgets.QPushButton("Open run file…")
         self.reconstruct_button = QtWidgets.QPushButton("Reconstruct again")
         self.reconstruct_button.setEnabled(False)
+        self.law_button = QtWidgets.QPushButton("Component law as baseline…")
+        self.law_button.setToolTip("a law from a component test of the same specimen (reconstruct --save-model of a "
+                                   "constitutive run): its mass and support are fitted on this run")
+        self.law_button.setEnabled(False)
         self.header = QtWidgets.QLabel("No result yet: finish a run, or open a recorded run file.")
         self.header.setWordWrap(True)
         top.addWidget(self.header, 1)
         top.addWidget(self.open_button)
         top.addWidget(self.reconstruct_button)
+        top.addWidget(self.law_button)
         lay.addLayout(top)
         split = QtWidgets.QSplitter(QtCore.Qt.Horizontal)
         left = QtWidgets.QWidget()
@@ -305,7 +312,7 @@ class ResultsPanel(QtWidgets.QWidget):
         self.p_loop.setLabel("bottom", "y", units="m")
         self.p_loop.showGrid(x=True, y=True, alpha=0.2)
         self.c_zmeas = self.p_loop.plot(pen=None, symbol="o", symbolSize=2, symbolBrush=(120, 120, 120, 90),
-                                        symbolPen=None, name="data: −x_base'' − y'' − c_m y' − k_m y − fn")
+                                        symbolPen=None, name=STRUCTURE_LABELS["measured_name"])
         self.c_zsim = self.p_loop.plot(pen=pg.mkPen("#9467bd", width=2), name="identified model")
         split.addWidget(self.plots)
         split.setSizes([430, 800])
@@ -328,6 +335,13 @@ class ResultsPanel(QtWidgets.QWidget):
             nrmse = f"; validation NRMSE {view.nrmse * 100:.2f} % on stage '{view.validation_stage}'"
         notes = "".join(f"<br><i>{n}</i>" for n in view.notes)
         self.header.setText(f"<b>{view.source}</b> (run {view.status}): {view.origin}{nrmse}{notes}")
+        labels = {**STRUCTURE_LABELS, **(getattr(view, "labels", None) or {})}
+        self.p_overlay.setLabel("left", labels["overlay"][0], units=labels["overlay"][1])
+        self.p_loop.setLabel("left", labels["loop_left"][0], units=labels["loop_left"][1])
+        self.p_loop.setLabel("bottom", labels["loop_bottom"][0], units=labels["loop_bottom"][1])
+        for sample, label in self.p_loop.legend.items:
+            if sample.item is self.c_zmeas:
+                label.setText(labels["measured_name"])
         self.equation.setPlainText(view.equation)
         has_truth = any(r[3] is not None for r in view.parameters)
         self.table.setColumnHidden(3, not has_truth)
@@ -349,13 +363,14 @@ class ResultsPanel(QtWidgets.QWidget):
             self.c_sim.setData([], [])
         if view.loop is not None:
             y, z = view.loop
-            keep = slice(max(0, y.size - y.size // 3), None)   # the last third: steady state
+            last = labels["loop_last_third"]
+            keep = slice(max(0, y.size - y.size // 3), None) if last else slice(None)   # the last third: steady state
             self.c_zsim.setData(y[keep], z[keep])
-            self.p_loop.setTitle(f"hysteresis loop z vs y: model simulated on stage '{view.loop_stage}' "
-                                 "(last third)")
+            self.p_loop.setTitle(f"{labels['loop_title']}: model simulated on stage '{view.loop_stage}'"
+                                 + (" (last third)" if last else ""))
         else:
             self.c_zsim.setData([], [])
-            self.p_loop.setTitle("hysteresis loop z vs y")
+            self.p_loop.setTitle(labels["loop_title"])
         if view.measured_loop is not None:
             y, z = view.measured_loop
             step = max(1, y.size // 3000)

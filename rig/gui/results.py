@@ -36,6 +36,17 @@ class ResultView:
     diagnosis: str | None = None
     origin: str = ""                 # "stored result <group>" or "reconstructed now"
     notes: list = field(default_factory=list)
+    # axis labels and legends (a component test shows forces): keys of STRUCTURE_LABELS
+    labels: dict = field(default_factory=dict)
+
+
+# the labels of a structure's view; a component test's view (constitutive mode) overrides them
+STRUCTURE_LABELS = {"overlay": ("y", "m"), "loop_left": ("z", "m/s²"), "loop_bottom": ("y", "m"),
+                    "loop_title": "hysteresis loop z vs y", "loop_last_third": True,
+                    "measured_name": "data: −x_base'' − y'' − c_m y' − k_m y − fn"}
+COMPONENT_LABELS = {"overlay": ("F", "N"), "loop_left": ("F", "N"), "loop_bottom": ("x", "m"),
+                    "loop_title": "force-displacement loop", "loop_last_third": False,
+                    "measured_name": "recorded force"}
 
 
 def _latest(results: dict, kind: str):
@@ -83,11 +94,14 @@ def data_loop(model, stage):
 
 
 def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bool = True,
-                     truth: dict | None = None) -> ResultView:
+                     truth: dict | None = None, law: str | Path | None = None) -> ResultView:
     """The results view of a run file (see the module docstring). Raises UserFacingError on bad files.
 
     ``truth``: the simulated specimen's true parameters (runs on the simulated rig); shown beside the
     identified ones and stored with a new result.
+    ``law``: a component test's law JSON (docs/constitutive.md): the model shown is that law with
+    the specimen's mass and support fitted on this run (recon.constitutive.bridge); nothing is
+    written back.
     """
     from recon.model import HystereticModel  # heavy: recon, loaded when a result is shown
     from shakerlab.jsonsafe import clean  # heavy: recon, loaded when a result is shown
@@ -104,9 +118,20 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
     else:
         info = read_info(path)
         results = read_results(path)
+    if info.get("mode") == "constitutive":
+        return component_view(path, run, info, results, reconstruct, write_back)
     group, payload = _latest(results, "reconstruction")
     measured_loop = None
-    if payload is None or reconstruct:
+    if law is not None:
+        from recon.constitutive.bridge import shaker_baseline  # heavy: recon, loaded when a result is shown
+        from recon.constitutive.law import ConstitutiveLaw  # heavy: recon, loaded when a result is shown
+
+        model, bridge = shaker_baseline(ConstitutiveLaw.load(law), run)
+        payload = dict(model.to_dict(), validation={})
+        origin = (f"baseline from the component law {Path(law).name}: mass {bridge['mass']:.4g} kg, support "
+                  f"stiffness {bridge['support_stiffness']:.4g} N/m and damping {bridge['support_damping']:.4g} "
+                  f"N s/m fitted on this run (not written back)")
+    elif payload is None or reconstruct:
         from recon.estimator.pipeline import reconstruct as run_recon  # heavy: recon, loaded when a result is shown
 
         result = run_recon(run)
@@ -157,3 +182,51 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
         measured_loop=measured_loop, loop_stage=loop_stage if loop is not None else None, diagnosis=_diagnosis_text(diag) if diag is not None else None,
         origin=origin, notes=notes,
     )
+
+
+def component_view(path: Path, run, info: dict, results: dict, reconstruct: bool, write_back: bool) -> ResultView:
+    """The results view of a component test (constitutive mode, docs/constitutive.md): the force
+    law, the recorded vs predicted force on the validation stage, the force-displacement loop of
+    the fitted stage (recorded and predicted)."""
+    from recon.constitutive.estimator import ConstitutiveSettings, predict  # heavy: recon, loaded when a result is shown
+    from recon.constitutive.law import ConstitutiveLaw  # heavy: recon, loaded when a result is shown
+    from recon.validation import nrmse  # heavy: recon, loaded when a result is shown
+    from shakerlab.jsonsafe import clean  # heavy: recon, loaded when a result is shown
+    from shakerlab.runfile.results import store_result  # heavy: recon, loaded when a result is shown
+
+    notes = []
+    group, payload = _latest(results, "reconstruction")
+    if payload is None or reconstruct or payload.get("excitation") != "constitutive":
+        from recon.constitutive.estimator import reconstruct_constitutive  # heavy: recon, loaded when a result is shown
+
+        result = reconstruct_constitutive(run)
+        payload, law, origin = result.to_dict(), result.law, "reconstructed now"
+        if write_back:
+            group, note = store_result(path, "reconstruction", clean(payload), text=str(law))
+            if group is not None:
+                origin += f", written to entry/results/{group}"
+            else:
+                notes.append(note)
+    else:
+        law, origin = ConstitutiveLaw.from_dict(payload), f"stored result {group}"
+    settings = ConstitutiveSettings()
+    vstage = next((n for n in run.stages if n.startswith("validation")), None)
+    overlay, error = None, float("nan")
+    if vstage:
+        t, F, Fp, _ = predict(law, run.stage(vstage), settings)
+        overlay, error = (t, F, Fp), nrmse(Fp, F)
+    else:
+        notes.append("the run holds no validation stage: no recorded-vs-predicted overlay")
+    loop_stage = settings.fit_stage if settings.fit_stage in run.stages else vstage
+    loop = measured = None
+    if loop_stage:
+        _, F, Fp, x = predict(law, run.stage(loop_stage), settings)
+        loop, measured = (x, Fp), (x, F)
+    units = payload.get("units", {})
+    params = payload["parameters"]
+    rows = [(k, float(v), str(units.get(k, "")), None) for k, v in params.items() if isinstance(v, (int, float))]
+    rows += [(f"fn[{k}]", float(v), "", None) for k, v in (params.get("fn") or {}).items()]
+    notes.append("component test (constitutive mode): forces in N, the law in SI units")
+    return ResultView(source=str(path), status=info.get("status", ""), equation=str(law), parameters=rows,
+                      nrmse=error, validation_stage=vstage, overlay=overlay, loop=loop, measured_loop=measured,
+                      loop_stage=loop_stage, origin=origin, notes=notes, labels=dict(COMPONENT_LABELS))

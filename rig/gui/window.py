@@ -184,6 +184,7 @@ class MainWindow(QtWidgets.QMainWindow):
         c.simulated.toggled.connect(self._simulated_toggled)
         self.results.open_button.clicked.connect(self._choose_run)
         self.results.reconstruct_button.clicked.connect(lambda: self.open_run(self.results_path, reconstruct=True))
+        self.results.law_button.clicked.connect(self._choose_law)
         self.open_action.triggered.connect(self._choose_run)
         self.results_path = None
 
@@ -551,10 +552,11 @@ class MainWindow(QtWidgets.QMainWindow):
             self.close()
 
     # -- results --------------------------------------------------------------------------------------
-    def open_run(self, path, reconstruct: bool = False, truth: dict | None = None) -> bool:
+    def open_run(self, path, reconstruct: bool = False, truth: dict | None = None, law=None) -> bool:
         """Show a run file's result (stored, or reconstructed now) in the Results tab (worker thread).
 
-        ``truth``: the simulated specimen's parameters, shown beside the identified ones."""
+        ``truth``: the simulated specimen's parameters, shown beside the identified ones.
+        ``law``: a component test's law JSON as the baseline (its mass and support fitted on the run)."""
         if path is None:
             return False
         if self._recon_thread is not None and self._recon_thread.is_alive():
@@ -566,13 +568,14 @@ class MainWindow(QtWidgets.QMainWindow):
                            f"reading {path}…")
         self.results.reconstruct_button.setEnabled(False)
         self.results.open_button.setEnabled(False)
+        self.results.law_button.setEnabled(False)
         self.tabs.setCurrentWidget(self.results)
 
         def work():
             from rig.gui.results import view_of_run_file  # lazy: loaded when the operator uses it (window start-up time)
 
             try:
-                self.signals.result_ready.emit(view_of_run_file(path, reconstruct=reconstruct, truth=truth))
+                self.signals.result_ready.emit(view_of_run_file(path, reconstruct=reconstruct, truth=truth, law=law))
             except Exception as exc:  # noqa: BLE001 - shown to the operator
                 msg = str(exc) if isinstance(exc, UserFacingError) else f"{type(exc).__name__}: {exc}"
                 self.signals.result_failed.emit(msg)
@@ -581,17 +584,24 @@ class MainWindow(QtWidgets.QMainWindow):
         self._recon_thread.start()
         return True
 
+    def _choose_law(self) -> None:
+        law, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Component law (JSON)", str(Path.cwd()), "JSON (*.json)")
+        if law:
+            self.open_run(self.results_path, law=law)
+
     def _on_result(self, view) -> None:
         self.last_view = view
         self.results.show_view(view)
         self.results.reconstruct_button.setEnabled(True)
         self.results.open_button.setEnabled(True)
+        self.results.law_button.setEnabled(not view.labels)       # a structure's run (not a component test)
         self.log("info", f"result of {view.source}: {view.origin}")
 
     def _on_result_failed(self, message: str) -> None:
         self.results.clear(f"no result: {message}")
         self.results.reconstruct_button.setEnabled(self.results_path is not None)
         self.results.open_button.setEnabled(True)
+        self.results.law_button.setEnabled(self.results_path is not None)
         self._error_box(message)
 
     # -- live redraw (GUI thread, FPS per second) ---------------------------------------------------------

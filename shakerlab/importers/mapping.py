@@ -1,7 +1,8 @@
 """Which channel of a file plays which role: ``--map ROLE=CHANNEL[:QUANTITY]`` or a TOML file.
 
 Roles: ``t`` (a time channel), ``force``, and the motion roles ``x_base``, ``x_tip``
-(base excitation) or ``x`` (force excitation). A motion role may carry its quantity as a
+(base excitation) or ``x`` (force excitation); for a component test (``--constitutive``) also
+``velocity`` (a measured velocity beside x) and ``command`` (an extra input). A motion role may carry its quantity as a
 suffix (``x_tip=Time_Laser__X:v``, quantities ``x``/``v``/``a`` or the full words) or in its
 name (``v_tip=Time_Laser__X``); without one, the file's own declaration (UFF) or
 displacement. The TOML form is a ``[map]`` table of the same ``ROLE = "CHANNEL[:QUANTITY]"``.
@@ -13,7 +14,9 @@ from pathlib import Path
 from shakerlab.errors import UserFacingError
 from shakerlab.quantities import ALIASES, parse_channel
 
-ROLES = ("t", "force", "x_base", "x_tip", "x")
+ROLES = ("t", "force", "x_base", "x_tip", "x", "velocity", "command")
+# a component test's extra channels (shakerlab.modes; only with `import --constitutive`)
+EXTRA_ROLES = ("velocity", "command")
 
 
 def parse_entry(text: str, where: str = "--map") -> tuple[str, str, str | None]:
@@ -35,7 +38,7 @@ def parse_entry(text: str, where: str = "--map") -> tuple[str, str, str | None]:
     if role not in ROLES:
         raise UserFacingError(f"{where} {text!r}: unknown role {role!r}; roles are {', '.join(ROLES)} "
                               f"(motion roles may be written v_tip, a_base, v, ...)")
-    if quantity is not None and role in ("t", "force"):
+    if quantity is not None and role in ("t", "force") + EXTRA_ROLES:
         raise UserFacingError(f"{where} {text!r}: role {role} takes no quantity")
     if not channel:
         raise UserFacingError(f"{where} {text!r}: no channel name")

@@ -78,6 +78,7 @@ def _read_run(path: Path, stages: list[str] | None) -> Run:
             if t.size < 2:
                 continue  # a stage interrupted before its first block holds nothing to analyse
             stored = [stored_channel(g, role) for role in CHANNELS[excitation]]   # missing: dataset() names it
+            stored += list(json.loads(text(g.attrs.get("extra_channels", "[]"))))   # e.g. a component test's command
             channels = {ch: dataset(g, ch, path) for ch in stored}
             for ch, v in channels.items():
                 if v.shape != t.shape:
@@ -151,6 +152,7 @@ def _read_info(path: str | Path) -> dict:
             "clean_close": bool(f.attrs.get("clean_close", False)),
             "software_version": text(f.attrs.get("software_version", "")),
             "status": text(entry.attrs.get("status", "")),
+            "mode": text(entry.attrs.get("mode", "structure")),
             "config": {k: text(entry["config"][k][()]) for k in entry["config"]},
             "instruments": {},
             "stages": {},

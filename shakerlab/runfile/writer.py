@@ -199,12 +199,15 @@ class RunWriter:
 
     # -- stages ----------------------------------------------------------------
     def begin_stage(self, name: str, *, fs: float, excitation: str = "base", start_index: int = 0,
-                    settings: dict | None = None, quantities: dict | None = None) -> StageWriter:
+                    settings: dict | None = None, quantities: dict | None = None,
+                    extra_channels: dict | None = None) -> StageWriter:
         """Create ``entry/stages/<name>`` and return its :class:`StageWriter`.
 
         ``quantities`` maps a motion role (``x_base``, ``x_tip``, ``x``) to the quantity its
         sensor reports (default displacement); the channel is then named by its quantity
-        (``v_tip``) and carries ``quantity`` and ``units`` attributes."""
+        (``v_tip``) and carries ``quantity`` and ``units`` attributes. ``extra_channels``
+        {name: units} adds channels beyond the roles (a component test's measured velocity or
+        command, shakerlab.modes), listed in the stage attribute ``extra_channels``."""
         if excitation not in CHANNELS:
             raise ValueError(f"excitation must be one of {sorted(CHANNELS)}")
         quantities = dict(quantities or {})
@@ -219,19 +222,25 @@ class RunWriter:
         channels = tuple(channel_name(r, quantities[r]) if quantities.get(r, DISPLACEMENT) != DISPLACEMENT else r
                          for r in CHANNELS[excitation])
         role_of = dict(zip(channels, CHANNELS[excitation]))
+        extra_channels = dict(extra_channels or {})
+        channels = channels + tuple(extra_channels)
         g = stages.create_group(name)
         g.attrs.update({
             "NX_class": "NXdata", "signal": channels[1], "axes": "time", "excitation": excitation,
             "fs": float(fs), "start_index": int(start_index), "t0": int(start_index) / float(fs),
             "status": "recording", "n_samples": 0, "start_time": now_iso(),
         })
+        if extra_channels:
+            g.attrs["extra_channels"] = json.dumps(list(extra_channels))
         set_scalar_attrs(g, settings or {})
         g.create_dataset("sample_index", shape=(0,), maxshape=(None,), dtype="<i8", chunks=(CHUNK,))
         t = g.create_dataset("time", shape=(0,), maxshape=(None,), dtype="<f8", chunks=(CHUNK,))
         t.attrs["units"] = "s"
         for ch in channels:
             d = g.create_dataset(ch, shape=(0,), maxshape=(None,), dtype="<f8", chunks=(CHUNK,))
-            if ch == "force":
+            if ch in extra_channels:
+                d.attrs["units"] = str(extra_channels[ch])
+            elif ch == "force":
                 d.attrs["units"] = "N"
             else:
                 q = quantities.get(role_of[ch], DISPLACEMENT)
