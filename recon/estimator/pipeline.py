@@ -145,8 +145,11 @@ def _simpler(run: Run, s: ReconSettings, candidates: list, failures: dict, valid
 
 
 def _trusted(r: ReconResult) -> bool:
+    """Admissible from its equation-error estimate on, and its validation is finite and better than
+    predicting zero (NRMSE below 1)."""
+    v = r.validation.get("nrmse", 0.0)
     return bool(admissible(r.model) and r.hysteresis_info.get("equation_error_admissible", True)
-                and np.isfinite(r.validation.get("nrmse", 0.0)))
+                and np.isfinite(v) and not v >= 1.0)
 
 
 def _revise_terms(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool,
