@@ -115,7 +115,8 @@ def test_a_stage_cut_mid_motion_is_simulated_from_a_fitted_start_at_the_noise_fl
     # A rig stage that begins while the specimen still rings from the stage before: z0 from the
     # edge estimate of y'' was off by up to 1.6 m/s^2 of 1.75 (40 dB) and the hysteretic memory
     # kept that offset, so even the true model validated at up to 14 % NRMSE (noise floor 1.2 %).
-    # The start fitted on the stage's first second puts z0 within 1 % and the error at the floor.
+    # The start fitted to the stage's first seconds (recon/simulation/start_state.py) puts z0 within
+    # 1 % and the error at the floor.
     from recon.testing.truth import sdof_run
     from shakerlab.run_data import Stage
 

@@ -8,8 +8,8 @@ target, closed loop: issue 19), with the same criteria, so the closed-loop exper
 reconstruct as accurately as the open-loop one. Seed 1: there the equation-error structure alone
 (before recon/term_selection.py) missed y^2*dy and kept the spurious y*dy^2 and y*dy^4 (alpha
 +5.7 %, gamma -7.6 %), and the base-target run gave y^2*dy +30 % and a validation NRMSE of 3.5 %
-until the start state of a stage that begins while the specimen rings was fitted (recon.model
-fit_start, docs/acquisition.md). One seed only to keep the suite fast (measured ~95 s per protocol
+until the start state of a stage that begins while the specimen rings was fitted
+(recon/simulation/start_state.py, docs/acquisition.md). One seed only to keep the suite fast (measured ~95 s per protocol
 at a load average of ~8 on 2 shared cores); seeds 0..5 are in docs/method.md."""
 from pathlib import Path
 
