@@ -149,7 +149,7 @@ def control_table():
 
 def recon_table(seeds):
     from recon import ReconSettings, reconstruct
-    from shakerlab.run_data import load_run
+    from shakerlab.runfile.reader import load_run
 
     names = ("c_m", "k_m", "alpha_m", "gamma", "delta")
     protocols = {"volts (shipped)": None,

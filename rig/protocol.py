@@ -49,7 +49,7 @@ def _base_fields(what: str = "base displacement target") -> dict:
 SCHEMA = {
     "run": {
         "settle_s": Field("number", 1.0, min=0.0,
-                          help="rest (output off, not recorded) before each stage, so it starts from rest"),
+                          help="rest (output off, not recorded) before each stage, so it starts near rest"),
     },
     "linear": {
         "frequency_hz": Field("number", **_POS, help="drive frequency, away from the resonance"),
