@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from rig.messages import Acquire, BeginStage, ControlSine, EndStage, Ramp, Rest, SetFrequency  # noqa: E402
 from rig.protocol import load_protocol  # noqa: E402
 from rig.session import acquire, simulated_rig  # noqa: E402
-from rig.sine_control import ControlSettings, SineController, db, fundamental  # noqa: E402
+from rig.sine_control import ControlSettings, SineController, fundamental  # noqa: E402
 
 FS = 10000.0
 HOLD_S = 4.0
