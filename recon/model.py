@@ -244,11 +244,13 @@ class HystereticModel:
             raise UserFacingError(f"stage {stage.name!r} is {stage.excitation} excitation, model is {self.excitation}")
         return stage_input(stage)
 
-    def stage_start(self, stage: Stage, u=None):
+    def stage_start(self, stage: Stage, u=None, fit: bool = True):
         """The stage's state at its first sample (y, y', z), estimated from the recording.
 
         y, y', y'' by a Savitzky-Golay fit at the start; z from the equation of motion,
-        z = g u - y'' - c y' - k y - fn(y, y'). A stage recorded from rest gives ~0."""
+        z = g u - y'' - c y' - k y - fn(y, y'). A stage recorded from rest gives ~0. A stage that
+        starts in motion gets its start fitted to its first seconds (``fit``; else the edge
+        estimate itself, recon.simulation.start_state)."""
 
         u = self.stage_input(stage) if u is None else u
         measured = continuous_velocity_start(stage)     # velocity recorded by the rig: its own rule
@@ -263,6 +265,8 @@ class HystereticModel:
         if abs(y0) < 5 * sigma and (abs(v0) < 0.05 * v_rms or abs(v0) < 4 * sig_v):
             return 0.0, 0.0, 0.0
         edge = (float(y0), float(v0), float(self.start_z(u[0], y0, v0, a0)))
+        if not fit:
+            return edge
         # the edge estimate's z0 comes from the noisy edge y'': the start is fitted to the
         # stage's first seconds instead, with rest as the other candidate (recon.simulation.start_state)
         t = stage.t - stage.t[0]
