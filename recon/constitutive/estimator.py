@@ -32,6 +32,7 @@ from recon.constitutive.output_error import ForceOutputError, polish, revise_ter
 from recon.constitutive.signals import ComponentSignals, component_signals
 from recon.determinism import single_thread_blas
 from recon.differentiation import estimate_spectrum
+from recon.estimator.adequacy import verdict
 from recon.validation import nrmse
 from shakerlab import __version__
 from shakerlab.errors import UserFacingError
@@ -39,9 +40,6 @@ from shakerlab.modes import COMMAND_CHANNEL, CONSTITUTIVE, run_mode
 from shakerlab.run_data import Run
 
 ETA_GRID = np.geomspace(1.0, 1000.0, 13)      # 1/s: starts of the command lag searched
-NRMSE_FLOOR = 0.01
-NOISE_FACTOR = 5.0
-MAX_FN_TERMS = 4
 
 
 @dataclass
@@ -261,29 +259,14 @@ def validate(law: ConstitutiveLaw, run: Run, s: ConstitutiveSettings | None = No
 def assess(law: ConstitutiveLaw, validation: dict, run: Run) -> dict:
     """The verdict, with the keys of recon.estimator.adequacy.assess (the noise floor is the
     force's)."""
-    ok = admissible(law)
-    v = float(validation.get("nrmse", float("nan")))
     floor = None
     st = validation.get("stage")
     if st in run.stages:
         f = run.stage(st).channels["force"]
         rms = float(np.std(f))
         floor = float(estimate_spectrum(f, run.stage(st).dt).noise_std) / rms if rms > 0 else None
-    limit = max(NOISE_FACTOR * floor, NRMSE_FLOOR) if floor is not None else NRMSE_FLOOR
-    reasons = []
-    if not ok:
-        reasons.append("the law is not physically admissible")
-    if not math.isfinite(v):
-        reasons.append("its validation simulation diverges or was not run")
-    elif v > limit:
-        reasons.append(f"validation NRMSE {v:.3g} is above {limit:.3g}")
-    if len(law.fn) > MAX_FN_TERMS:
-        reasons.append(f"{len(law.fn)} fn terms, more than {MAX_FN_TERMS}")
-    if validation.get("fitted_on_validation_stage"):
-        reasons.append("no validation stage: the NRMSE is on the fitted stage")
-    verdict = "adequate" if ok and math.isfinite(v) and v <= limit and len(law.fn) <= MAX_FN_TERMS else "inadequate"
-    out = {"verdict": verdict, "admissible": ok, "validation_nrmse": v, "noise_floor_nrmse": floor,
-           "nrmse_limit": limit, "fn_terms": len(law.fn), "reasons": reasons}
-    if verdict != "adequate":
+    out = verdict(admissible(law), validation.get("nrmse", float("nan")), floor, len(law.fn),
+                  bool(validation.get("fitted_on_validation_stage")), "law")
+    if out["verdict"] != "adequate":
         out["advice"] = "look at the loop overlay of the report; a term the library lacks (backlash, a gap) shows there"
     return out

@@ -35,33 +35,39 @@ def noise_floor(run: Run, stage: str | None) -> float | None:
     return float(estimate_spectrum(st.y, st.dt).noise_std) / rms
 
 
-def assess(model, validation: dict, run: Run, fallback: dict | None = None) -> dict:
-    """The adequacy verdict of ``model`` (JSON-ready)."""
-    ok = admissible(model)
-    v = validation.get("nrmse")
+def verdict(ok: bool, v: float, floor: float | None, n_fn: int, fitted_on_validation: bool,
+            subject: str = "model", simpler: str | None = None) -> dict:
+    """The verdict from its figures: admissibility ``ok``, validation NRMSE ``v``, the record's noise
+    floor, the number of fn terms; ``simpler`` names a fallback kind without hysteresis (always
+    inadequate). The keys every adequacy in the JSON has."""
     v = float(v) if v is not None else float("nan")
-    floor = noise_floor(run, validation.get("stage"))
     limit = max(NOISE_FACTOR * floor, NRMSE_FLOOR) if floor is not None else NRMSE_FLOOR
     reasons = []
     if not ok:
-        reasons.append("the model is not physically admissible")
+        reasons.append(f"the {subject} is not physically admissible")
     if not math.isfinite(v):
         reasons.append("its validation simulation diverges or was not run")
     elif v > limit:
         reasons.append(f"validation NRMSE {v:.3g} is above {limit:.3g} "
                        f"(max of {NOISE_FACTOR:g} x the noise floor and {NRMSE_FLOOR:g})")
-    if len(model.fn_m) > MAX_FN_TERMS:
-        reasons.append(f"{len(model.fn_m)} fn terms, more than the {MAX_FN_TERMS} a TMP-like law needs")
-    if validation.get("fitted_on_validation_stage"):
-        reasons.append("no validation stage: the NRMSE is on the fitted nonlinear stage")
-    simpler = bool(fallback and fallback.get("used") and fallback.get("kind") not in HYSTERETIC_KINDS)
+    if n_fn > MAX_FN_TERMS:
+        reasons.append(f"{n_fn} fn terms, more than the {MAX_FN_TERMS} a TMP-like law needs")
+    if fitted_on_validation:
+        reasons.append("no validation stage: the NRMSE is on the fitted stage")
     if simpler:
-        reasons.append(f"the full model was not admissible; this is the simpler {fallback['kind']} model")
-    verdict = "adequate" if ok and math.isfinite(v) and v <= limit and len(model.fn_m) <= MAX_FN_TERMS \
-        and not simpler else "inadequate"
-    out = {"verdict": verdict, "admissible": ok, "validation_nrmse": v, "noise_floor_nrmse": floor,
-           "nrmse_limit": limit, "fn_terms": len(model.fn_m), "reasons": reasons}
-    if verdict != "adequate":
+        reasons.append(f"the full model was not admissible; this is the simpler {simpler} model")
+    good = ok and math.isfinite(v) and v <= limit and n_fn <= MAX_FN_TERMS and not simpler
+    return {"verdict": "adequate" if good else "inadequate", "admissible": ok, "validation_nrmse": v,
+            "noise_floor_nrmse": floor, "nrmse_limit": limit, "fn_terms": n_fn, "reasons": reasons}
+
+
+def assess(model, validation: dict, run: Run, fallback: dict | None = None) -> dict:
+    """The adequacy verdict of ``model`` (JSON-ready)."""
+    simpler = fallback["kind"] if (fallback and fallback.get("used")
+                                    and fallback.get("kind") not in HYSTERETIC_KINDS) else None
+    out = verdict(admissible(model), validation.get("nrmse"), noise_floor(run, validation.get("stage")),
+                  len(model.fn_m), bool(validation.get("fitted_on_validation_stage")), "model", simpler)
+    if out["verdict"] != "adequate":
         out["advice"] = "run `shakerlab diagnose` on this run to locate and name what the model leaves out"
     if fallback:
         out["fallback"] = fallback
