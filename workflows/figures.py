@@ -24,8 +24,12 @@ def savefig(fig, path, dpi: int = 90) -> Path:
     return path
 
 
-def save(fig, path: Path, dpi: int = 90) -> Path:
+def save(fig, path, title: str = "", dpi: int = 90) -> Path:
+    """Title, lay out and save ``fig`` as ``path`` (its directory made if missing)."""
+    fig.suptitle(title)
     fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     return savefig(fig, path, dpi=dpi)
 
 
@@ -44,11 +48,7 @@ def plot_overlay(path, t, y_meas, y_sim, z_meas=None, z_sim=None, title=""):
     axes[1].set_xlabel("y [mm]")
     axes[1].set_ylabel("z/m [m/s^2]")
     axes[1].legend(loc="upper left")
-    fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return savefig(fig, path, dpi=90)
+    return save(fig, path, title)
 
 
 def write_validation_plots(result, run, outdir):
@@ -89,8 +89,4 @@ def plot_force_law(path, t, x, F_meas, F_pred, title=""):
     axes[1].set_xlabel("x [mm]")
     axes[1].set_ylabel("F [N]")
     axes[1].legend(loc="upper left")
-    fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return savefig(fig, path, dpi=90)
+    return save(fig, path, title)
