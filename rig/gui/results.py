@@ -54,6 +54,19 @@ def _latest(results: dict, kind: str):
     return (names[-1], results[names[-1]]) if names else (None, None)
 
 
+def _write_back(path: Path, payload: dict, text: str, notes: list) -> str:
+    """Store a reconstruction just made in the run file; returns the origin's suffix, or adds the
+    reason it was not stored to ``notes``."""
+    from shakerlab.jsonsafe import clean  # heavy: recon, loaded when a result is shown
+    from shakerlab.runfile.results import store_result  # heavy: recon, loaded when a result is shown
+
+    group, note = store_result(path, "reconstruction", clean(payload), text=text)
+    if group is None:
+        notes.append(note)
+        return ""
+    return f", written to entry/results/{group}"
+
+
 def _rows(params: dict, units: dict, truth: dict | None) -> list:
     truth = truth or {}
     rows = []
@@ -104,8 +117,7 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
     written back.
     """
     from recon.model import HystereticModel  # heavy: recon, loaded when a result is shown
-    from shakerlab.jsonsafe import clean  # heavy: recon, loaded when a result is shown
-    from shakerlab.runfile.results import read_results, store_result  # heavy: recon, loaded when a result is shown
+    from shakerlab.runfile.results import read_results  # heavy: recon, loaded when a result is shown
     from shakerlab.runfile.reader import read_info  # heavy: recon, loaded when a result is shown
     from shakerlab.runfile.reader import load_run  # heavy: recon, loaded when a result is shown
 
@@ -141,11 +153,7 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
         model = result.model
         origin = "reconstructed now"
         if write_back:
-            group, note = store_result(path, "reconstruction", clean(payload), text=str(model))
-            if group is not None:
-                origin += f", written to entry/results/{group}"
-            else:
-                notes.append(note)
+            origin += _write_back(path, payload, str(model), notes)
     else:
         model = HystereticModel.from_dict({"excitation": payload.get("excitation", "base"),
                                            "parameters": payload["parameters"]})
@@ -191,8 +199,6 @@ def component_view(path: Path, run, info: dict, results: dict, reconstruct: bool
     from recon.constitutive.estimator import ConstitutiveSettings, predict  # heavy: recon, loaded when a result is shown
     from recon.constitutive.law import ConstitutiveLaw  # heavy: recon, loaded when a result is shown
     from recon.validation import nrmse  # heavy: recon, loaded when a result is shown
-    from shakerlab.jsonsafe import clean  # heavy: recon, loaded when a result is shown
-    from shakerlab.runfile.results import store_result  # heavy: recon, loaded when a result is shown
 
     notes = []
     group, payload = _latest(results, "reconstruction")
@@ -202,11 +208,7 @@ def component_view(path: Path, run, info: dict, results: dict, reconstruct: bool
         result = reconstruct_constitutive(run)
         payload, law, origin = result.to_dict(), result.law, "reconstructed now"
         if write_back:
-            group, note = store_result(path, "reconstruction", clean(payload), text=str(law))
-            if group is not None:
-                origin += f", written to entry/results/{group}"
-            else:
-                notes.append(note)
+            origin += _write_back(path, payload, str(law), notes)
     else:
         law, origin = ConstitutiveLaw.from_dict(payload), f"stored result {group}"
     settings = ConstitutiveSettings()
