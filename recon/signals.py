@@ -213,19 +213,26 @@ def stage_input(stage: Stage) -> np.ndarray:
     return f(f.raw)
 
 
+def edge_fit(size: int, window: int, order: int) -> tuple[int, int, np.ndarray]:
+    """The edge of a stage for its start-state estimates: the samples looked at (at most four
+    windows), the odd window that fits in them, and the pseudo-inverse P of the polynomial fit over
+    the first w samples on x = 0..1 (coefficient j at the first sample: (P @ x)[j] / ((w-1) dt)^j;
+    scipy's savgol_coeffs(pos=0) loses accuracy for long windows, hence the own fit)."""
+    n = min(size, 4 * window)
+    w = min(window, n - (1 - n % 2))
+    return n, w, np.linalg.pinv(np.vander(np.arange(w) / (w - 1), order + 1, increasing=True))
+
+
 def start_derivatives(stage: Stage) -> tuple[float, float, float, float, float, float]:
     """y, y', y'' at the stage's first sample, from a Savitzky-Golay fit over its first
     samples (at most four windows), with the noise of y, the noise of that edge estimate of y',
     and the stage's rms y' (for the model's start state, HystereticModel.stage_start)."""
     y = stage.y
     ch = choose_window({"y": y}, stage.dt, deriv=2, for_regression=False)
-    n = min(y.size, 4 * ch.window)
-    w = min(ch.window, n - (1 - n % 2))
+    n, w, P = edge_fit(y.size, ch.window, ch.order)
     d = derivatives(y[:n], stage.dt, w, ch.order, 2)
     sigma = ch.noise_level["y"]
     # y'(0) of the least-squares polynomial over the first w samples: weights P[1]/((w-1) dt)
-    # (scipy's savgol_coeffs(pos=0) loses accuracy for long windows, hence the own fit)
-    P = np.linalg.pinv(np.vander(np.arange(w) / (w - 1), ch.order + 1, increasing=True))
     sig_v = sigma * float(np.linalg.norm(P[1])) / ((w - 1) * stage.dt)
     v_rms = float(np.sqrt(np.mean(derivatives(y, stage.dt, ch.window, ch.order, 1)[1] ** 2)))
     return d[0][0], d[1][0], d[2][0], sigma, sig_v, v_rms
@@ -254,9 +261,7 @@ def continuous_velocity_start(stage: Stage):
     v = {r: stage.measured[channel_name(r, VELOCITY)] for r in roles}
     vel = v["x_tip"] - v["x_base"] if stage.excitation == BASE else v["x"]
     ch = choose_window({"v": vel}, stage.dt, deriv=1, for_regression=False, coefficients=stable_coefficients)
-    n = min(vel.size, 4 * ch.window)
-    w = min(ch.window, n - (1 - n % 2))
-    P = np.linalg.pinv(np.vander(np.arange(w) / (w - 1), ch.order + 1, increasing=True))
+    _, w, P = edge_fit(vel.size, ch.window, ch.order)
     c = P @ vel[:w]
     v0, a0 = float(c[0]), float(c[1] / ((w - 1) * stage.dt))
     sig_v = ch.noise_level["v"] * float(np.linalg.norm(P[0]))
