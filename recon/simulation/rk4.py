@@ -13,10 +13,15 @@ exactly that of the plain model (the extras are subtracted after the plain terms
 :func:`simulate_sdof` is the plain model; the diagnosis's augmented models
 (:mod:`recon.diagnosis.augmented`) pass the extras.
 
-``u`` is sampled at the recording rate; between samples it is interpolated
-linearly (RK4 half steps use the mid-point value). When the sampling is coarse
-compared with the model's time scales, each sample interval is split into
-``n_sub`` RK4 sub-steps. Zero initial conditions unless (y0, v0, z0) are given;
+``u`` is sampled at the recording rate; between samples it is interpolated by
+the 4-point cubic (Lagrange) through u[i-1], u[i], u[i+1], u[i+2] (linear
+extrapolation supplies the points beyond the ends). Linear interpolation, used
+before, loses (w dt)^2 / 8 of a tone at the mid-point: 0.9 % at 23 samples per
+period. On an independent-generator record (f_n 49.5 Hz at 1150 Hz, issue 18) the
+true model then simulated its own clean record at NRMSE 0.005 and the output-error
+fit started at the truth ended 6.9 % off delta; with the cubic the record reproduces
+to 0.0013. When the sampling is coarse compared with the model's time scales, each
+sample interval is split into ``n_sub`` RK4 sub-steps. Zero initial conditions unless (y0, v0, z0) are given;
 the higher mode always starts at rest.
 """
 from __future__ import annotations
@@ -56,6 +61,20 @@ def _rhs(y, v, z, q, vq, t, u, P, coef, p, r):
 
 
 @njit(cache=True)
+def cubic_weights(n_sub):
+    """Weights of u[i-1], u[i], u[i+1], u[i+2] at s = j / (2 n_sub), j = 0 .. 2 n_sub, of the
+    interval [i, i+1]: the sub-steps' starts, mid-points and ends (4-point Lagrange)."""
+    W = np.zeros((2 * n_sub + 1, 4))
+    for j in range(2 * n_sub + 1):
+        s = j / (2.0 * n_sub)
+        W[j, 0] = -s * (s - 1.0) * (s - 2.0) / 6.0
+        W[j, 1] = (s + 1.0) * (s - 1.0) * (s - 2.0) / 2.0
+        W[j, 2] = -(s + 1.0) * s * (s - 2.0) / 2.0
+        W[j, 3] = (s + 1.0) * s * (s - 1.0) / 6.0
+    return W
+
+
+@njit(cache=True)
 def simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
     """States (y, y', z, q) as a (4, n) array; NaN from the first non-finite step on."""
     n = u.size
@@ -70,12 +89,16 @@ def simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
     w = 0.0
     h = dt / n_sub
     mode = P[13] > 0.0
+    W = cubic_weights(n_sub)
     for i in range(n - 1):
-        du = (u[i + 1] - u[i]) / n_sub
+        um1 = u[i - 1] if i > 0 else 2.0 * u[0] - u[1]
+        up2 = u[i + 2] if i + 2 < n else 2.0 * u[n - 1] - u[n - 2]
         for sub in range(n_sub):
             ta = t0 + i * dt + sub * h
-            ua = u[i] + du * sub
-            um = ua + 0.5 * du
+            j = 2 * sub
+            ua = W[j, 0] * um1 + W[j, 1] * u[i] + W[j, 2] * u[i + 1] + W[j, 3] * up2
+            um = W[j + 1, 0] * um1 + W[j + 1, 1] * u[i] + W[j + 1, 2] * u[i + 1] + W[j + 1, 3] * up2
+            ue = W[j + 2, 0] * um1 + W[j + 2, 1] * u[i] + W[j + 2, 2] * u[i + 1] + W[j + 2, 3] * up2
             a1, z1, q1 = _rhs(y, v, z, q, w, ta, ua, P, coef, p, r)
             y2 = y + 0.5 * h * v
             v2 = v + 0.5 * h * a1
@@ -89,7 +112,7 @@ def simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
             y4 = y + h * v3
             v4 = v + h * a3
             zz4 = z + h * z3
-            a4, z4, qa4 = _rhs(y4, v4, zz4, q + h * (w + 0.5 * h * qa2), w + h * qa3, ta + h, ua + du, P, coef, p, r)
+            a4, z4, qa4 = _rhs(y4, v4, zz4, q + h * (w + 0.5 * h * qa2), w + h * qa3, ta + h, ue, P, coef, p, r)
             y += h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
             v += h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
             z += h / 6.0 * (z1 + 2.0 * z2 + 2.0 * z3 + z4)
