@@ -44,11 +44,16 @@ def score(model: HystereticModel, truth: dict) -> dict:
     miss = sorted(set(truth["fn_m"]) - set(model.fn_m))
     vals = [model.c_m, model.k_m, model.alpha_m, model.gamma, model.delta, *model.fn_m.values()]
     reasons = []
+    # a model without hysteresis (alpha = gamma = delta = 0, the simpler models' equivalent-linear
+    # and linear kinds) is admissible: it misses the hysteresis, it is not an impossible law
+    no_hysteresis = model.alpha_m == 0.0 and model.gamma == 0.0 and model.delta == 0.0
+    if no_hysteresis and truth["alpha_m"] != 0:
+        miss.append("hysteresis")
     if not all(math.isfinite(v) for v in vals):
         reasons.append("non-finite parameter")
-    if not model.alpha_m > 0:
+    if not no_hysteresis and not model.alpha_m > 0:
         reasons.append(f"alpha_m = {model.alpha_m:.4g} <= 0")
-    if not model.gamma + model.delta > 0:
+    if not no_hysteresis and not model.gamma + model.delta > 0:
         reasons.append(f"gamma + delta = {model.gamma + model.delta:.4g} <= 0 (Bouc-Wen does not saturate)")
     if not model.K_m > 0:
         reasons.append(f"K_m = {model.K_m:.4g} <= 0")

@@ -13,8 +13,9 @@ import warnings
 
 import numpy as np
 
-from independent_run import score, to_run
+from independent_run import model_of, score, to_run
 from recon import ReconSettings, reconstruct
+from recon.output_error.polish import polish
 from recon.library import monomials
 from recon.testing import independent as ind
 
@@ -99,14 +100,44 @@ def run_seed(task) -> list[dict]:
                    validation_nrmse=val, form=res.settings.form,
                    passes=res.hysteresis_info.get("passes_compared"), pass_kept=res.hysteresis_info.get("pass"),
                    **sc)
+        if not meets_target(row):
+            row["record_limit"] = record_limit(run, rec["truth"])
         rows.append(row)
     return rows
 
 
+def meets_target(row: dict) -> bool:
+    """Issue 18's target for one run: exact terms and every parameter within 2 % at 60 dB and above,
+    within 5 % below."""
+    return bool(row["status"] == "ok" and row.get("exact") and row["worst"] <= (0.02 if row["snr"] >= 60 else 0.05))
+
+
+def record_limit(run, truth: dict) -> dict:
+    """What the record itself allows: the output-error fit of reconstruct's polish (nonlinear stage,
+    the same start-state rule) started at the truth, with the true terms. Its error is the part of
+    a miss that no start or term selection can remove (noise on one tone per stage); a
+    reconstruction that misses by more stopped short of the record's optimum."""
+    truth_model = model_of(truth)
+    st = run.stage("nonlinear")
+    try:
+        m, info = polish(truth_model, [truth_model.fit_item(st)], max_nfev=200)
+    except Exception as exc:  # noqa: BLE001 - a row, not a crash
+        return {"failed": f"{type(exc).__name__}: {exc}"[:200]}
+    sc = score(m, truth)
+    return {"worst": sc["worst"], "worst_param": sc["worst_param"], "cost_truth": info["nrmse_before"],
+            "cost": info["nrmse_after"] if info["applied"] else info["nrmse_before"]}
+
+
+def limited(row: dict) -> bool:
+    """A miss the record explains: the truth-started fit misses the same target."""
+    lim = row.get("record_limit") or {}
+    return "worst" in lim and lim["worst"] > (0.02 if row["snr"] >= 60 else 0.05)
+
+
 def table(rows: list[dict], snrs) -> list[str]:
     out = ["| SNR dB | runs | exact terms | median worst err % | p95 worst err % | exact and <= 2 % | "
-           "exact and <= 5 % | inadmissible | failed | median recon s |",
-           "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+           "exact and <= 5 % | inadmissible | failed | misses the record explains | median recon s |",
+           "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for snr in snrs:
         rs = [r for r in rows if r["snr"] == snr]
         if not rs:
@@ -121,17 +152,19 @@ def table(rows: list[dict], snrs) -> list[str]:
         inad = sum(r["status"] == "inadmissible" for r in rs)
         fail = sum(r["status"] in ("failed", "generator failed") for r in rs)
         secs = [r["seconds"] for r in rs if "seconds" in r]
+        misses = [r for r in rs if not meets_target(r)]
+        explained = sum(limited(r) for r in misses)
 
         def pct(q):
             v = np.percentile(worst, q, method="higher")
             return "inf" if not np.isfinite(v) else f"{v:.3g}"
         out.append(f"| {snr:g} | {n} | {exact / n:.0%} ({exact}) | {pct(50)} | {pct(95)} | {w2 / n:.0%} ({w2}) | "
-                   f"{w5 / n:.0%} ({w5}) | {inad / n:.0%} ({inad}) | {fail / n:.0%} ({fail}) | "
+                   f"{w5 / n:.0%} ({w5}) | {inad / n:.0%} ({inad}) | {fail / n:.0%} ({fail}) | {explained} of {len(misses)} | "
                    f"{np.median(secs) if secs else float('nan'):.1f} |")
     return out
 
 
-def worst_draws(rows: list[dict], k: int = 10) -> list[str]:
+def worst_draws(rows: list[dict], k: int = 15) -> list[str]:
     # issue 18's targets: exact terms and within 2 % at 60 dB and above, within 5 % below
     bad = [r for r in rows if r["status"] != "ok" or not r.get("exact")
            or r.get("worst", 0) > (0.02 if r["snr"] >= 60 else 0.05)]
@@ -142,6 +175,9 @@ def worst_draws(rows: list[dict], k: int = 10) -> list[str]:
             f"worst {100 * r['worst']:.3g} % ({r['worst_param']}), spurious {r['spurious']}, missed {r['missed']}")
         idf = r.get("identifiability", {})
         tag = (f" lambda*Y {idf['lambda_ymax']:.2g}" + ("" if idf.get("identifiable") else " (not identifiable)")) if idf else ""
+        lim = r.get("record_limit") or {}
+        if "worst" in lim:
+            what += f"; truth-started fit {100 * lim['worst']:.3g} % ({lim['worst_param']})"
         out.append(f"seed {r['seed']} snr {r['snr']:g} {r['protocol']} fs {r['fs']:g} f_n {r['system']['f_n']:.3g}{tag} "
                    f"[{r['status']}] {what}")
     return out

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import time
 
-from recon.estimator.fallback import admissible, with_term_scales
+import numpy as np
+
+from recon.estimator.adequacy import noise_floor
+from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, with_term_scales
 from recon.estimator.result import ReconSettings
 from recon.model import HystereticModel
 from recon.output_error.polish import polish
@@ -66,6 +69,109 @@ def restart_fn_terms(model: HystereticModel, item: tuple, polish_info: dict):
     return restarts[name]["model"], {**info, "restart": record}
 
 
+# A polished fit whose cost on the nonlinear stage is above this many times the stage's noise floor
+# has not found the record's optimum (on the independent generator's identifiable draws the
+# output-error fit started at the truth ends within 1.1 times the floor): the polish restarts from
+# generic Bouc-Wen starts (:func:`generic_restarts`).
+FLOOR_FACTOR = 3.0
+# the generic starts: the share of the small-amplitude stiffness that is hysteretic, and
+# lambda Y (the nonlinear stage's amplitude Y over the knee 1/lambda)
+ALPHA_SHARES = (0.25, 0.5, 0.75)
+KNEES = (1.0, 3.0)
+SCREEN_NFEV = 20
+
+
+def generic_restarts(model: HystereticModel, item: tuple, polish_info: dict, floor: float):
+    """Polish again from generic starts when the polished model does not fit the nonlinear stage
+    to its noise floor: the equation-error estimate put the polish in another basin.
+
+    Starts: the small-amplitude stiffness K of the polished model split into alpha = s K,
+    k = (1 - s) K for s in ``ALPHA_SHARES``, the knee at lambda Y in ``KNEES`` (gamma = delta),
+    the polished model's y^2 and y^3 (or 1 % of the elastic force). Each is polished briefly
+    (``SCREEN_NFEV``); the best is polished to the end and kept when it is admissible and fits
+    better than the model it replaces. On independent recording 12 at 60 dB (paper protocol)
+    the pointwise estimate had lambda = 20 against the truth's 2473, its polish stopped at an
+    NRMSE of 0.0147 (noise floor 0.0011) with k < 0; the start s = 0.25, lambda Y = 3 reaches 0.00117,
+    where the fit started at the truth ends."""
+    y = item[2]
+    amp = float(np.sqrt(2.0) * np.std(y)) or 1.0
+    K = model.K_m
+    stiff = {k: model.fn_m.get(k, 0.0) for k in ("y^2", "y^3")}
+    screened = []
+    for share in ALPHA_SHARES:
+        for knee in KNEES:
+            trial = HystereticModel.from_dict(model.to_dict())
+            trial.k_m, trial.alpha_m = (1.0 - share) * K, share * K
+            trial.gamma = trial.delta = 0.5 * knee / amp
+            trial.fn_m = dict(stiff)
+            trial = with_term_scales(trial, [item])
+            try:
+                new, info = polish(trial, [item], max_nfev=SCREEN_NFEV)
+            except NUMERICAL_ERRORS:
+                continue
+            if np.isfinite(info["nrmse_after"]):
+                screened.append((info["nrmse_after"], share, knee, new))
+    record = {"cost_before": polish_info.get("nrmse_after", polish_info.get("nrmse_before")),
+              "noise_floor": floor, "screened": [{"alpha_share": s, "knee": k, "cost": c} for c, s, k, _ in screened]}
+    if not screened:
+        return model, {**polish_info, "generic_restart": record}
+    _, share, knee, best = min(screened, key=lambda r: r[0])
+    try:
+        new, info = polish(best, [item])
+    except NUMERICAL_ERRORS:
+        return model, {**polish_info, "generic_restart": record}
+    cost = info["nrmse_after"] if info["applied"] else info["nrmse_before"]
+    record.update(kept_start={"alpha_share": share, "knee": knee}, cost_after=cost)
+    if admissible(new) and cost < record["cost_before"]:
+        record["applied"] = True
+        return new, {**polish_info, "nrmse_after": cost, "generic_restart": record}
+    record["applied"] = False
+    return model, {**polish_info, "generic_restart": record}
+
+
+def polished_cost(polish_info: dict) -> float:
+    """The output-error cost (NRMSE) of the model a polish returned."""
+    v = polish_info.get("nrmse_after") if polish_info.get("applied") else polish_info.get("nrmse_before")
+    return float(v) if v is not None else float("inf")
+
+
+START_ROUNDS = 2
+
+
+def refine_start(model: HystereticModel, stage, item: tuple, polish_info: dict):
+    """Re-estimate the start state of a stage that starts in motion with the polished model, and
+    polish again from it (at most ``START_ROUNDS`` times, while the cost falls).
+
+    The start of such a stage is fitted to its first seconds with the model at hand
+    (recon.simulation.start_state); the polish then keeps it fixed. Fitted with the equation-error
+    estimate, it carries that estimate's errors into the polish. On independent recording 24 at
+    80 dB (paper protocol, f_n 49.5 Hz) the start fitted with the estimate had y'0 = 1.2e-3
+    against 6.8e-5 with the truth; the polish ended at NRMSE 0.0015 (noise floor 0.0001) with delta
+    15 % off, and an output-error fit started at the truth from that start ended there too. Returns
+    (model, item, polish_info); ``polish_info["start_refined"]`` records the rounds."""
+    rounds = []
+    for _ in range(START_ROUNDS):
+        if model.stage_start(stage, fit=False) == (0.0, 0.0, 0.0):
+            break                                   # recorded from rest: no start to refine
+        try:
+            item2 = model.fit_item(stage)
+            if np.allclose(item2[3], item[3], rtol=1e-6, atol=0.0):
+                break
+            new, info = polish(model, [item2])
+        except NUMERICAL_ERRORS as exc:
+            rounds.append({"failed": f"{type(exc).__name__}: {exc}"})
+            break
+        before, after = polished_cost(polish_info), polished_cost(info)
+        rounds.append({"start": [float(v) for v in item2[3]], "cost_before": before, "cost_after": after})
+        if not (admissible(new) and after < before):
+            break
+        model, item = new, item2
+        polish_info = {**polish_info, "applied": True, "nrmse_after": after}
+    if rounds:
+        polish_info = {**polish_info, "start_refined": polish_info.get("start_refined", []) + rounds}
+    return model, item, polish_info
+
+
 def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info: dict, timings: dict,
                         validate_model: bool):
     """The common end of every form: mark whether the equation-error estimate is admissible
@@ -82,6 +188,13 @@ def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info
         model, polish_info = polish(model, [item])
         if model.fn_m and not polish_info["applied"] and not polish_info["nrmse_before"] < START_NRMSE_LIMIT:
             model, polish_info = restart_fn_terms(model, item, polish_info)
+        stage = run.stage(s.nonlinear_stage)
+        model, item, polish_info = refine_start(model, stage, item, polish_info)
+        floor = noise_floor(run, s.nonlinear_stage)
+        if floor and model.alpha_m > 0 and polished_cost(polish_info) > FLOOR_FACTOR * floor:
+            model, polish_info = generic_restarts(model, item, polish_info, floor)
+            if polish_info["generic_restart"].get("applied"):
+                model, item, polish_info = refine_start(model, stage, item, polish_info)
         timings["polish"] = time.perf_counter() - tp
     elif s.polish:
         # no polish from an inadmissible start: on an independent recording at 50 dB the estimate had
