@@ -73,7 +73,7 @@ def restart_fn_terms(model: HystereticModel, item: tuple, polish_info: dict):
 # has not found the record's optimum (on the independent generator's identifiable draws the
 # output-error fit started at the truth ends within 1.1 times the floor): the polish restarts from
 # generic Bouc-Wen starts (:func:`generic_restarts`).
-FLOOR_FACTOR = 3.0
+FLOOR_FACTOR = 1.5
 # the generic starts: the share of the small-amplitude stiffness that is hysteretic, and
 # lambda Y (the nonlinear stage's amplitude Y over the knee 1/lambda)
 ALPHA_SHARES = (0.25, 0.5, 0.75)
