@@ -13,7 +13,9 @@ rig's protocol (odd seeds), fs log-uniform 1-10 kHz; seed i = system i with nois
 same recording at every SNR. Default reconstruct (the CLI's settings). Per SNR: share with the
 exact terms, median and 95th percentile of the worst parameter error, share within 2 % / 5 %
 with the exact terms, share inadmissible (alpha <= 0, gamma + delta <= 0, K <= 0, non-finite,
-or a validation simulation that diverges) and share failed (reconstruct raised).
+or a validation simulation that diverges) and share failed (reconstruct raised), and how many
+of the misses the record itself explains: the output-error fit of reconstruct's polish started
+at the truth with the true terms misses the target too (recon_stress.record_limit).
 
 Columns: max and median relative parameter error [%] (every per-unit-mass parameter and
 fn coefficient of the truth; for chains every layer, mass ratios excluded), spurious and
