@@ -183,7 +183,7 @@ def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info
     equation_error_model = model
     polish_info = {"applied": False}
     if s.polish and info["equation_error_admissible"]:
-        if s.input_offset and model.input_offset is None:
+        if s.input_offset is True and model.input_offset is None:
             model.input_offset = 0.0       # a parameter of the polish from here on (ReconSettings)
         tp = time.perf_counter()
         item = model.fit_item(run.stage(s.nonlinear_stage))

@@ -15,6 +15,7 @@ from recon.determinism import single_thread_blas
 from recon.estimator.adequacy import assess
 from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, held_out_stages, simpler_models
 from recon.estimator.finish import validate
+from recon.estimator.input_offset import resolve_input_offset
 from recon.estimator.pointwise import reconstruct_pointwise
 from recon.estimator.result import ReconResult, ReconSettings
 from recon.estimator.weak_form import reconstruct_weak
@@ -46,8 +47,19 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
     counts as failed and the next one runs. When no pass gives an admissible model, the answer
     is the best admissible simpler model (:mod:`recon.estimator.fallback`), and the result's
     ``adequacy`` says so; the inadmissible estimate stays there for inspection. Input errors
-    (a missing stage, a bad setting) still raise UserFacingError."""
-    s = settings or ReconSettings()
+    (a missing stage, a bad setting) still raise UserFacingError.
+
+    ``input_offset="auto"`` (the default) is decided from the data first
+    (:mod:`recon.estimator.input_offset`); the result's settings hold the decision and its
+    model's provenance the figures (``input_offset_rule``)."""
+    s, rule = resolve_input_offset(run, settings or ReconSettings())
+    result = _reconstruct_passes(run, s, validate_model)
+    if rule is not None:
+        result.model.provenance["input_offset_rule"] = rule
+    return result
+
+
+def _reconstruct_passes(run: Run, s: ReconSettings, validate_model: bool) -> ReconResult:
     failures = {}
     first = _attempt("first", run, replace(s, linear_correction=False) if s.linear_correction == "auto" else s,
                      validate_model, failures)

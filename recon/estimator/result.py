@@ -32,15 +32,18 @@ class ReconSettings:
     window: int | None = None       # Savitzky-Golay window for the nonlinear stage (None: chosen from the data)
     sg_order: int | None = None
     # fit a constant offset b of the recorded input with the output-error polish (the model is driven
-    # by g (u - b); for records whose input is not zero-mean, e.g. a force sensor's offset). Off by
-    # default: every result without it is unchanged
-    input_offset: bool = False
+    # by g (u - b); for records whose input is not zero-mean, e.g. a force sensor's offset, or a
+    # constant force on the specimen). "auto": on when the data show a DC the excitation cannot make
+    # (recon.estimator.input_offset); reconstruct stores the decision (True/False) in its settings
+    input_offset: bool | str = "auto"
 
     FORMS = ("joint", "ab", "weak")
 
     def __post_init__(self):
         if self.form not in self.FORMS:
             raise UserFacingError(f"ReconSettings.form must be one of {self.FORMS}, got {self.form!r}")
+        if self.input_offset not in (True, False, "auto"):
+            raise UserFacingError(f"ReconSettings.input_offset must be True, False or 'auto', got {self.input_offset!r}")
         if self.fallback_form is not None and self.fallback_form not in self.FORMS:
             raise UserFacingError(f"ReconSettings.fallback_form must be None or one of {self.FORMS}, "
                                   f"got {self.fallback_form!r}")
