@@ -80,6 +80,23 @@ def test_auto_rule_reads_the_linear_stage_dc(force_runs):
         ReconSettings(input_offset="yes")
 
 
+def test_cli_says_when_the_offset_was_switched_on(tmp_path, capsys):
+    from shakerlab.cli import main
+    from shakerlab.runfile.reader import save_npz
+
+    base, _ = sdof_run(snr_db=60.0, duration=4.0, seed=2)
+    d = 2.0 * float(np.std(base.stage("linear").y))
+    shifted = Run({n: Stage(n, x.t, dict(x.channels, x_tip=x.channels["x_tip"] + d), x.excitation)
+                   for n, x in base.stages.items()}, source="tip sensor with a DC")
+    path = tmp_path / "dc.npz"
+    save_npz(shifted, path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        assert main(["reconstruct", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "input offset fitted" in out and "a DC the base excitation cannot make" in out, out
+
+
 def test_constant_force_on_an_independent_record_is_fitted_and_left_to_the_diagnosis():
     """Diagnosis stress recording #9 (independent generator: multisine, 3193 Hz, 50.5 dB, a constant
     force). Without the offset reconstruct returned 15 terms with k at 7 % of the truth; with the

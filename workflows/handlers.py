@@ -60,6 +60,9 @@ def reconstruct_command(args) -> int:
         if fb.get("used"):
             print(f"the full model was not admissible: answering with the simpler {fb['kind']} model, chosen by "
                   f"{fb['chosen_by']}; the inadmissible estimate is in the JSON (adequacy.fallback)")
+    rule = result.model.provenance.get("input_offset_rule") or {}
+    if rule.get("on"):
+        print(f"input offset fitted ({result.model.input_offset:.4g}): {rule['reason']}")
     d = result.differentiation.get("nonlinear")
     if d:
         print(f"Savitzky-Golay (nonlinear stage): window {d['window']}, order {d['order']}, "
