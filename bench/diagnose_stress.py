@@ -63,6 +63,20 @@ def _ambiguous_ids(out: dict) -> list[str] | None:
     return [x for x in ids if x]
 
 
+# a structural catalog id and the truth's term it stands for
+STRUCTURAL_TERMS = {"quadratic_stiffness": "y^2", "cubic_stiffness": "y^3"}
+
+
+def baseline_lacks(model, truth: dict) -> list[str]:
+    """The structural ids whose true term the baseline does not have: on a clean recording the
+    paper baseline is reconstructed from the data, and where that missed a true term, naming it
+    is the right answer, not a false alarm (reported apart from the strict count)."""
+    out = [cid for cid, term in STRUCTURAL_TERMS.items() if term in truth["fn_m"] and term not in model.fn_m]
+    if truth.get("alpha_m", 0.0) != 0.0 and model.alpha_m == 0.0:
+        out.append("hysteresis")
+    return out
+
+
 def run_one(i: int) -> dict:
     warnings.filterwarnings("ignore")
     d = draw(i)
@@ -82,7 +96,8 @@ def run_one(i: int) -> dict:
     row["baseline"] = "paper" if baseline == "paper" else "truth without the term"
     t1 = time.perf_counter()
     try:
-        out = diagnose(to_run(rec), baseline=baseline).to_dict()
+        dg = diagnose(to_run(rec), baseline=baseline)
+        out = dg.to_dict()
     except Exception as exc:  # noqa: BLE001 - a raised diagnosis is a row
         row.update(status="failed", error=f"{type(exc).__name__}: {exc}"[:400],
                    trace=traceback.format_exc(limit=4)[-800:], seconds=time.perf_counter() - t1)
@@ -96,7 +111,9 @@ def run_one(i: int) -> dict:
     given_key = next((k for k in fb if "held" in k and "given" in k), None)
     held_stages = [s for s in fb["nrmse"] if s.startswith("validation")]
     given = fb[given_key] if given_key else (fb["nrmse"][held_stages[0]] if len(held_stages) == 1 else None)
-    row.update(status="ok", named=ids, ambiguous=amb, first=first,
+    lacks = baseline_lacks(dg.baseline.baseline, rec["truth"])
+    row.update(status="ok", named=ids, ambiguous=amb, first=first, baseline_lacks=lacks,
+               names_a_lacking_term=true == "none" and first in lacks,
                right=(first == true) if true != "none" and not amb else (bool(amb) and true in amb) if amb
                else first == "none",
                held_out={"as_given": given, "null": fb.get("refit_held_out_nrmse", fb.get("held_out_nrmse")),
@@ -132,13 +149,16 @@ def report(rows: list[dict]) -> list[str]:
     eff = [r for r in rows if r["effect"] != "none"]
     clean = [r for r in rows if r["effect"] == "none"]
     fa = sum(r["status"] == "ok" and r["first"] != "none" for r in clean)
+    lacking = [r for r in clean if r.get("names_a_lacking_term")]
+    lack, lack_ids = len(lacking), ", ".join(f"#{r['index']} {r['first']}" for r in lacking)
     named = [r for r in ok if r["named"]]
     beats = sum(r["after_beats_both"] for r in named)
     errs = sum(r["status"] != "ok" for r in rows)
     out += ["",
             f"right first (or in an ambiguous pair that holds it): {right}/{n} = {right / max(n, 1):.1%} "
             f"(effects only: {sum(r.get('right', False) for r in eff)}/{len(eff)})",
-            f"false alarms on clean recordings: {fa}/{len(clean)} = {fa / max(len(clean), 1):.1%}",
+            f"false alarms on clean recordings: {fa}/{len(clean)} = {fa / max(len(clean), 1):.1%}"
+            + (f" (of which {lack} name a true term the reconstructed baseline lacks: {lack_ids})" if lack else ""),
             f"named cases with held-out NRMSE after < both the baseline as given and the null model: "
             f"{beats}/{len(named)} = {beats / max(len(named), 1):.1%}",
             f"diagnose raised / generator failed: {errs}/{n}"]
