@@ -87,26 +87,20 @@ class SimLaserSensor:
         """Measuring mode: 0 displacement (mm), 1 velocity (mm/s); not while armed or running."""
         if not args:
             return f"MD,{MODES.index(self.mode)}"
-        if len(args) != 1 or not args[0].isdigit():
-            raise _Err("MD", E_PARAM)
-        code = int(args[0])
+        code = self._one_count("MD", args)
         if code >= len(MODES):
             raise _Err("MD", E_RANGE)
-        if self.state in ("ARMED", "RUNNING"):
-            raise _Err("MD", E_STATE)
+        self._idle("MD")
         self.mode = MODES[code]
         return "MD"
 
     def _cmd_SS(self, args):
         if not args:
             return f"SS,{self.rate}"
-        if len(args) != 1 or not args[0].isdigit():
-            raise _Err("SS", E_PARAM)
-        rate = int(args[0])
+        rate = self._one_count("SS", args)
         if rate not in RATES or self.world.sample_rate % rate:
             raise _Err("SS", E_RANGE)
-        if self.state in ("ARMED", "RUNNING"):
-            raise _Err("SS", E_STATE)
+        self._idle("SS")
         self.rate = rate
         return "SS"
 
@@ -121,9 +115,7 @@ class SimLaserSensor:
         return "M0," + self._format(np.array([value]))[0]
 
     def _cmd_AS(self, args):
-        if len(args) != 1 or not args[0].isdigit():
-            raise _Err("AS", E_PARAM)
-        n = int(args[0])
+        n = self._one_count("AS", args)
         if n > MAX_ARM:
             raise _Err("AS", E_RANGE)
         with self.world.lock:
@@ -200,6 +192,18 @@ class SimLaserSensor:
     def _no_args(cmd, args):
         if args:
             raise _Err(cmd, E_PARAM)
+
+    @staticmethod
+    def _one_count(cmd, args) -> int:
+        """The command's single non-negative integer argument (else a parameter error)."""
+        if len(args) != 1 or not args[0].isdigit():
+            raise _Err(cmd, E_PARAM)
+        return int(args[0])
+
+    def _idle(self, cmd) -> None:
+        """A setting that may not change while the sensor is armed or acquiring."""
+        if self.state in ("ARMED", "RUNNING"):
+            raise _Err(cmd, E_STATE)
 
     def _update_state(self) -> None:
         w = self.world
