@@ -49,6 +49,17 @@ def _errors(result, truth):
     return err
 
 
+def _beyond(result, truth, main=None, fn=None) -> dict:
+    """{parameter: error in percent} of those off by at least ``main`` (c, k, alpha, gamma, delta)
+    or ``fn`` (fn terms); a bound of None leaves that group out."""
+    out = {}
+    for k, v in _errors(result, truth).items():
+        bound = fn if k.startswith("fn_m") else main
+        if bound is not None and abs(v) >= bound:
+            out[k] = round(v * 100, 2)
+    return out
+
+
 def test_protocol_to_reconstruction(reconstructed):
     out, run, result, truth = reconstructed
     assert out.samples_lost == 0
@@ -62,9 +73,7 @@ def test_protocol_to_reconstruction(reconstructed):
 
 def test_linear_and_bouc_wen_parameters_within_5_percent(reconstructed):
     _, _, result, truth = reconstructed
-    err = _errors(result, truth)
-    bad = {k: round(v * 100, 2) for k, v in err.items()
-           if k in ("c_m", "k_m", "alpha_m", "gamma", "delta") and abs(v) >= 0.05}
+    bad = _beyond(result, truth, main=0.05)
     assert not bad, f"parameters off by more than 5 % (percent): {bad}"
 
 
@@ -72,8 +81,7 @@ def test_fn_structure_exact_and_terms_within_5_percent(reconstructed):
     _, _, result, truth = reconstructed
     got = result.model.fn_m
     assert sorted(got) == sorted(truth["fn_m"]), (got, result.model.provenance.get("term_selection"))
-    err = _errors(result, truth)
-    bad = {k: round(v * 100, 2) for k, v in err.items() if k.startswith("fn_m") and abs(v) >= 0.05}
+    bad = _beyond(result, truth, fn=0.05)
     assert not bad, f"fn terms off by more than 5 % (percent): {bad}"
 
 
@@ -82,9 +90,7 @@ def test_as_accurate_closed_loop_as_open_loop(reconstructed):
     # parameter within 0.15 %, y^2*dy within 0.53 %, validation NRMSE 0.05 % for both; before the
     # fitted start the base-target run of seed 1 had alpha -2.3 %, gamma +2.8 %, NRMSE 3.5 % (volts 0.6 %)
     _, run, result, truth = reconstructed
-    err = _errors(result, truth)
-    bad = {k: round(v * 100, 2) for k, v in err.items()
-           if k in ("c_m", "k_m", "alpha_m", "gamma", "delta") and abs(v) >= 0.01}
+    bad = _beyond(result, truth, main=0.01)
     assert not bad, f"parameters off by more than 1 % (percent): {bad}"
     assert result.validation["nrmse"] < 0.003, result.validation
 
@@ -106,8 +112,6 @@ def test_shakerlab_acquire_base_target_protocol_reconstructs_as_accurately(tmp_p
     result = reconstruct(run, ReconSettings(form=WEAK))
     truth = SimulatedRig(None, speed=None, seed=0).world.truth()
     assert sorted(result.model.fn_m) == sorted(truth["fn_m"])
-    err = _errors(result, truth)
-    bad = {k: round(v * 100, 2) for k, v in err.items()
-           if abs(v) >= (0.01 if not k.startswith("fn_m") else 0.05)}
+    bad = _beyond(result, truth, main=0.01, fn=0.05)
     assert not bad, f"off by more than 1 % (parameters) or 5 % (fn terms), percent: {bad}"
     assert result.validation["nrmse"] < 0.003, result.validation
