@@ -186,11 +186,11 @@ def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info
         if s.input_offset is True and model.input_offset is None:
             model.input_offset = 0.0       # a parameter of the polish from here on (ReconSettings)
         tp = time.perf_counter()
-        item = model.fit_item(run.stage(s.nonlinear_stage))
+        stage = run.stage(s.nonlinear_stage)
+        item = model.fit_item(stage)
         model, polish_info = polish(model, [item])
         if model.fn_m and not polish_info["applied"] and not polish_info["nrmse_before"] < START_NRMSE_LIMIT:
             model, polish_info = restart_fn_terms(model, item, polish_info)
-        stage = run.stage(s.nonlinear_stage)
         model, item, polish_info = refine_start(model, stage, item, polish_info)
         floor = noise_floor(run, s.nonlinear_stage)
         if floor and model.alpha_m > 0 and polished_cost(polish_info) > FLOOR_FACTOR * floor:

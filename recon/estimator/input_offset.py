@@ -43,8 +43,7 @@ def resolve_input_offset(run: Run, settings):
     rms = float(np.std(y))
     share = abs(mean) / rms if rms > 0 else 0.0
     on = bool(share > DC_SHARE)
-    return replace(settings, input_offset=on), {
-        "on": on, "stage": name, "dc_share": share, "threshold": DC_SHARE,
-        "reason": (f"the {name} stage's mean relative motion is {share:.3g} times its rms motion "
-                   f"(> {DC_SHARE:g}): a DC the base excitation cannot make" if on else
-                   f"the {name} stage's mean relative motion is {share:.3g} times its rms motion (<= {DC_SHARE:g})")}
+    reason = f"the {name} stage's mean relative motion is {share:.3g} times its rms motion "
+    reason += f"(> {DC_SHARE:g}): a DC the base excitation cannot make" if on else f"(<= {DC_SHARE:g})"
+    return replace(settings, input_offset=on), {"on": on, "stage": name, "dc_share": share,
+                                                "threshold": DC_SHARE, "reason": reason}

@@ -20,7 +20,7 @@ before, loses (w dt)^2 / 8 of a tone at the mid-point: 0.9 % at 23 samples per
 period. On an independent-generator record (f_n 49.5 Hz at 1150 Hz, issue 18) the
 true model then simulated its own clean record at NRMSE 0.005 and the output-error
 fit started at the truth ended 6.9 % off delta; with the cubic the record reproduces
-to 0.0013. When the sampling is coarse compared with the model's time scales, each
+to 0.00016. When the sampling is coarse compared with the model's time scales, each
 sample interval is split into ``n_sub`` RK4 sub-steps. Zero initial conditions unless (y0, v0, z0) are given;
 the higher mode always starts at rest.
 """
