@@ -120,7 +120,7 @@ def run_one(i: int) -> dict:
                          "after": fa.get("held_out_nrmse")},
                parameters={m["id"]: {k: v["value"] for k, v in m["parameters"].items()}
                            for m in out["missing_physics"]},
-               result=out["result"])
+               result=out["result"], unexplained=bool(out.get("unexplained_mismatch")))
     h = row["held_out"]
     if ids:
         row["after_beats_both"] = bool(h["after"] is not None and h["null"] is not None and h["as_given"] is not None
@@ -162,6 +162,11 @@ def report(rows: list[dict]) -> list[str]:
             f"named cases with held-out NRMSE after < both the baseline as given and the null model: "
             f"{beats}/{len(named)} = {beats / max(len(named), 1):.1%}",
             f"diagnose raised / generator failed: {errs}/{n}"]
+    missed = [r for r in eff if r["status"] == "ok" and r["first"] == "none"]
+    flagged = [r for r in missed if r.get("unexplained")]
+    clean_flag = [r for r in clean if r["status"] == "ok" and r["first"] == "none" and r.get("unexplained")]
+    out.append(f"effects named nothing: {len(missed)}, of which {len(flagged)} flagged as an unexplained mismatch; "
+               f"clean recordings named nothing but flagged: {len(clean_flag)}/{len(clean)}")
     secs = [r["seconds"] for r in rows if "seconds" in r]
     sims = [r["sim_seconds"] for r in rows if "sim_seconds" in r]
     if secs:

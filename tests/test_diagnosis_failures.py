@@ -93,3 +93,24 @@ def test_score_never_raises_on_degenerate_mse():
     for null, cand in ((r, ok), (ok, r), (dataclasses.replace(ok, mse_held=0.0), ok)):
         s = rank.score(null, cand, 1, 0.1)
         assert s["significant"] is False
+
+
+def test_a_baseline_force_that_overflows_on_the_recorded_path_leaves_candidates_ranked(run, monkeypatch):
+    # stress recording #28 (44 dB): a reconstructed baseline with gamma 3.5e5 integrated z on the
+    # measured y' to NaN; the equation-error step and the candidates' scales were NaN and every
+    # linear-in-parameter candidate failed ("SVD did not converge", "initial guess outside bounds")
+    from recon.diagnosis import locate
+
+    real = locate.model_force
+
+    def overflowing(am, t, y, dy, dt):
+        f = np.array(real(am, t, y, dy, dt), float)
+        f[f.size // 3:] = np.nan
+        return f
+
+    monkeypatch.setattr(locate, "model_force", overflowing)
+    d = diagnose(run, baseline="linear", candidates=CANDIDATES).to_dict()
+    tested = {t["id"]: t for t in d["candidates_tested"]}
+    for cid in CANDIDATES:
+        assert "failed" not in tested[cid], tested[cid]
+        assert np.isfinite(tested[cid]["held_out_nrmse"])

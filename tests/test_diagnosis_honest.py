@@ -15,7 +15,7 @@ import pytest
 
 from recon.diagnosis import rank
 from recon.diagnosis.augmented import AugmentedModel
-from recon.diagnosis.diagnose import diagnose, implausible
+from recon.diagnosis.diagnose import diagnose, implausible, unexplained_mismatch
 from recon.testing.concealed import concealed_run
 
 
@@ -61,6 +61,24 @@ def test_nothing_found_reports_the_better_of_as_given_and_refit():
     fb = out["fit_before"]
     assert out["missing_physics"] == []
     assert out["fit_after"]["held_out_nrmse"] == pytest.approx(min(fb["held_out_nrmse"], fb["refit_held_out_nrmse"]))
+    assert out["unexplained_mismatch"] is None     # the true model: nothing left above the noise
+
+
+def test_a_mismatch_far_above_the_noise_that_nothing_explains_is_flagged():
+    def result(nrmse):       # a held-out set of rms 1: NRMSE = sqrt(MSE)
+        return rank.FitResult(model=None, cost_fit=0.0, mse_held=nrmse ** 2, nrmse={}, nrmse_held=nrmse,
+                              n_held=10)
+    noise_mse = 0.004 ** 2
+    # below max(5 x 0.004, 0.01) = 0.02: nothing to flag; above: flagged with its figures
+    assert unexplained_mismatch(result(0.019), noise_mse, []) is None
+    u = unexplained_mismatch(result(0.3), noise_mse, [])
+    assert u["held_out_nrmse"] == 0.3 and u["noise_nrmse"] == pytest.approx(0.004)
+    assert u["nrmse_limit"] == pytest.approx(0.02) and u["named"] == []
+    assert "no catalog candidate is significant" in u["note"]
+    u = unexplained_mismatch(result(0.3), noise_mse, ["offset"])
+    assert "with offset added" in u["note"]
+    # a low noise floor: the 1 % floor of reconstruct's adequacy rule holds
+    assert unexplained_mismatch(result(0.009), 1e-10, []) is None
 
 
 # ----------------------------------------------------------------- noise floor

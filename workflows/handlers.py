@@ -193,6 +193,8 @@ def diagnose_command(args) -> int:
               f"{m['evidence']['held_out_nrmse_before']:.4g} -> {m['evidence']['held_out_nrmse_after']:.4g}")
     if out["missing_physics"]:
         print("augmented model:\n" + out["fit_after"]["model"])
+    if out["unexplained_mismatch"]:
+        print(f"unexplained: {out['unexplained_mismatch']['note']}")
     for p in out.get("report", []):
         print(f"report: {p}")
     return 0

@@ -88,7 +88,12 @@ def equation_residual(am, derivs):
     t, y, dy, ddy, u, dt = derivs
     f = model_force(am, t, y, dy, dt)
     e = am.baseline.input_gain * u - ddy - f
-    return y, dy, e, u, float(np.sqrt(np.mean((f + ddy) ** 2))) or 1.0
+    r = f + ddy
+    if not np.all(np.isfinite(r)):
+        # the model's force overflows along the recorded path (a Bouc-Wen law too stiff for the
+        # measured y'): the scale is taken from the measurements, g u - y'' (the force per unit mass)
+        r = am.baseline.input_gain * u - ddy
+    return y, dy, e, u, float(np.sqrt(np.mean(r ** 2))) or 1.0
 
 
 def _peaks(freqs, power, floor, n=5, ratio=10.0):

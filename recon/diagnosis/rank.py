@@ -44,6 +44,7 @@ MIN_REL_GAIN = 0.1          # the held-out NRMSE must fall by at least 10 % of t
 HOLD_FRACTION = 0.3
 RESOLUTION_FRACTION = 1e-5  # no displacement reading resolves better than 1e-5 of its peak (100 dB)
 DIFF_ORDERS = (2, 3, 4, 5, 6)
+STEP_MIN_FINITE = 0.9    # an equation-error step needs a finite residual on 90 % of the fitting samples
 
 
 def difference_noise(x: np.ndarray) -> float:
@@ -310,6 +311,13 @@ def equation_step(am: AugmentedModel, keys: list[str], new_key: str | None, colu
     A = np.vstack(rows)
     b = np.concatenate(rhs)
     names = [k for k in keys if k in ("c_m", "k_m", "inv_m") or k.startswith("fn:")]
+    ok = np.isfinite(b) & np.all(np.isfinite(A), axis=1)
+    if ok.sum() < max(STEP_MIN_FINITE * b.size, 10 * A.shape[1]):
+        # the baseline's restoring force is not finite along the recorded path (a Bouc-Wen law so
+        # stiff that z integrated on the measured y' overflows, or a term of high order): no
+        # equation-error step, the candidate starts from ``am`` as it is
+        return am.copy(), float("inf")
+    A, b = A[ok], b[ok]
     norms = np.linalg.norm(A, axis=0)
     norms[norms == 0] = 1.0
     coef, *_ = np.linalg.lstsq(A / norms, b, rcond=None)
