@@ -216,3 +216,33 @@ def test_separating_protocol_is_accepted_by_acquire(tmp_path, pair, stages):
     names = [v.get("name") for v in proto.validation]
     assert [n for n in names if n in stages] == stages
     proto.check_against_limits(load_config(None).limits)
+
+
+def test_a_candidate_is_refitted_without_the_baseline_terms_that_absorbed_it():
+    # a baseline that absorbed friction into y'^3 and y'^5 (fitted to the friction recording, as a
+    # reconstruction without friction in its library does): friction fitted next to them explains
+    # little; refitted without them it recovers mu and predicts the held-out stage far better
+    from recon.diagnosis.diagnose import prune_absorbed
+
+    run, _, extras, baseline = concealed_run("coulomb_friction", duration=2.0, seed=0)
+    data = rank.prepare(run, baseline)
+    am = AugmentedModel(baseline)
+    am.baseline.fn_m.update({"dy^3": 0.0, "dy^5": 0.0})
+    absorbed = rank.fit(am, ["c_m", "k_m", "fn:dy^3", "fn:dy^5"], data, {"fn:dy^3": 1.0, "fn:dy^5": 1.0},
+                        max_nfev=60).model
+    given = rank.fit(absorbed, [], data)
+    m = absorbed.copy()
+    m.added = ["coulomb_friction"]
+    m.extras.update(mu=0.01, v0=1e-3)
+    sc, b = {"x:mu": 0.01}, {"x:mu": (0.0, np.inf)}
+    fr = rank.fit(m, ["c_m", "k_m", "x:mu"], data, sc, max_nfev=30, bounds=b)
+    assert abs(fr.model.get("mu") / extras["mu"] - 1) > 0.5          # next to y'^3, y'^5: far off
+    best, free, drop, against = prune_absorbed(fr, ["x:mu"], sc, b, ["c_m", "k_m"], given, data, 30)
+    assert set(drop) == {"dy^3", "dy^5"} and "dy^3" not in best.model.baseline.fn_m
+    assert abs(best.model.get("mu") / extras["mu"] - 1) < 0.05
+    assert best.nrmse_held < 0.2 * fr.nrmse_held
+    # scored against the better of the reference and the baseline without the same terms
+    assert against.mse_held <= given.mse_held
+    assert rank.score(against, best, 1, given.mse_held * 1e-6)["significant"]
+    # a candidate that explains little of the fitting mismatch is left as it is
+    assert prune_absorbed(given, ["x:mu"], sc, b, ["c_m", "k_m"], given, data, 30)[2] == ()
