@@ -239,3 +239,28 @@ def test_start_of_a_stage_in_motion_is_refitted_with_the_polished_model():
     assert any(r.get("cost_after", 1.0) < r.get("cost_before", 0.0) for r in rounds), rounds
     err = _worst_error(model, dict(truth) | {f"fn:{k}": v for k, v in truth["fn_m"].items()})
     assert max(err.values()) < 0.01, err
+
+
+def test_a_system_without_hysteresis_gets_the_elastic_simpler_model():
+    """Diagnosis stress #39: a system with y^2 and no hysteresis, whose estimate was inadmissible,
+    was answered by the Bouc-Wen law with lambda Y = 0.006 (a z that only adds stiffness) and no
+    y^2. The simpler kinds now include the elastic model (c, k, y^2, y^3, no z)."""
+    from recon.testing import independent as ind
+
+    seed = 2
+    system = ind.random_system(np.random.default_rng([seed, 39]), hysteresis=False, quadratic=True, cubic=True)
+    rec = ind.add_noise(ind.simulate(system, "paper", 2000.0, seed=seed), 60.0, seed)
+    stages = {}
+    for name, st in rec["stages"].items():
+        t = np.asarray(st["t"], float)
+        stages[name] = Stage(name, t - t[0], {c: np.asarray(st[c], float) for c in ("x_base", "x_tip")}, "base",
+                             settings={"source_t0": float(t[0])})
+    fits = {f.kind: f for f in simpler_models(Run(stages, source="independent:no hysteresis"), ReconSettings(), None)}
+    best = min(fits.values(), key=lambda f: f.held_out_nrmse)
+    assert best.kind == "elastic", {k: f.held_out_nrmse for k, f in fits.items()}
+    assert best.model.alpha_m == 0.0 and admissible(best.model)
+    truth = rec["truth"]
+    assert abs(best.model.k_m / truth["k_m"] - 1) < 0.01
+    for term in ("y^2", "y^3"):
+        assert abs(best.model.fn_m[term] / truth["fn_m"][term] - 1) < 0.02
+    assert fits["elastic"].held_out_nrmse < 0.5 * fits["equivalent_linear"].held_out_nrmse
