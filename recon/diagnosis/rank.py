@@ -154,8 +154,48 @@ def prepare(run: Run, model: HystereticModel) -> list[StageData]:
     return out
 
 
+START_FIT_SHARE = 0.3     # a held-out stage recorded in motion: its start is fitted on its first 30 %
+START_FIT_NFEV = 10
+
+
+def held_start(am: AugmentedModel, d: StageData) -> tuple:
+    """The start state ``am`` simulates the held-out stage ``d`` from. A stage recorded in motion
+    starts from its edge estimate (y, y', z), which a noisy edge derivative makes poor: on the
+    independent generator's rig protocol at 50 dB (stress #10) the edge start alone put the
+    validation NRMSE at 0.139 for every model, the true one included, and 0.0068 with the start
+    fitted. Each model's start (y0, y'0, and z0 when it has hysteresis) is therefore fitted to the
+    first START_FIT_SHARE of the stage by output error: every model gets the same treatment, so a
+    candidate that changes the output (a delay, a scale error) fits its own start."""
+    s0 = np.asarray(d.initial, float)
+    if d.fit.any() or not np.any(s0):
+        return d.initial
+    free = 3 if am.baseline.alpha_m != 0.0 else 2
+    b = am.baseline
+    w = math.sqrt(max(b.K_m, 1e-12))
+    scale = np.maximum(np.abs(s0[:free]), 0.01 * d.rms * np.array([1.0, w, max(abs(b.alpha_m), 1e-12)])[:free])
+    first = slice(0, max(int(START_FIT_SHARE * d.y.size), 10))
+
+    def state(p):
+        out = s0.copy()
+        out[:free] = s0[:free] + p * scale
+        return tuple(out)
+
+    def resid(p):
+        ys = am.simulate(d.t[first], d.u[first], None if d.x_in is None else d.x_in[first], state(p))[0]
+        r = ys - d.y[first]
+        return r if np.all(np.isfinite(r)) else np.full(r.size, DIVERGED_RESIDUAL * d.rms)
+
+    try:
+        with np.errstate(all="ignore"):
+            sol = least_squares(resid, np.zeros(free), method="trf", x_scale=1.0, max_nfev=START_FIT_NFEV)
+    except (ArithmeticError, ValueError, np.linalg.LinAlgError):
+        return d.initial
+    r0 = resid(np.zeros(free))
+    return state(sol.x) if float(sol.fun @ sol.fun) < float(r0 @ r0) else d.initial
+
+
 def simulate_all(am: AugmentedModel, data: list[StageData]) -> list[np.ndarray]:
-    return [am.simulate(d.t, d.u, d.x_in, d.initial)[0] for d in data]
+    return [am.simulate(d.t, d.u, d.x_in, held_start(am, d))[0] for d in data]
 
 
 def nrmse_per_stage(am: AugmentedModel, data: list[StageData], sims=None) -> dict:
