@@ -191,7 +191,12 @@ def held_start(am: AugmentedModel, d: StageData) -> tuple:
     except (ArithmeticError, ValueError, np.linalg.LinAlgError):
         return d.initial
     r0 = resid(np.zeros(free))
-    return state(sol.x) if float(sol.fun @ sol.fun) < float(r0 @ r0) else d.initial
+    if not float(sol.fun @ sol.fun) < float(r0 @ r0):
+        return d.initial
+    # a state fitted on the first part must also carry the simulation through the whole stage
+    with np.errstate(all="ignore"):
+        ys = am.simulate(d.t, d.u, d.x_in, state(sol.x))[0]
+    return state(sol.x) if np.all(np.isfinite(ys)) else d.initial
 
 
 def simulate_all(am: AugmentedModel, data: list[StageData]) -> list[np.ndarray]:
