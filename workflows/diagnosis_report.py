@@ -21,8 +21,7 @@ def write_report(diag, run, outdir: Path) -> list[Path]:
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     data = rank.prepare(run, diag.baseline.baseline)
-    before = rank.simulate_all(diag.null.model, data)
-    after = rank.simulate_all(diag.best, data)
+    before, after = diag.null.sims, diag.best_fit.sims    # simulated by the diagnosis's own fits
     paths = []
     # overlays and residual spectra, one row per stage
     fig, axes = plt.subplots(len(data), 2, figsize=(12, 3.2 * len(data)), squeeze=False)

@@ -161,6 +161,8 @@ def unexplained_mismatch(fr: rank.FitResult, noise_mse: float, named: list[str])
             "note": f"the held-out NRMSE {fr.nrmse_held:.3g} is above {limit:.3g} (max of {NOISE_FACTOR:g} x the "
                     f"held-out noise floor {noise:.2g} and {NRMSE_FLOOR:g}); {after}: something the catalog does "
                     f"not hold, an effect this excitation cannot separate, or a baseline too far off"}
+
+
 # the baseline's parameters a candidate fit frees when it starts from the baseline as given
 GIVEN_FREE = ("c_m", "k_m")
 
@@ -313,12 +315,12 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     if base.excitation != run.excitation:
         raise UserFacingError(f"baseline model is {base.excitation} excitation, {run.source or 'run'} is {run.excitation}")
     data = rank.prepare(run, base.baseline)
-    before = rank.nrmse_per_stage(base, data)
     bkeys = rank.baseline_keys(base.baseline)
     extra_keys = [f"x:{k}" for k in base.extras if k not in ("v0", "side")]
     null = rank.fit(base, bkeys + extra_keys, data, max_nfev=max_nfev)
     # the baseline as given, scored the same way (no parameter moved)
     given = rank.fit(base, [], data)
+    before = given.nrmse
     _check_null(null if math.isfinite(null.mse_held) else given, data, run)
     # the reference every candidate must beat on the held-out samples: the better of the baseline as
     # given and the null model. When the refit is worse there (it absorbed the effect, or one tone
@@ -331,7 +333,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     # only its linear terms (c, k: where a baseline reconstructed from the same data absorbs an
     # effect, friction as extra viscous damping), the rest stays as given
     base_free = bkeys + extra_keys if refit_better else list(GIVEN_FREE)
-    sims = rank.simulate_all(ref.model, data)
+    sims = ref.sims
 
     derivs = stage_derivatives(run, data)
     findings, ctx = locate(ref.model, run, data, sims, derivs)
@@ -490,7 +492,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                          "held_out_nrmse_refit": null.nrmse_held, "compared_with": ref_name,
                          "explained_fraction_of_excess": t["explained"], "delta_bic_held_out": t["dbic"],
                          "effective_samples": t["n_eff"],
-                         "reference_held_out_nrmse": t["compared_with_held_out_nrmse"],
+                         "compared_with_held_out_nrmse": t["compared_with_held_out_nrmse"],
                          "located": [f for f in findings if f["kind"] in ev_kinds][:4]},
             "fit_after": {"nrmse": fr.nrmse},
             "baseline_terms_dropped": t.get("baseline_terms_dropped", []),

@@ -166,9 +166,15 @@ def held_start(am: AugmentedModel, d: StageData) -> tuple:
     fitted. Each model's start (y0, y'0, and z0 when it has hysteresis) is therefore fitted to the
     first START_FIT_SHARE of the stage by output error: every model gets the same treatment, so a
     candidate that changes the output (a delay, a scale error) fits its own start."""
+    return _held_start(am, d)[0]
+
+
+def _held_start(am: AugmentedModel, d: StageData) -> tuple:
+    """(:func:`held_start`'s state, the whole stage simulated from it, or None when the state is
+    the stage's own ``initial``)."""
     s0 = np.asarray(d.initial, float)
     if d.fit.any() or not np.any(s0):
-        return d.initial
+        return d.initial, None
     free = 3 if am.baseline.alpha_m != 0.0 else 2
     b = am.baseline
     w = math.sqrt(max(b.K_m, 1e-12))
@@ -189,18 +195,22 @@ def held_start(am: AugmentedModel, d: StageData) -> tuple:
         with np.errstate(all="ignore"):
             sol = least_squares(resid, np.zeros(free), method="trf", x_scale=1.0, max_nfev=START_FIT_NFEV)
     except (ArithmeticError, ValueError, np.linalg.LinAlgError):
-        return d.initial
+        return d.initial, None
     r0 = resid(np.zeros(free))
     if not float(sol.fun @ sol.fun) < float(r0 @ r0):
-        return d.initial
+        return d.initial, None
     # a state fitted on the first part must also carry the simulation through the whole stage
     with np.errstate(all="ignore"):
         ys = am.simulate(d.t, d.u, d.x_in, state(sol.x))[0]
-    return state(sol.x) if np.all(np.isfinite(ys)) else d.initial
+    return (state(sol.x), ys) if np.all(np.isfinite(ys)) else (d.initial, None)
 
 
 def simulate_all(am: AugmentedModel, data: list[StageData]) -> list[np.ndarray]:
-    return [am.simulate(d.t, d.u, d.x_in, held_start(am, d))[0] for d in data]
+    out = []
+    for d in data:
+        start, ys = _held_start(am, d)
+        out.append(ys if ys is not None else am.simulate(d.t, d.u, d.x_in, start)[0])
+    return out
 
 
 def nrmse_per_stage(am: AugmentedModel, data: list[StageData], sims=None) -> dict:
@@ -236,6 +246,7 @@ class FitResult:
     resid_held: np.ndarray = field(repr=False, default=None)
     stderr: dict = field(default_factory=dict)
     seconds: float = 0.0
+    sims: list = field(repr=False, default=None)   # the model's simulated output per stage
 
 
 def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict | None = None,
@@ -300,7 +311,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
     nh = float(math.sqrt(mse / np.mean(yh ** 2))) if rh.size and np.mean(yh ** 2) > 0 else float("nan")
     return FitResult(model=m, cost_fit=cost / max(len([d for d in data if d.fit.any()]), 1), mse_held=mse,
                      nrmse=nrmse_per_stage(m, data, sims), nrmse_held=nh, n_held=int(rh.size), resid_held=rh,
-                     stderr=stderr, seconds=time.perf_counter() - t0)
+                     stderr=stderr, seconds=time.perf_counter() - t0, sims=sims)
 
 
 def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> dict:

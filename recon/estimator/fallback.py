@@ -156,7 +156,6 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
     amp = float(np.sqrt(2.0) * np.std(y_nl)) if y_nl is not None and np.std(y_nl) > 0 else 1.0
     generic = dict(base, alpha_m=0.5 * k0, k_m=0.5 * k0, gamma=0.5 / amp, delta=0.5 / amp)
     bw_starts = [HystereticModel(**generic)]
-    few = {}
     plausible = (estimate is not None and estimate.alpha_m != 0.0
                  and np.all(np.isfinite([estimate.alpha_m, estimate.gamma, estimate.delta]))
                  and abs(estimate.alpha_m) < 10 * k0)   # a split of k and alpha that cancels is no start
@@ -178,14 +177,14 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
         few.update({k: v for k, v in estimate.fn_m.items() if k in few and np.isfinite(v)
                     and abs(v) * amp ** sum(monomials.parse(k)) < 10 * k0 * amp})
     starts["bouc_wen"] = (bw_starts, keys_h)
-    starts["elastic"] = (HystereticModel(**dict(base, fn_m=dict(few))), ["c_m", "k_m"] + extra + [f"fn:{k}" for k in few])
-    if few:
-        with_terms = []
-        for m in bw_starts:
-            mt = HystereticModel.from_dict(m.to_dict())
-            mt.fn_m, mt.provenance = dict(few), m.provenance
-            with_terms.append(mt)
-        starts["bouc_wen_fewer_terms"] = (with_terms, keys_h + [f"fn:{k}" for k in few])
+    fn_keys = [f"fn:{k}" for k in few]
+    starts["elastic"] = (HystereticModel(**dict(base, fn_m=dict(few))), ["c_m", "k_m"] + extra + fn_keys)
+    with_terms = []
+    for m in bw_starts:
+        mt = HystereticModel.from_dict(m.to_dict())
+        mt.fn_m, mt.provenance = dict(few), m.provenance
+        with_terms.append(mt)
+    starts["bouc_wen_fewer_terms"] = (with_terms, keys_h + fn_keys)
     out = []
     for kind in KINDS:
         if kind not in starts:
