@@ -264,3 +264,47 @@ def test_a_system_without_hysteresis_gets_the_elastic_simpler_model():
     for term in ("y^2", "y^3"):
         assert abs(best.model.fn_m[term] / truth["fn_m"][term] - 1) < 0.02
     assert fits["elastic"].held_out_nrmse < 0.5 * fits["equivalent_linear"].held_out_nrmse
+
+
+def test_an_inadequate_full_model_gives_way_to_a_simpler_one_that_predicts_better():
+    """Diagnosis stress #26: a system without hysteresis got an admissible estimate with a Bouc-Wen
+    law that validated at 0.18; the simpler models reached the noise floor. An inadequate full model
+    is now compared with them on the held-out stages and replaced when one halves its error."""
+    import json
+
+    from recon.estimator.finish import validate
+    from recon.estimator.pipeline import _prefer_simpler
+    from recon.estimator.result import ReconResult
+    from recon.steps.linear import LinearFit
+    from recon.testing import independent as ind
+
+    seed = 2
+    system = ind.random_system(np.random.default_rng([seed, 39]), hysteresis=False, quadratic=True, cubic=True)
+    rec = ind.add_noise(ind.simulate(system, "paper", 2000.0, seed=seed), 60.0, seed)
+    stages = {}
+    for name, st in rec["stages"].items():
+        t = np.asarray(st["t"], float)
+        stages[name] = Stage(name, t - t[0], {c: np.asarray(st[c], float) for c in ("x_base", "x_tip")}, "base",
+                             settings={"source_t0": float(t[0])})
+    run = Run(stages, source="independent:no hysteresis")
+    truth = rec["truth"]
+    # admissible, but with a spurious hysteresis in place of the stiffness terms
+    wrong = HystereticModel("base", c_m=truth["c_m"], k_m=0.7 * truth["k_m"], alpha_m=0.3 * truth["k_m"],
+                            gamma=300.0, delta=200.0)
+    assert admissible(wrong)
+    s = ReconSettings()
+    result = ReconResult(model=wrong, linear=LinearFit(wrong.c_m, wrong.K_m, None, float("nan"), [], float("nan"),
+                                                       float("nan")),
+                         sparse={"threshold": None, "n_terms": 0}, library_names=[], library_coef=[],
+                         hysteresis_info={}, differentiation={}, validation=validate(wrong, run), settings=s)
+    before = result.validation["nrmse"]
+    out = _prefer_simpler(result, run, s, True, {})
+    fb = out.adequacy["fallback"]
+    assert fb["used"] and fb["trigger"] == "inadequate" and fb["kind"] == "elastic", fb["chosen_by"]
+    assert out.model.alpha_m == 0.0 and set(out.model.fn_m) == {"y^2", "y^3"}
+    assert out.validation["nrmse"] < 0.1 * before
+    assert fb["replaced_estimate"]["alpha_m"] == pytest.approx(wrong.alpha_m)
+    d = json.loads(json.dumps(out.to_dict()))
+    assert d["settings"]["simpler_model"] == "elastic" and d["adequacy"]["fallback"]["trigger"] == "inadequate"
+    # judged by its figures: no "full model was not admissible" reason
+    assert not any("not admissible" in r for r in out.adequacy["reasons"])

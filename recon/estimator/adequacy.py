@@ -63,7 +63,9 @@ def verdict(ok: bool, v: float, floor: float | None, n_fn: int, fitted_on_valida
 
 def assess(model, validation: dict, run: Run, fallback: dict | None = None) -> dict:
     """The adequacy verdict of ``model`` (JSON-ready)."""
-    simpler = fallback["kind"] if (fallback and fallback.get("used")
+    # a simpler kind without hysteresis standing in for an inadmissible estimate is always
+    # inadequate; one chosen over an inadequate full model on the held-out data is judged by its figures
+    simpler = fallback["kind"] if (fallback and fallback.get("used") and fallback.get("trigger") != "inadequate"
                                     and fallback.get("kind") not in HYSTERETIC_KINDS) else None
     out = verdict(admissible(model), validation.get("nrmse"), noise_floor(run, validation.get("stage")),
                   len(model.fn_m), bool(validation.get("fitted_on_validation_stage")), "model", simpler)

@@ -144,8 +144,13 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
     names, _ = held_out_stages(run, fitted)
     c0, k0, inv0 = _linear_start(run, settings.linear_stage, excitation, linear_fit)
     extra = ["inv_m"] if excitation != BASE else []
+    offset = None
+    if getattr(settings, "input_offset", False) is True:     # fitted by every kind, as by the estimate
+        offset = estimate.input_offset if estimate is not None and estimate.input_offset is not None else 0.0
+        offset = offset if math.isfinite(offset) else 0.0
+        extra.append("input_offset")
     base = dict(excitation=excitation, c_m=c0, k_m=k0, alpha_m=0.0, gamma=0.0, delta=0.0,
-                inv_m=inv0, provenance={"simpler_model": True})
+                inv_m=inv0, input_offset=offset, provenance={"simpler_model": True})
     starts = {"linear": (HystereticModel(**base), ["c_m", "k_m"] + extra),
               "equivalent_linear": (HystereticModel(**dict(base, fn_m={"y^3": 0.0, "y^2*dy": 0.0})),
                                     ["c_m", "k_m", "fn:y^3", "fn:y^2*dy"] + extra)}
