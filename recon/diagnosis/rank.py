@@ -341,8 +341,10 @@ def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> d
     if not (math.isfinite(cand.mse_held) and math.isfinite(null.mse_held)) or cand.mse_held <= 0 or null.mse_held <= 0:
         return {"dbic": float("inf"), "explained": 0.0, "n_eff": n_eff, "significant": False}
     dbic = n_eff * math.log(cand.mse_held / null.mse_held) + k_added * math.log(n_eff)
-    excess = max(null.mse_held - noise_mse, 1e-300)
-    explained = (null.mse_held - cand.mse_held) / excess
+    # a reference at or below the noise floor leaves nothing to explain (and the gain over the noise
+    # then fails too): 0, not a ratio over a vanishing excess (it read 8e282 in the JSON)
+    excess = null.mse_held - noise_mse
+    explained = (null.mse_held - cand.mse_held) / excess if excess > 0 else 0.0
     gain = (null.mse_held - cand.mse_held) / max(noise_mse, 1e-300)
     rel = 1.0 - math.sqrt(cand.mse_held / null.mse_held)
     return {"dbic": float(dbic), "explained": float(explained), "gain_over_noise": float(gain),

@@ -1,0 +1,65 @@
+"""The diagnosis on the paper's own protocol: one harmonic per stage (a small linear stage near half
+the resonance, a large stage just below it, a validation stage at another frequency and amplitude,
+each with its amplitude ramps), recorded by the independent generator (recon/testing/independent.py,
+scipy solve_ivp on its own equations, no code shared with the estimator), 2 kHz, 60 dB.
+
+The baseline is the generator's own truth without the concealed effect (the physical effects sit
+outside the paper's model; for the structural ones the generator states the model without the term),
+so each test asks one thing: does the diagnosis name the right id from one tone per stage, and does
+the named model predict the held-out stage better than both the baseline as given and the refit."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from recon.diagnosis.diagnose import diagnose
+from recon.testing import independent as ind
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from independent_run import model_of, to_run  # noqa: E402
+
+# one TMP-like system for every effect: f_n drawn in 8-20 Hz, hysteresis, y^2 and y^3
+SYSTEM = ind.random_system(np.random.default_rng(2026), hysteresis=True, quadratic=True, cubic=True,
+                           fn_range=(8.0, 20.0))
+
+
+def _recording(effect: str, seed: int):
+    rec = ind.simulate(SYSTEM, "paper", 2000.0, effect, 1.0, seed=seed)
+    rec = ind.add_noise(rec, 60.0, seed)
+    baseline = model_of(rec["baseline"] if "baseline" in rec else rec["truth"])
+    return to_run(rec), baseline, rec
+
+
+def test_a_clean_harmonic_recording_reports_nothing():
+    run, baseline, _ = _recording("none", 0)
+    out = diagnose(run, baseline).to_dict()
+    assert out["missing_physics"] == [], out["candidates_tested"]
+    assert out["result"].startswith("nothing found")
+    assert not out.get("ambiguous")
+
+
+# the recording's seed (protocol draws, the effect's sign, side and gap): 1, except for the contact,
+# whose gap sits at the clean nonlinear stage's peak: on seed 1 the validation tone reaches 34 % of
+# the gap, so the held-out data cannot show the contact; seed 4 reaches 135 % (checked below)
+SEEDS = {"contact_stiffness": 4}
+
+
+@pytest.mark.parametrize("effect", [e for e in ind.EFFECTS if e != "none"])
+def test_each_effect_is_named_from_one_tone_per_stage(effect):
+    run, baseline, rec = _recording(effect, SEEDS.get(effect, 1))
+    if effect == "contact_stiffness":
+        e = rec["effect_parameters"]
+        val = rec["stages"]["validation"]
+        reach = float(np.max(e["side"] * (np.asarray(val["x_tip"]) - np.asarray(val["x_base"])))) / e["gap"]
+        assert reach > 1.0, reach
+    out = diagnose(run, baseline).to_dict()
+    ids = [m["id"] for m in out["missing_physics"]]
+    amb = out.get("ambiguous") or []
+    # right first, or reported as one of an ambiguous pair (with the stage that would separate them)
+    assert (effect in amb) if amb else (ids[:1] == [effect]), (ids, amb, out["candidates_tested"])
+    fb, fa = out["fit_before"], out["fit_after"]
+    assert fa["held_out_nrmse"] < fb["held_out_nrmse_as_given"]
+    assert fa["held_out_nrmse"] < fb["refit_held_out_nrmse"]
