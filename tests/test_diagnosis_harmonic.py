@@ -6,7 +6,9 @@ scipy solve_ivp on its own equations, no code shared with the estimator), 2 kHz,
 The baseline is the generator's own truth without the concealed effect (the physical effects sit
 outside the paper's model; for the structural ones the generator states the model without the term),
 so each test asks one thing: does the diagnosis name the right id from one tone per stage, and does
-the named model predict the held-out stage better than both the baseline as given and the refit."""
+the named model predict the held-out stage better than both the baseline as given and the refit.
+One test per catalog id (every effect the generator makes: the eight physical ones, the three
+structural ones and amplitude-dependent damping), and a clean recording that reports nothing."""
 from __future__ import annotations
 
 import sys
