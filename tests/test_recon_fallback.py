@@ -119,6 +119,16 @@ def test_model_without_hysteresis_starts_with_zero_z(short_run):
     assert hyst.stage_start(st)[2] != 0.0     # with hysteresis, z0 follows from the equation of motion
 
 
+def _as_run(rec: dict, source: str) -> Run:
+    """An independent-generator recording (base excitation) as a run, as `shakerlab import` builds it."""
+    stages = {}
+    for name, st in rec["stages"].items():
+        t = np.asarray(st["t"], float)
+        stages[name] = Stage(name, t - t[0], {c: np.asarray(st[c], float) for c in ("x_base", "x_tip")}, "base",
+                             settings={"source_t0": float(t[0])})
+    return Run(stages, source=source)
+
+
 def independent_stress_draw(seed: int, fs: float, snr: float) -> tuple[Run, dict]:
     """Stress seed ``seed`` of the independent generator (paper protocol) as a run, and its truth
     (recon/testing/independent.py shares no code with the estimator)."""
@@ -126,12 +136,7 @@ def independent_stress_draw(seed: int, fs: float, snr: float) -> tuple[Run, dict
 
     system = ind.random_system(np.random.default_rng([seed, 18]), hysteresis=True)
     rec = ind.add_noise(ind.simulate(system, "paper", fs, seed=seed), snr, seed)
-    stages = {}
-    for name, st in rec["stages"].items():
-        t = np.asarray(st["t"], float)
-        stages[name] = Stage(name, t - t[0], {c: np.asarray(st[c], float) for c in ("x_base", "x_tip")}, "base",
-                             settings={"source_t0": float(t[0])})
-    return Run(stages, source=f"independent:seed={seed}"), rec["truth"]
+    return _as_run(rec, f"independent:seed={seed}"), rec["truth"]
 
 
 @pytest.fixture(scope="module")
@@ -241,25 +246,26 @@ def test_start_of_a_stage_in_motion_is_refitted_with_the_polished_model():
     assert max(err.values()) < 0.01, err
 
 
-def test_a_system_without_hysteresis_gets_the_elastic_simpler_model():
-    """Diagnosis stress #39: a system with y^2 and no hysteresis, whose estimate was inadmissible,
-    was answered by the Bouc-Wen law with lambda Y = 0.006 (a z that only adds stiffness) and no
-    y^2. The simpler kinds now include the elastic model (c, k, y^2, y^3, no z)."""
+def _no_hysteresis_record():
+    """(run, truth): an independent-generator record (paper protocol, 2 kHz, 60 dB) of a system with
+    y^2 and y^3 and no hysteresis."""
     from recon.testing import independent as ind
 
     seed = 2
     system = ind.random_system(np.random.default_rng([seed, 39]), hysteresis=False, quadratic=True, cubic=True)
     rec = ind.add_noise(ind.simulate(system, "paper", 2000.0, seed=seed), 60.0, seed)
-    stages = {}
-    for name, st in rec["stages"].items():
-        t = np.asarray(st["t"], float)
-        stages[name] = Stage(name, t - t[0], {c: np.asarray(st[c], float) for c in ("x_base", "x_tip")}, "base",
-                             settings={"source_t0": float(t[0])})
-    fits = {f.kind: f for f in simpler_models(Run(stages, source="independent:no hysteresis"), ReconSettings(), None)}
+    return _as_run(rec, "independent:no hysteresis"), rec["truth"]
+
+
+def test_a_system_without_hysteresis_gets_the_elastic_simpler_model():
+    """Diagnosis stress #39: a system with y^2 and no hysteresis, whose estimate was inadmissible,
+    was answered by the Bouc-Wen law with lambda Y = 0.006 (a z that only adds stiffness) and no
+    y^2. The simpler kinds now include the elastic model (c, k, y^2, y^3, no z)."""
+    run, truth = _no_hysteresis_record()
+    fits = {f.kind: f for f in simpler_models(run, ReconSettings(), None)}
     best = min(fits.values(), key=lambda f: f.held_out_nrmse)
     assert best.kind == "elastic", {k: f.held_out_nrmse for k, f in fits.items()}
     assert best.model.alpha_m == 0.0 and admissible(best.model)
-    truth = rec["truth"]
     assert abs(best.model.k_m / truth["k_m"] - 1) < 0.01
     for term in ("y^2", "y^3"):
         assert abs(best.model.fn_m[term] / truth["fn_m"][term] - 1) < 0.02
@@ -276,18 +282,8 @@ def test_an_inadequate_full_model_gives_way_to_a_simpler_one_that_predicts_bette
     from recon.estimator.pipeline import _prefer_simpler
     from recon.estimator.result import ReconResult
     from recon.steps.linear import LinearFit
-    from recon.testing import independent as ind
 
-    seed = 2
-    system = ind.random_system(np.random.default_rng([seed, 39]), hysteresis=False, quadratic=True, cubic=True)
-    rec = ind.add_noise(ind.simulate(system, "paper", 2000.0, seed=seed), 60.0, seed)
-    stages = {}
-    for name, st in rec["stages"].items():
-        t = np.asarray(st["t"], float)
-        stages[name] = Stage(name, t - t[0], {c: np.asarray(st[c], float) for c in ("x_base", "x_tip")}, "base",
-                             settings={"source_t0": float(t[0])})
-    run = Run(stages, source="independent:no hysteresis")
-    truth = rec["truth"]
+    run, truth = _no_hysteresis_record()
     # admissible, but with a spurious hysteresis in place of the stiffness terms
     wrong = HystereticModel("base", c_m=truth["c_m"], k_m=0.7 * truth["k_m"], alpha_m=0.3 * truth["k_m"],
                             gamma=300.0, delta=200.0)
