@@ -57,12 +57,11 @@ def reconstruct_command(args) -> int:
     if result.adequacy:
         print(one_line(result.adequacy))
         fb = result.adequacy.get("fallback") or {}
-        if fb.get("used") and fb.get("trigger") == "inadequate":
-            print(f"the full model was inadequate: answering with the simpler {fb['kind']} model, chosen by "
-                  f"{fb['chosen_by']}; the replaced estimate is in the JSON (adequacy.fallback)")
-        elif fb.get("used"):
-            print(f"the full model was not admissible: answering with the simpler {fb['kind']} model, chosen by "
-                  f"{fb['chosen_by']}; the inadmissible estimate is in the JSON (adequacy.fallback)")
+        if fb.get("used"):
+            was, estimate = (("inadequate", "replaced") if fb.get("trigger") == "inadequate"
+                             else ("not admissible", "inadmissible"))
+            print(f"the full model was {was}: answering with the simpler {fb['kind']} model, chosen by "
+                  f"{fb['chosen_by']}; the {estimate} estimate is in the JSON (adequacy.fallback)")
     rule = result.model.provenance.get("input_offset_rule") or {}
     if rule.get("on"):
         print(f"input offset fitted ({result.model.input_offset:.4g}): {rule['reason']}")

@@ -216,7 +216,7 @@ def _held_start(am: AugmentedModel, d: StageData) -> tuple:
         with np.errstate(all="ignore"):
             sol = least_squares(resid, np.zeros(free), method="trf", x_scale=1.0, max_nfev=START_FIT_NFEV)
     except (ArithmeticError, ValueError, np.linalg.LinAlgError):
-        return d.initial, None
+        return initial, None
     r0 = resid(np.zeros(free))
     if not float(sol.fun @ sol.fun) < float(r0 @ r0):
         return initial, None
