@@ -5,6 +5,7 @@
     python bench/diagnose.py --strength 0.1 0.3 --snr 50   # weaker effects, noisier sensors
     python bench/diagnose.py --rig      # on the simulated rig's own physics (sim_backend, in-process)
     python bench/diagnose.py --stress --n 200 --workers 2 --jsonl diag.jsonl   # independent generator (issue 13)
+    python bench/diagnose.py --stress --from-jsonl a.jsonl b.jsonl   # the table of saved rows, joined
 
 --stress: recordings of recon/testing/independent.py (no code shared with recon): random
 systems, protocols (paper, rig, sweep, multisine), sample rates, SNR and effect strengths,
@@ -46,6 +47,9 @@ def main(argv=None) -> int:
     ap.add_argument("--first", type=int, default=0, help="--stress: first recording index")
     ap.add_argument("--workers", type=int, default=1, help="--stress: worker processes (at most 2)")
     ap.add_argument("--jsonl", default=None, help="--stress: one JSON row per recording")
+    ap.add_argument("--from-jsonl", nargs="+", default=None, metavar="JSONL",
+                    help="--stress: print the table of rows saved by --jsonl (several files are joined; a "
+                         "recording index seen twice keeps its last row) instead of running")
     args = ap.parse_args(argv)
     if args.stress:
         import diagnose_stress  # bench/diagnose_stress.py

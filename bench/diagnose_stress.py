@@ -90,6 +90,11 @@ def contact_reach(rec: dict) -> dict | None:
             for n, st in rec["stages"].items()}
 
 
+# what each row keeps of every tested candidate (to study the decision rule offline)
+CANDIDATE_KEYS = ("id", "significant", "explained", "gain_over_noise", "relative_gain", "dbic", "held_out_nrmse",
+                  "compared_with_held_out_nrmse", "baseline_terms_dropped", "implausible", "failed")
+
+
 def run_one(i: int) -> dict:
     warnings.filterwarnings("ignore")
     d = draw(i)
@@ -137,7 +142,8 @@ def run_one(i: int) -> dict:
                          "after": fa.get("held_out_nrmse")},
                parameters={m["id"]: {k: v["value"] for k, v in m["parameters"].items()}
                            for m in out["missing_physics"]},
-               result=out["result"], unexplained=bool(out.get("unexplained_mismatch")))
+               result=out["result"], unexplained=bool(out.get("unexplained_mismatch")),
+               candidates=[{k: c[k] for k in CANDIDATE_KEYS if k in c} for c in out.get("candidates_tested", [])])
     h = row["held_out"]
     if ids:
         row["after_beats_both"] = bool(h["after"] is not None and h["null"] is not None and h["as_given"] is not None
@@ -203,7 +209,26 @@ def report(rows: list[dict]) -> list[str]:
     return out
 
 
+def load_rows(paths: list[str]) -> list[dict]:
+    """Rows saved by --jsonl, joined by recording index (a later file's row replaces an earlier one)."""
+    rows = {}
+    for p in paths:
+        with open(p) as f:
+            for line in f:
+                if line.strip():
+                    r = json.loads(line)
+                    rows[r["index"]] = r
+    return [rows[i] for i in sorted(rows)]
+
+
 def main(args) -> int:
+    if getattr(args, "from_jsonl", None):
+        rows = load_rows(args.from_jsonl)
+        idx = [r["index"] for r in rows]
+        print(f"{len(rows)} saved rows of the independent generator (#{min(idx)}..#{max(idx)}) from "
+              f"{', '.join(args.from_jsonl)}")
+        print("\n".join(report(rows)))
+        return 0
     n = args.n
     ids = list(range(args.first, args.first + n))
     workers = max(1, min(args.workers, 2))
