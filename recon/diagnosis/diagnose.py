@@ -33,6 +33,7 @@ from recon.diagnosis.locate import locate, stage_derivatives
 from recon.differentiation import estimate_spectrum
 from recon.estimator.adequacy import NOISE_FACTOR, NRMSE_FLOOR
 from recon.estimator.pipeline import reconstruct
+from recon.library import monomials
 from recon.model import HystereticModel
 from recon.output_error.problem import get_parameter, set_parameter
 from recon.signals import stage_signals
@@ -237,12 +238,21 @@ PRUNE_PAIRS_UP_TO = 5    # fn terms up to which pairs are tried as well
 
 
 def drop_sets(terms: list[str]) -> list[tuple]:
-    """The sets of baseline fn terms a candidate is refitted without."""
+    """The sets of baseline fn terms a candidate is refitted without: each term, each pair (up to
+    PRUNE_PAIRS_UP_TO terms), all of them, and each parity class of y' in full: the terms odd in y'
+    (dissipative, where friction or nonlinear damping is absorbed) and the even ones (elastic,
+    where a stiffness law is). A baseline that absorbed friction holds several dissipative terms
+    next to true elastic ones (stress #54: y^2 y', y'^3, y^4 y', y'^5 beside y^2, y^3, y^5);
+    neither the pairs nor the whole set take out just the absorbing ones."""
     out = [(t,) for t in terms]
     if len(terms) <= PRUNE_PAIRS_UP_TO:
         out += list(itertools.combinations(terms, 2))
     if len(terms) > 2:
         out.append(tuple(terms))
+    for odd in (1, 0):
+        cls = tuple(t for t in terms if monomials.parse(t)[1] % 2 == odd)
+        if 1 < len(cls) < len(terms) and cls not in out:
+            out.append(cls)
     return out
 
 
@@ -259,7 +269,8 @@ def prune_absorbed(fr: rank.FitResult, keys: list, sc: dict, b: dict, free: list
     without the baseline fn terms it may have made redundant, when one such refit predicts the
     held-out samples better (only for a candidate that removes at least 1 - PRUNE_FIT_SHARE of the
     reference's fitting cost). The reference is then the better of ``ref`` and the baseline without
-    the same terms (c, k refitted): the candidate gets no credit for what dropping them alone does.
+    the same terms, its parameters refitted as in the candidate's fit: the candidate gets no credit
+    for what dropping them and refitting the rest alone does.
     ``cache`` keeps those pruned references between candidates."""
     cache = {} if cache is None else cache
     terms = [t for t in fr.model.baseline.fn_m if f"fn:{t}" not in keys]
@@ -267,7 +278,11 @@ def prune_absorbed(fr: rank.FitResult, keys: list, sc: dict, b: dict, free: list
         return fr, free, (), ref
     best, best_free, best_drop = fr, free, ()
     for drop in drop_sets(terms):
-        f2 = [k for k in free if not (k.startswith("fn:") and k[3:] in drop)]
+        # the baseline's other fn terms were fitted next to the dropped ones and compensate them
+        # (stress #54, Coulomb friction: y^5 at -6.1e13 beside y^4 y' and y'^5): they are refitted
+        # too, and so are they in the reference below, so the candidate gets no credit for that
+        kept = [f"fn:{t}" for t in terms if t not in drop]
+        f2 = list(dict.fromkeys([k for k in free if not (k.startswith("fn:") and k[3:] in drop)] + kept))
         try:
             frd = rank.fit(without_terms(fr.model, drop), list(dict.fromkeys(f2 + keys)), data, sc,
                            max_nfev=max_nfev, bounds=b)
@@ -277,12 +292,13 @@ def prune_absorbed(fr: rank.FitResult, keys: list, sc: dict, b: dict, free: list
             best, best_free, best_drop = frd, f2, drop
     if not best_drop:
         return fr, free, (), ref
-    if best_drop not in cache:
-        try:
-            cache[best_drop] = rank.fit(without_terms(ref.model, best_drop), list(GIVEN_FREE), data, max_nfev=max_nfev)
+    key = (best_drop, tuple(best_free))
+    if key not in cache:
+        try:    # the reference frees what the candidate's fit freed of the baseline
+            cache[key] = rank.fit(without_terms(ref.model, best_drop), best_free, data, max_nfev=max_nfev)
         except CANDIDATE_FAILURES:
-            cache[best_drop] = None
-    pr = cache[best_drop]
+            cache[key] = None
+    pr = cache[key]
     against = pr if pr is not None and math.isfinite(pr.mse_held) and pr.mse_held < ref.mse_held else ref
     return best, best_free, best_drop, against
 
