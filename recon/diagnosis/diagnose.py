@@ -278,18 +278,22 @@ def prune_absorbed(fr: rank.FitResult, keys: list, sc: dict, b: dict, free: list
         return fr, free, (), ref
     best, best_free, best_drop = fr, free, ()
     for drop in drop_sets(terms):
-        # the baseline's other fn terms were fitted next to the dropped ones and compensate them
-        # (stress #54, Coulomb friction: y^5 at -6.1e13 beside y^4 y' and y'^5): they are refitted
-        # too, and so are they in the reference below, so the candidate gets no credit for that
-        kept = [f"fn:{t}" for t in terms if t not in drop]
-        f2 = list(dict.fromkeys([k for k in free if not (k.startswith("fn:") and k[3:] in drop)] + kept))
-        try:
-            frd = rank.fit(without_terms(fr.model, drop), list(dict.fromkeys(f2 + keys)), data, sc,
-                           max_nfev=max_nfev, bounds=b)
-        except CANDIDATE_FAILURES:
-            continue
-        if math.isfinite(frd.mse_held) and frd.mse_held < best.mse_held:
-            best, best_free, best_drop = frd, f2, drop
+        # first with the baseline's other fn terms as they are; then, from there, with them refitted
+        # too: they were fitted next to the dropped ones and may compensate them (stress #54, Coulomb
+        # friction: y^5 at -6.1e13 beside y^4 y' and y'^5). The reference below refits what the
+        # kept fit refitted, so the candidate gets no credit for that
+        f1 = [k for k in free if not (k.startswith("fn:") and k[3:] in drop)]
+        kept = [f"fn:{t}" for t in terms if t not in drop and f"fn:{t}" not in f1]
+        start = without_terms(fr.model, drop)
+        for f2 in ([f1, f1 + kept] if kept else [f1]):
+            try:
+                frd = rank.fit(start, list(dict.fromkeys(f2 + keys)), data, sc, max_nfev=max_nfev, bounds=b)
+            except CANDIDATE_FAILURES:
+                break
+            if math.isfinite(frd.mse_held) and frd.mse_held < best.mse_held:
+                best, best_free, best_drop = frd, f2, drop
+            if math.isfinite(frd.cost_fit):
+                start = frd.model
     if not best_drop:
         return fr, free, (), ref
     key = (best_drop, tuple(best_free))
