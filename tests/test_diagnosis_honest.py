@@ -218,24 +218,31 @@ def test_separating_protocol_is_accepted_by_acquire(tmp_path, pair, stages):
     proto.check_against_limits(load_config(None).limits)
 
 
-def test_a_candidate_is_refitted_without_the_baseline_terms_that_absorbed_it():
-    # a baseline that absorbed friction into y'^3 and y'^5 (fitted to the friction recording, as a
-    # reconstruction without friction in its library does): friction fitted next to them explains
-    # little; refitted without them it recovers mu and predicts the held-out stage far better
-    from recon.diagnosis.diagnose import prune_absorbed
-
+def _friction_beside_absorbing_terms(also_free: list, also_scales: dict):
+    """A friction recording, a baseline that absorbed the friction into y'^3, y'^5 (and the
+    ``also_free`` terms of its own), and friction fitted next to them with c and k."""
     run, _, extras, baseline = concealed_run("coulomb_friction", duration=2.0, seed=0)
     data = rank.prepare(run, baseline)
     am = AugmentedModel(baseline)
     am.baseline.fn_m.update({"dy^3": 0.0, "dy^5": 0.0})
-    absorbed = rank.fit(am, ["c_m", "k_m", "fn:dy^3", "fn:dy^5"], data, {"fn:dy^3": 1.0, "fn:dy^5": 1.0},
-                        max_nfev=60).model
+    absorbed = rank.fit(am, ["c_m", "k_m", *also_free, "fn:dy^3", "fn:dy^5"], data,
+                        {"fn:dy^3": 1.0, "fn:dy^5": 1.0, **also_scales}, max_nfev=60).model
     given = rank.fit(absorbed, [], data)
     m = absorbed.copy()
     m.added = ["coulomb_friction"]
     m.extras.update(mu=0.01, v0=1e-3)
     sc, b = {"x:mu": 0.01}, {"x:mu": (0.0, np.inf)}
     fr = rank.fit(m, ["c_m", "k_m", "x:mu"], data, sc, max_nfev=30, bounds=b)
+    return extras, baseline, data, absorbed, given, fr, sc, b
+
+
+def test_a_candidate_is_refitted_without_the_baseline_terms_that_absorbed_it():
+    # a baseline that absorbed friction into y'^3 and y'^5 (fitted to the friction recording, as a
+    # reconstruction without friction in its library does): friction fitted next to them explains
+    # little; refitted without them it recovers mu and predicts the held-out stage far better
+    from recon.diagnosis.diagnose import prune_absorbed
+
+    extras, _, data, absorbed, given, fr, sc, b = _friction_beside_absorbing_terms([], {})
     assert abs(fr.model.get("mu") / extras["mu"] - 1) > 0.5          # next to y'^3, y'^5: far off
     best, free, drop, against = prune_absorbed(fr, ["x:mu"], sc, b, ["c_m", "k_m"], given, data, 30)
     # the absorbing terms go: dropped, or (kept and refitted beside the candidate) near 0
@@ -256,20 +263,10 @@ def test_the_baseline_terms_kept_beside_the_absorbing_ones_are_refitted_with_the
     # 4e6); once friction is in, y^2 y' is refitted with it and returns to its true value
     from recon.diagnosis.diagnose import prune_absorbed
 
-    run, _, extras, baseline = concealed_run("coulomb_friction", duration=2.0, seed=0)
+    extras, baseline, data, absorbed, given, fr, sc, b = _friction_beside_absorbing_terms(["fn:y^2*dy"],
+                                                                                         {"fn:y^2*dy": 1e6})
     true_y2dy = baseline.fn_m["y^2*dy"]
-    data = rank.prepare(run, baseline)
-    am = AugmentedModel(baseline)
-    am.baseline.fn_m.update({"dy^3": 0.0, "dy^5": 0.0})
-    absorbed = rank.fit(am, ["c_m", "k_m", "fn:y^2*dy", "fn:dy^3", "fn:dy^5"], data,
-                        {"fn:dy^3": 1.0, "fn:dy^5": 1.0, "fn:y^2*dy": 1e6}, max_nfev=60).model
     assert abs(absorbed.baseline.fn_m["y^2*dy"] / true_y2dy - 1) > 0.2
-    given = rank.fit(absorbed, [], data)
-    m = absorbed.copy()
-    m.added = ["coulomb_friction"]
-    m.extras.update(mu=0.01, v0=1e-3)
-    sc, b = {"x:mu": 0.01}, {"x:mu": (0.0, np.inf)}
-    fr = rank.fit(m, ["c_m", "k_m", "x:mu"], data, sc, max_nfev=30, bounds=b)
     best, free, drop, against = prune_absorbed(fr, ["x:mu"], sc, b, ["c_m", "k_m"], given, data, 30)
     assert drop and "fn:y^2*dy" in free and "y^2*dy" not in drop
     assert abs(best.model.baseline.fn_m["y^2*dy"] / true_y2dy - 1) < 0.05
