@@ -224,6 +224,8 @@ def load_rows(paths: list[str]) -> list[dict]:
 def main(args) -> int:
     if getattr(args, "from_jsonl", None):
         rows = load_rows(args.from_jsonl)
+        if not rows:
+            raise SystemExit(f"--from-jsonl: no rows in {', '.join(args.from_jsonl)}")
         idx = [r["index"] for r in rows]
         print(f"{len(rows)} saved rows of the independent generator (#{min(idx)}..#{max(idx)}) from "
               f"{', '.join(args.from_jsonl)}")
