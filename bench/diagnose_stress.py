@@ -234,7 +234,13 @@ def main(args) -> int:
     n = args.n
     ids = list(range(args.first, args.first + n))
     workers = max(1, min(args.workers, 2))
-    out = open(args.jsonl, "w") if args.jsonl else None
+    out = None
+    if args.jsonl:
+        # rows are appended as they come (a stopped run keeps them); an existing file is never truncated
+        try:
+            out = open(args.jsonl, "x")
+        except FileExistsError:
+            raise SystemExit(f"--jsonl: {args.jsonl} exists; name a new file (saved rows are never overwritten)")
     rows = []
     t0 = time.perf_counter()
     pool = mp.get_context("fork").Pool(workers) if workers > 1 else None
