@@ -123,6 +123,19 @@ def test_a_tiny_noise_floor_does_not_make_a_small_gain_significant():
     assert big["significant"]
 
 
+def test_a_candidate_that_reaches_the_noise_floor_needs_a_smaller_gain():
+    # noise variance 1: the reference leaves 0.6 over the floor, the candidate all but 0.05 of it
+    near = rank.score(_fr(1.6), _fr(1.05), 1, 1.0)
+    assert near["explained"] >= rank.NEAR_FLOOR_EXPLAINED and near["gain_over_noise"] < rank.MIN_GAIN_NOISE
+    assert near["significant"]
+    # clean stress #65's false candidate: 70 % of an excess of 2 noise variances (gain 1.4) is not enough
+    part = rank.score(_fr(3.0), _fr(1.6), 1, 1.0)
+    assert part["explained"] == pytest.approx(0.7) and part["gain_over_noise"] == pytest.approx(1.4)
+    assert not part["significant"]
+    # and reaching the floor of a tiny excess is not either (gain 0.28 noise variances)
+    assert not rank.score(_fr(1.3), _fr(1.02), 1, 1.0)["significant"]
+
+
 # ----------------------------------------------------------------- plausibility
 def test_implausible_fits_are_named_with_their_reasons():
     run, _, _, baseline = concealed_run(None, seed=3, duration=1.0)
