@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.exciter import drive_force
 from recon.library import monomials
 from recon.simulation.rk4 import simulate_sdof, substeps
 from recon.simulation.start_state import fit_start
@@ -72,12 +73,19 @@ class HystereticModel:
     # is driven by g (u - b). None (the default) = no such parameter; every result without it is
     # unchanged (ReconSettings.input_offset)
     input_offset: float | None = None
+    # the exciter between a recorded drive and the force (force excitation, recon.exciter): the
+    # model is driven by g HP_hp(u + u2 u^2). None (the default): driven by the input as recorded
+    drive_u2: float | None = None
+    drive_hp: float | None = None
 
     def __post_init__(self):
         if self.excitation not in (BASE, FORCE):
             raise UserFacingError(f"model excitation must be 'base' or 'force', got {self.excitation!r}")
         if self.excitation == FORCE and self.inv_m is None:
             raise UserFacingError("force-excitation model needs inv_m (1/m)")
+        if self.excitation != FORCE and (self.drive_u2 is not None or self.drive_hp is not None):
+            raise UserFacingError("an exciter model (drive_u2, drive_hp) needs force excitation: under base "
+                                  "excitation the input is the measured base acceleration, not a drive")
         self.fn_m = {k: float(v) for k, v in self.fn_m.items()}
         for k in self.fn_m:
             monomials.parse(k)
@@ -120,7 +128,21 @@ class HystereticModel:
                    else f"{self.inv_m:.6g} (F{signed(-self.input_offset, '')})")
         zeq = (f"z' = {self.alpha_m:.6g} y'{signed(-self.gamma, ' |y' + chr(39) + '| z')}"
                f"{signed(-self.delta, ' y' + chr(39) + ' |z|')}")
-        return f"{lhs} + z = {rhs}\n{zeq}"
+        out = f"{lhs} + z = {rhs}\n{zeq}"
+        if self.has_drive:
+            out += (f"\nF = HP(u{signed(self.drive_u2 or 0.0, ' u^2')}), high-pass corner "
+                    f"{abs(self.drive_hp or 0.0) / (2 * np.pi):.4g} Hz, u the recorded drive (recon.exciter)")
+        return out
+
+    @property
+    def has_drive(self) -> bool:
+        return self.drive_u2 is not None or self.drive_hp is not None
+
+    def drive(self, u: np.ndarray, dt: float) -> np.ndarray:
+        """The force the exciter makes of the recorded drive ``u`` (``u`` itself without an exciter model)."""
+        if not self.has_drive:
+            return u
+        return drive_force(u, dt, self.drive_u2 or 0.0, self.drive_hp or 0.0)
 
     def __str__(self) -> str:
         return self.equation()
@@ -138,6 +160,10 @@ class HystereticModel:
         if self.input_offset is not None:
             params["input_offset"] = self.input_offset
             units = dict(UNITS, input_offset="m/s^2" if self.excitation == BASE else "N")
+        if self.has_drive:
+            params["drive_u2"] = self.drive_u2 or 0.0
+            params["drive_hp"] = self.drive_hp or 0.0
+            units = dict(units, drive_u2="1/(drive unit)", drive_hp="rad/s")
         return {"kind": "shakerlab.recon.HystereticModel", "excitation": self.excitation,
                 "parameters": params, "units": units, "convention": CONVENTION,
                 "equation": self.equation(), "provenance": self.provenance}
@@ -182,8 +208,10 @@ class HystereticModel:
         offset = p.get("input_offset")
         if offset is not None:
             offset = finite_number(offset, "parameters.input_offset")
+        drive = {k: finite_number(p[k], f"parameters.{k}") if p.get(k) is not None else None
+                 for k in ("drive_u2", "drive_hp")}
         provenance = d.get("provenance", {})
-        return cls(excitation=d["excitation"], fn_m=fn_m, inv_m=inv_m, input_offset=offset,
+        return cls(excitation=d["excitation"], fn_m=fn_m, inv_m=inv_m, input_offset=offset, **drive,
                    provenance=provenance if isinstance(provenance, dict) else {}, **values)
 
     @classmethod
@@ -230,6 +258,7 @@ class HystereticModel:
         dt = float(np.median(dts))
         if np.any(np.abs(dts - dt) > 1e-6 * dt + 1e-12):
             raise UserFacingError("simulate: t must be uniformly sampled")
+        u = self.drive(u, dt)
         coef, p, r = self.fn_arrays()
         if n_sub is None:   # capped: a trial stiffer than that (resonance above ~fs) is far from any record;
             # uncapped, one such output-error trial took minutes (issue 18), capped it diverges and is rejected

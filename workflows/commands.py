@@ -42,6 +42,10 @@ def register(subparsers) -> None:
                         "(needs no third derivative; holds to 40 dB SNR, see docs/method.md) or the paper's AB-only form")
     p.add_argument("--uncertainty", action="store_true",
                    help="add 95%% intervals of every parameter (key 'uncertainty'; see docs/reprocessing.md)")
+    p.add_argument("--drive", action="store_true",
+                   help="the force channel is the exciter's drive (an amplifier voltage), not a measured force: "
+                        "also fit the exciter's even-order distortion and low-frequency roll-off, kept when it "
+                        "predicts the validation stage better (force excitation; docs/real-data.md)")
     _inertia_option(p)
     p.set_defaults(handler=_handler("reconstruct_command"))
     register_reprocessing(subparsers)

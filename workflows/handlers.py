@@ -31,11 +31,15 @@ def reconstruct_command(args) -> int:
     check_outputs(args)
     run = load_run(args.run)
     if run_mode(run) == CONSTITUTIVE:       # a component test: the force law (docs/constitutive.md)
+        if getattr(args, "drive", False):
+            raise UserFacingError(f"--drive is for a structure driven through an exciter; {args.run} is a "
+                                  f"component test (its force is measured)")
         return constitutive.reconstruct_command(args, run)
     if getattr(args, "inertia", "none") != "none":
         raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
     result = reconstruct(run, ReconSettings(library_order=args.library_order, polish=not args.no_polish,
-                                            form=getattr(args, "form", "joint")))
+                                            form=getattr(args, "form", "joint"),
+                                            drive=bool(getattr(args, "drive", False))))
     out = result.to_dict()
     out["warnings"] = warnings_for(run, result)
     if getattr(args, "uncertainty", False):
@@ -62,6 +66,12 @@ def reconstruct_command(args) -> int:
                              else ("not admissible", "inadmissible"))
             print(f"the full model was {was}: answering with the simpler {fb['kind']} model, chosen by "
                   f"{fb['chosen_by']}; the {estimate} estimate is in the JSON (adequacy.fallback)")
+    drive = result.model.provenance.get("drive_fit")
+    if drive:
+        print(f"exciter (--drive): " + (
+            f"distortion u2 {drive['drive_u2']:.4g}, roll-off {drive['drive_hp_hz']:.3g} Hz; held-out NRMSE "
+            f"{drive['held_out_nrmse_without']:.4g} -> {drive['held_out_nrmse_with']:.4g}" if drive.get("applied")
+            else f"not kept ({drive.get('reason') or drive.get('failed')})"))
     rule = result.model.provenance.get("input_offset_rule") or {}
     if rule.get("on"):
         print(f"input offset fitted ({result.model.input_offset:.4g}): {rule['reason']}")

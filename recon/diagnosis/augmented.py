@@ -96,8 +96,8 @@ class AugmentedModel:
         """
         m = self.baseline
         t = np.asarray(t, float)
-        u = np.asarray(u, float)
         dt = float(np.median(np.diff(t)))
+        u = m.drive(np.asarray(u, float), dt)        # the exciter's force, when the baseline models one
         coef, p, r = m.fn_arrays()
         mu = self.get("mu")
         v0 = self.get("v0")

@@ -101,6 +101,14 @@ def _higher_mode(base, ctx):
     return out
 
 
+def _exciter(base, ctx):
+    # the drive's roll-off starts inside its bound (0.1 Hz), the distortion at 0 (recon.exciter)
+    m = _am(base, {}, "exciter_distortion")
+    m.baseline.drive_u2, m.baseline.drive_hp = 0.0, 2 * math.pi * 0.1
+    return [(m, ["drive_u2", "drive_hp"], {"drive_u2": 0.01 / ctx["u_rms"], "drive_hp": 2 * math.pi * 0.5},
+             {"drive_hp": (0.0, 2 * math.pi * 0.5 * ctx["f_res"])})]
+
+
 def _hysteresis(base, ctx):
     out = []
     for lam_y in (1.0, 3.0):
@@ -172,6 +180,12 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
               "library term y^2*dy in fn", "fn gains b y^2 y' (RK4 of the augmented SDOF)", ("fn:y^2*dy",),
               _fn_start("y^2*dy", "amplitude_damping", lambda c: 0.01 * c["acc_rms"] / (c["y_rms"] ** 2 * c["v_rms"])),
               lambda b, c: "y^2*dy" not in b.fn_m, column=lambda am, t, y, dy: y ** 2 * dy),
+    Candidate("exciter_distortion",
+              "the input is the exciter's drive (an amplifier voltage), and the exciter does not turn it into "
+              "force in proportion: an even-order distortion (u^2) and a low-frequency roll-off",
+              "model change: the force is HP(u + u2 u^2), a first-order high-pass of corner hp",
+              "the drive transformed (recon.exciter), then the SDOF (force excitation only)",
+              ("drive_u2", "drive_hp"), _exciter, lambda b, c: b.excitation != BASE and not b.has_drive),
     Candidate("hysteresis",
               "the restoring force depends on the history of motion (a Bouc-Wen hysteretic loop) "
               "that the baseline without hysteresis cannot produce",

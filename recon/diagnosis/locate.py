@@ -274,6 +274,7 @@ def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
         "v_rms": float(np.mean(v_parts)) if v_parts else 1e-3,
         "v_rms_min": float(np.min(v_parts)) if v_parts else 1e-3,
         "acc_rms": float(np.mean(acc_parts)) if acc_parts else 1.0,
+        "u_rms": float(np.sqrt(np.mean(np.concatenate([d.u for d in data]) ** 2))) or 1.0,
         "dt": data[0].dt, "t_end": float(max(d.t[-1] for d in data)),
         "f_res": f_res, "billings_voon": bv_all,
     }

@@ -14,6 +14,7 @@ import numpy as np
 
 from recon.determinism import single_thread_blas
 from recon.estimator.adequacy import assess
+from recon.estimator.drive import fit_drive
 from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, held_out_stages, score, simpler_models
 from recon.estimator.finish import validate
 from recon.estimator.input_offset import resolve_input_offset
@@ -26,7 +27,7 @@ from recon.output_error.term_selection import select_terms, stage_data
 from recon.steps.bouc_wen import NEGLIGIBLE, term_contributions
 from recon.steps.linear import LinearFit
 from shakerlab.errors import UserFacingError
-from shakerlab.run_data import Run
+from shakerlab.run_data import FORCE, Run
 
 # the forms of the nonlinear step, each a function (run, settings, validate_model) -> ReconResult
 FORMS = {"joint": reconstruct_pointwise, "ab": reconstruct_pointwise, "weak": reconstruct_weak}
@@ -54,7 +55,12 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
     (:mod:`recon.estimator.input_offset`); the result's settings hold the decision and its
     model's provenance the figures (``input_offset_rule``)."""
     s, rule = resolve_input_offset(run, settings or ReconSettings())
+    if s.drive and run.excitation != FORCE:
+        raise UserFacingError(f"--drive needs force excitation ({run.source or 'the run'} is {run.excitation} "
+                              f"excitation): it models the exciter between a recorded drive and the force")
     result = _reconstruct_passes(run, s, validate_model)
+    if s.drive:
+        result = fit_drive(result, run, s)
     if rule is not None:
         result.model.provenance["input_offset_rule"] = rule
     return result

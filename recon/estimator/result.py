@@ -36,6 +36,9 @@ class ReconSettings:
     # constant force on the specimen). "auto": on when the data show a DC the excitation cannot make
     # (recon.estimator.input_offset); reconstruct stores the decision (True/False) in its settings
     input_offset: bool | str = "auto"
+    # the force channel is the exciter's drive (an amplifier voltage), not a measured force: fit the
+    # exciter's distortion and roll-off at the end (recon.exciter, recon.estimator.drive); force only
+    drive: bool = False
 
     FORMS = ("joint", "ab", "weak")
 
@@ -44,6 +47,8 @@ class ReconSettings:
             raise UserFacingError(f"ReconSettings.form must be one of {self.FORMS}, got {self.form!r}")
         if self.input_offset not in (True, False, "auto"):
             raise UserFacingError(f"ReconSettings.input_offset must be True, False or 'auto', got {self.input_offset!r}")
+        if self.drive not in (True, False):
+            raise UserFacingError(f"ReconSettings.drive must be True or False, got {self.drive!r}")
         if self.fallback_form is not None and self.fallback_form not in self.FORMS:
             raise UserFacingError(f"ReconSettings.fallback_form must be None or one of {self.FORMS}, "
                                   f"got {self.fallback_form!r}")
@@ -88,6 +93,8 @@ class ReconResult:
             "settings": {"differentiation": self.differentiation, "threshold": self.sparse["threshold"],
                          "library_order": self.settings.library_order, "form": self.settings.form,
                          "refit": self.settings.refit,
+                         **({"drive": True, "drive_fit": self.model.provenance.get("drive_fit")}
+                            if getattr(self.settings, "drive", False) else {}),
                          **({"simpler_model": self.adequacy["fallback"]["kind"]}
                             if (self.adequacy.get("fallback") or {}).get("used") else {})},
             "adequacy": self.adequacy,

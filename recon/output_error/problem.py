@@ -45,6 +45,7 @@ def parameter_keys(model: HystereticModel, extra_terms=()) -> list[str]:
         keys.append("inv_m")
     if getattr(model, "input_offset", None) is not None:     # only when the model carries one
         keys.append("input_offset")
+    keys += [k for k in ("drive_u2", "drive_hp") if getattr(model, k, None) is not None]   # its exciter's
     return keys
 
 

@@ -1,0 +1,68 @@
+"""The exciter step of reconstruct (``ReconSettings(drive=True)``, ``shakerlab reconstruct --drive``).
+
+When the force channel is the exciter's drive (an amplifier voltage) rather than a measured
+force, the finished model is refitted by output error on the fitted stages with the
+exciter's two parameters free as well (recon.exciter: the force is HP_hp(u + u2 u^2)),
+every other parameter free too. The refit is kept when it predicts the held-out
+(validation) stages better; either way the figures go to the model's provenance
+(``drive_fit``). On the real bolted beam (docs/real-data.md) it lowers every held-out
+record's NRMSE, the 9.5 Hz sine's from 0.402 to 0.23.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from recon.estimator.adequacy import assess
+from recon.estimator.fallback import NUMERICAL_ERRORS, held_out_stages, score
+from recon.estimator.finish import validate
+from recon.estimator.result import ReconResult, ReconSettings
+from recon.model import HystereticModel
+from recon.output_error.polish import polish
+from shakerlab.errors import UserFacingError
+from shakerlab.run_data import FORCE, Run
+
+HP_START_HZ = 0.1       # the roll-off's start: far below any structural resonance
+DRIVE_NFEV = 60
+
+
+def fit_drive(result: ReconResult, run: Run, s: ReconSettings) -> ReconResult:
+    """``result`` with the exciter fitted (see the module docstring)."""
+    model = result.model
+    if model.excitation != FORCE:
+        raise UserFacingError("--drive needs force excitation: it models the exciter between a recorded drive "
+                              "(an amplifier voltage) and the force; under base excitation the input is the "
+                              "measured base acceleration")
+    t0 = time.perf_counter()
+    fitted = tuple(n for n in (s.linear_stage, s.nonlinear_stage) if n in run.stages)
+    names, held = held_out_stages(run, fitted)
+    start = HystereticModel.from_dict(model.to_dict())
+    start.drive_u2, start.drive_hp = 0.0, 2 * math.pi * HP_START_HZ
+    info = {"fitted_on": list(fitted), "held_out": names, "held_out_is_validation": held,
+            "held_out_nrmse_without": score(model, run, names)}
+    try:
+        new, pinfo = polish(start, [start.fit_item(run.stage(n)) for n in fitted], max_nfev=DRIVE_NFEV)
+        after = score(new, run, names)
+    except NUMERICAL_ERRORS as exc:
+        info.update(applied=False, failed=f"{type(exc).__name__}: {exc}", seconds=time.perf_counter() - t0)
+        model.provenance["drive_fit"] = info
+        return result
+    info.update(held_out_nrmse_with=after, drive_u2=new.drive_u2, drive_hp=new.drive_hp,
+                drive_hp_hz=abs(new.drive_hp) / (2 * math.pi), fit_nrmse_before=pinfo["nrmse_before"],
+                fit_nrmse_after=pinfo["nrmse_after"])
+    keep = bool(pinfo["applied"] and np.isfinite(after) and after < info["held_out_nrmse_without"])
+    info["applied"] = keep
+    info["seconds"] = time.perf_counter() - t0
+    if not keep:
+        info["reason"] = "the refit with the exciter does not predict the held-out stages better"
+        model.provenance["drive_fit"] = info
+        return result
+    new.drive_hp = abs(new.drive_hp)
+    new.provenance = dict(model.provenance, drive_fit=info)
+    result.model = new
+    if result.validation:
+        result.validation = validate(new, run)
+    result.adequacy = assess(new, result.validation, run, (result.adequacy or {}).get("fallback"))
+    return result
