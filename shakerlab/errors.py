@@ -8,3 +8,8 @@ class UserFacingError(Exception):
     must name the problem precisely: the file, the field or line, and what was
     expected.
     """
+
+
+class EstimateRefused(UserFacingError):
+    """The recording does not determine part of an estimate (not an input error): reconstruct
+    records it and goes on to its other passes and, failing them, to the simpler models."""

@@ -68,7 +68,7 @@ def reconstruct_command(args) -> int:
                   f"{fb['chosen_by']}; the {estimate} estimate is in the JSON (adequacy.fallback)")
     drive = result.model.provenance.get("drive_fit")
     if drive:
-        print(f"exciter (--drive): " + (
+        print("exciter (--drive): " + (
             f"distortion u2 {drive['drive_u2']:.4g}, roll-off {drive['drive_hp_hz']:.3g} Hz; held-out NRMSE "
             f"{drive['held_out_nrmse_without']:.4g} -> {drive['held_out_nrmse_with']:.4g}" if drive.get("applied")
             else f"not kept ({drive.get('reason') or drive.get('failed')})"))

@@ -26,7 +26,7 @@ from scipy.optimize import minimize_scalar
 from recon.library import monomials
 from recon.library.agent import AgentLibrary, dphi, phi
 from recon.regression.sparse import scaled_lstsq
-from shakerlab.errors import UserFacingError
+from shakerlab.errors import EstimateRefused, UserFacingError
 
 
 @dataclass
@@ -225,7 +225,7 @@ def estimate_delta(params: HysteresisParams, y, dy, ddy, Fn, dFn, h) -> Hysteres
     r = (np.abs(dy) * z - dy * np.abs(z))[mask]
     rr = float(r @ r)
     if rr == 0 or mask.sum() < 10:
-        raise UserFacingError("no samples where y' and z have opposite signs: delta cannot be identified "
+        raise EstimateRefused("no samples where y' and z have opposite signs: delta cannot be identified "
                               "(the nonlinear stage must cycle through the whole loop)")
     delta = float(r @ l) / rr
     info = dict(params.info)

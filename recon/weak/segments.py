@@ -60,7 +60,7 @@ from recon.regression.sparse import GroupedSparseSelector
 from recon.signals import stage_signals
 from recon.steps.bouc_wen import HysteresisParams, extract, fn_values, project_lambda
 from recon.steps.linear import LinearFit, fit_linear
-from shakerlab.errors import UserFacingError
+from shakerlab.errors import EstimateRefused, UserFacingError
 from shakerlab.run_data import BASE, FORCE
 
 BUMP_POWER = 3
@@ -303,7 +303,7 @@ def weak_delta(params: HysteresisParams, L: WeakLayer, h: np.ndarray, c, K, g, D
     sgn_dy = np.sign(L.dy)
     win = segment_windows(h, values=(0,), sign_of=lambda a, n: np.sign(np.sum(sgn_dy[a:a + n])))
     if len(win) < 3:
-        raise UserFacingError("no segments where y' and z have opposite signs: delta cannot be identified "
+        raise EstimateRefused("no segments where y' and z have opposite signs: delta cannot be identified "
                               "(the nonlinear stage must cycle through the whole loop)")
     tf = TestFunctions.build(win, L.y.size, L.dt)
     V0, V1, V2, V3 = tf.V
