@@ -103,3 +103,24 @@ def test_drive_is_refused_under_base_excitation():
         reconstruct(run, ReconSettings(drive=True))
     with pytest.raises(UserFacingError, match="drive"):
         ReconSettings(drive="yes")
+
+
+def test_diagnose_names_the_exciter_only_where_there_is_one(driven_run):
+    from recon import diagnose
+
+    run, true = driven_run
+    plain = HystereticModel.from_dict(dict(true.to_dict(), parameters={
+        k: v for k, v in true.to_dict()["parameters"].items() if not k.startswith("drive_")}))
+    assert not plain.has_drive
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        found = diagnose(run, baseline=plain, candidates=["exciter_distortion", "coulomb_friction"]).to_dict()
+        clean, _ = sdof_run("force", snr_db=60.0, duration=6.0, seed=3)
+        none = diagnose(clean, baseline=plain, candidates=["exciter_distortion"]).to_dict()
+    assert [m["id"] for m in found["missing_physics"]][:1] == ["exciter_distortion"]
+    got = found["missing_physics"][0]["parameters"]
+    assert got["drive_u2"]["value"] == pytest.approx(true.drive_u2, rel=0.15)
+    assert got["drive_u2"]["interval"][1] < 0
+    assert found["fit_after"]["held_out_nrmse"] < found["fit_before"]["held_out_nrmse"]
+    # a measured force (the stages as sdof_run records them): nothing to name
+    assert none["missing_physics"] == []
