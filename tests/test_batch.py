@@ -142,3 +142,25 @@ def test_expand_patterns(tmp_path):
     assert expand([str(tmp_path / "*.h5"), str(tmp_path / "a.h5")]) == [str(tmp_path / "a.h5"), str(tmp_path / "b.h5")]
     with pytest.raises(UserFacingError, match="no run file matches"):
         expand([str(tmp_path / "*.npz")])
+
+
+def test_drive_leaves_earlier_settings_hashes_as_they_were_and_is_a_row_on_a_base_run(batch_dir):
+    import hashlib
+    import json as _json
+
+    from recon.output_error.uncertainty import UncertaintySettings
+    from shakerlab import __version__
+
+    d, _ = batch_dir
+    job = BatchSettings(recon={"library_order": 5, "polish": True}).job()
+    # the hash of a job without --drive is the one the same job had before the setting existed
+    rs = {k: v for k, v in ReconSettings(**job["recon"]).to_dict().items() if k != "drive"}
+    text = _json.dumps({"recon": rs, "uncertainty": UncertaintySettings(**job.get("uncertainty_settings", {})).to_dict(),
+                        "software": __version__}, sort_keys=True, default=str)
+    assert settings_hash(job) == hashlib.sha256(text.encode()).hexdigest()[:16]
+    driven = BatchSettings(recon={"library_order": 5, "polish": True, "drive": True}, uncertainty=False,
+                           write_back=False).job()
+    assert settings_hash(driven) != settings_hash(BatchSettings(recon={"library_order": 5, "polish": True},
+                                                                uncertainty=False, write_back=False).job())
+    row = process_run(str(d / "run_a.h5"), driven)      # a base-excitation run: a failed row with the reason
+    assert row["status"] != "ok" and "--drive needs force excitation" in row["reason"], row

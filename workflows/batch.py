@@ -83,6 +83,8 @@ def settings_hash(job: dict) -> str:
     their defaults filled in, the uncertainty settings, and the software version."""
 
     rs = ReconSettings(**job.get("recon", {})).to_dict()
+    if not rs.get("drive"):     # added later, off by default: the hash of every earlier setting is unchanged
+        rs.pop("drive", None)
     us = UncertaintySettings(**job.get("uncertainty_settings", {})).to_dict() if job.get("uncertainty") else None
     text = json.dumps({"recon": rs, "uncertainty": us, "software": __version__,
                        **({"term_models": int(job["term_models"])} if job.get("term_models") else {})},
@@ -111,6 +113,9 @@ def reconstruct_payload(run, job: dict):
 
     if run_mode(run) == CONSTITUTIVE:      # a component test: its force law (docs/constitutive.md)
         rs = job.get("recon", {})
+        if rs.get("drive"):
+            raise UserFacingError(f"--drive is for a structure driven through an exciter; {run.source} is a "
+                                  f"component test (its force is measured)")
         cs = ConstitutiveSettings(library_order=rs.get("library_order", 5), polish=rs.get("polish", True))
         result = reconstruct_constitutive(run, cs)
         payload = result.to_dict()

@@ -107,6 +107,9 @@ def _common_recon_options(p) -> None:
     p.add_argument("--no-uncertainty", action="store_true", help="skip the parameter intervals")
     p.add_argument("--resamples", metavar="B", type=int, default=200,
                    help="ensemble members for the intervals (default 200)")
+    p.add_argument("--drive", action="store_true",
+                   help="the force channel is the exciter's drive (an amplifier voltage): also fit the exciter "
+                        "(as reconstruct --drive; force excitation)")
 
 
 # --- mismatch diagnosis: `diagnose` (recon/diagnosis/, docs/diagnosis.md) -----------------------------

@@ -107,7 +107,8 @@ def _recon_settings(args) -> dict:
         raise UserFacingError(f"--library-order must be between 2 and 8, got {args.library_order}")
     if args.resamples < 50:
         raise UserFacingError(f"--resamples must be at least 50, got {args.resamples}")
-    return {"library_order": args.library_order, "polish": not args.no_polish}
+    return {"library_order": args.library_order, "polish": not args.no_polish,
+            **({"drive": True} if getattr(args, "drive", False) else {})}
 
 
 def _term_models(args) -> int:
@@ -121,6 +122,9 @@ def report_command(args) -> int:
 
     rs = _recon_settings(args)
     if is_hdf5(args.run) and read_info(args.run)["mode"] == CONSTITUTIVE:
+        if rs.get("drive"):
+            raise UserFacingError(f"--drive is for a structure driven through an exciter; {args.run} is a "
+                                  f"component test (its force is measured)")
         return constitutive.report_command(args, load_run(args.run))
     if getattr(args, "inertia", "none") != "none":
         raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
