@@ -124,3 +124,21 @@ def test_diagnose_names_the_exciter_only_where_there_is_one(driven_run):
     assert found["fit_after"]["held_out_nrmse"] < found["fit_before"]["held_out_nrmse"]
     # a measured force (the stages as sdof_run records them): nothing to name
     assert none["missing_physics"] == []
+
+
+def test_the_exciter_refit_of_a_model_without_hysteresis_keeps_it_without(driven_run):
+    # a simpler kind answered (alpha = 0): the refit leaves its Bouc-Wen parameters at 0 and is kept
+    from recon.estimator.drive import fit_drive
+
+    run, true = driven_run
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        result = reconstruct(run, ReconSettings())
+    result.model = HystereticModel("force", c_m=true.c_m, k_m=true.K_m, alpha_m=0.0, gamma=0.0, delta=0.0,
+                                   inv_m=true.inv_m)
+    out = fit_drive(result, run, ReconSettings(drive=True))
+    info = out.model.provenance["drive_fit"]
+    assert info["applied"], str(info)
+    assert (out.model.alpha_m, out.model.gamma, out.model.delta) == (0.0, 0.0, 0.0)
+    assert info["held_out_nrmse_with"] < info["held_out_nrmse_without"]
+    assert out.model.drive_hp > 0 and out.validation["nrmse"] == pytest.approx(info["held_out_nrmse_with"])

@@ -34,8 +34,10 @@ def decimate(item: tuple, fs_target: float = POLISH_FS):
     return (t[::q], item[1][::q], item[2][::q], *item[3:]), q
 
 
-def polish(model: HystereticModel, data: list, max_nfev: int = 60, masks=None, fs_target: float | None = POLISH_FS):
+def polish(model: HystereticModel, data: list, max_nfev: int = 60, masks=None, fs_target: float | None = POLISH_FS,
+           free: list | None = None):
     """Refine ``model`` on ``data`` = [(t, u, y_meas[, (y0, dy0, a0)]), ...]; returns (model, info).
+    ``free``: the parameter keys refined (None: every key of the model, problem.parameter_keys).
 
     ``masks``: per data item, the samples the residual is taken over (None: all).
     Items sampled faster than twice ``fs_target`` are decimated to >= ``fs_target`` for the
@@ -46,7 +48,7 @@ def polish(model: HystereticModel, data: list, max_nfev: int = 60, masks=None, f
         data, q = [d for d, _ in dec], [k for _, k in dec]
         if masks is not None:
             masks = [None if m is None else m[::k] for m, k in zip(masks, q)]
-    prob = OutputError(model, data, masks)
+    prob = OutputError(model, data, masks, free=free)
     p0 = np.zeros(len(prob.keys))
     r0 = prob.residual(p0)
     sol = least_squares(prob.residual, p0, method="trf", x_scale=1.0, diff_step=FD_STEP,
