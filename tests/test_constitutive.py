@@ -181,6 +181,10 @@ def test_import_reconstruct_report_end_to_end(tmp_path, capsys):
     run = load_run(run_file)
     assert set(run.stage("validation").channels) == {"x", "force", "velocity", "command"}
     capsys.readouterr()
+    for cmd in (["reconstruct", str(run_file), "--drive"], ["report", str(run_file), "-o", str(tmp_path / "r"), "--drive"]):
+        assert main(cmd) == 2
+        assert "--drive is for a structure" in capsys.readouterr().err
+    assert read_info(run_file)["results"] == [] and not (tmp_path / "r").exists()
     law_file = tmp_path / "law.json"
     assert main(["reconstruct", str(run_file), "--json", "--save-model", str(law_file)]) == 0
     d = json.loads(capsys.readouterr().out)

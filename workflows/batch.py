@@ -108,14 +108,19 @@ def _fill(row: dict, payload: dict) -> dict:
     return row
 
 
+def refuse_drive_for_component_test(drive: bool, source) -> None:
+    """--drive models the exciter before a structure; a component test's force is measured."""
+    if drive:
+        raise UserFacingError(f"--drive is for a structure driven through an exciter; {source} is a "
+                              f"component test (its force is measured)")
+
+
 def reconstruct_payload(run, job: dict):
     """(result, payload) for one run: the reconstruction's JSON, plus ``uncertainty`` when asked."""
 
     if run_mode(run) == CONSTITUTIVE:      # a component test: its force law (docs/constitutive.md)
         rs = job.get("recon", {})
-        if rs.get("drive"):
-            raise UserFacingError(f"--drive is for a structure driven through an exciter; {run.source} is a "
-                                  f"component test (its force is measured)")
+        refuse_drive_for_component_test(rs.get("drive", False), run.source)
         cs = ConstitutiveSettings(library_order=rs.get("library_order", 5), polish=rs.get("polish", True))
         result = reconstruct_constitutive(run, cs)
         payload = result.to_dict()

@@ -15,8 +15,8 @@ from shakerlab.output_files import check_directory, check_output, is_hdf5
 from shakerlab.modes import CONSTITUTIVE, run_mode
 from shakerlab.runfile.reader import load_run, read_info
 from workflows import constitutive
-from workflows.batch import (BatchSettings, TextProgress, diagnosis_available, expand, format_table, run_batch,
-                             run_loop, write_csv)
+from workflows.batch import (BatchSettings, TextProgress, diagnosis_available, expand, format_table,
+                             refuse_drive_for_component_test, run_batch, run_loop, write_csv)
 from workflows.demo import run_demo
 from workflows.diagnosis_report import write_report
 from workflows.figures import write_validation_plots
@@ -31,9 +31,7 @@ def reconstruct_command(args) -> int:
     check_outputs(args)
     run = load_run(args.run)
     if run_mode(run) == CONSTITUTIVE:       # a component test: the force law (docs/constitutive.md)
-        if getattr(args, "drive", False):
-            raise UserFacingError(f"--drive is for a structure driven through an exciter; {args.run} is a "
-                                  f"component test (its force is measured)")
+        refuse_drive_for_component_test(getattr(args, "drive", False), args.run)
         return constitutive.reconstruct_command(args, run)
     if getattr(args, "inertia", "none") != "none":
         raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
@@ -122,9 +120,7 @@ def report_command(args) -> int:
 
     rs = _recon_settings(args)
     if is_hdf5(args.run) and read_info(args.run)["mode"] == CONSTITUTIVE:
-        if rs.get("drive"):
-            raise UserFacingError(f"--drive is for a structure driven through an exciter; {args.run} is a "
-                                  f"component test (its force is measured)")
+        refuse_drive_for_component_test(rs.get("drive", False), args.run)
         return constitutive.report_command(args, load_run(args.run))
     if getattr(args, "inertia", "none") != "none":
         raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
