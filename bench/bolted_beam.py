@@ -22,9 +22,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recon import ReconSettings, reconstruct  # noqa: E402
-from recon.estimator.fallback import _fit, simpler_models  # noqa: E402
+from recon.estimator.fallback import simpler_models  # noqa: E402
 from recon.model import HystereticModel  # noqa: E402
-from recon.output_error.polish import decimate  # noqa: E402
+from recon.output_error.polish import polish  # noqa: E402
 from recon.validation import nrmse  # noqa: E402
 from shakerlab.runfile.reader import load_run  # noqa: E402
 
@@ -95,8 +95,8 @@ def main() -> int:
     # the yardstick given the exciter too: the linear SDOF and HP(u + u2 u^2), fitted the same way
     lin_drive = HystereticModel.from_dict(linear.to_dict())
     lin_drive.drive_u2, lin_drive.drive_hp = 0.0, 2 * np.pi * 0.1
-    lin_drive = _fit(lin_drive, [decimate(lin_drive.fit_item(run.stage(n)))[0] for n in ("linear", "nonlinear")],
-                     ["c_m", "k_m", "inv_m", "drive_u2", "drive_hp"], 60)
+    lin_drive, _ = polish(lin_drive, [lin_drive.fit_item(run.stage(n)) for n in ("linear", "nonlinear")],
+                          free=["c_m", "k_m", "inv_m", "drive_u2", "drive_hp"])
     print("identified (chirps 0.05 V and 0.30 V):", res.model.equation().replace("\n", "  |  "))
     print("verdict:", res.adequacy["verdict"], "; fallback:", (res.adequacy.get("fallback") or {}).get("kind"))
     print("linear yardstick (output error, same chirps):", linear.equation().splitlines()[0])
