@@ -1,4 +1,5 @@
-"""Sub-commands of the application layer (see shakerlab.cli): reconstruct, report, reprocess, diagnose, demo.
+"""Sub-commands of the application layer (see shakerlab.cli): reconstruct, report, reprocess, diagnose, backbone,
+demo.
 
 Only the parsers live here, so ``shakerlab --help`` stays instant; the handlers (workflows.handlers) are
 imported when a command runs."""
@@ -50,6 +51,7 @@ def register(subparsers) -> None:
     p.set_defaults(handler=_handler("reconstruct_command"))
     register_reprocessing(subparsers)
     register_diagnosis(subparsers)
+    register_backbone(subparsers)
     register_demo(subparsers)
 
 
@@ -133,6 +135,35 @@ def register_diagnosis(subparsers) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace an existing --save-model file or --report files (never a run file)")
     p.set_defaults(handler=_handler("diagnose_command"))
+
+
+# --- amplitude dependence from a ring-down: `backbone` (recon/backbone.py, workflows/backbone.py) ---------
+
+def register_backbone(subparsers) -> None:
+    p = subparsers.add_parser(
+        "backbone",
+        help="frequency and damping against amplitude from a stage's ring-down (measured, and as a model predicts)",
+        description="Band-pass a stage's response around one mode, read the instantaneous frequency and decay "
+                    "rate of its analytic signal, and tabulate them against the envelope. With --model, the same "
+                    "for the model's simulation of the stage (docs/real-data.md).",
+    )
+    p.add_argument("run", metavar="RUN", help="run file (.h5 or .npz)")
+    p.add_argument("--stage", help="stage to read (default: validation, else the last)")
+    p.add_argument("--mode-hz", type=float, help="the mode's frequency (default: the model's sqrt(K)/2 pi with "
+                                                 "--model, else the peak of the stage's response spectrum)")
+    p.add_argument("--from", dest="t_from", type=float, metavar="S", help="read from S seconds after the stage's start")
+    p.add_argument("--to", dest="t_to", type=float, metavar="S", help="read up to S seconds after the stage's start")
+    p.add_argument("--band", type=float, default=0.25, help="half-width of the band-pass, relative (default 0.25)")
+    p.add_argument("--bins", type=int, default=8, help="amplitude bins (default 8)")
+    p.add_argument("--model", metavar="MODEL.json", help="a saved model (reconstruct --save-model) to compare")
+    p.add_argument("--json", action="store_true", help="print one JSON object (machine-readable)")
+    p.set_defaults(handler=_backbone)
+
+
+def _backbone(args) -> int:
+    from workflows.backbone import backbone_command  # heavy imports only when the command runs
+
+    return backbone_command(args)
 
 
 # --- the whole experiment on an embedded simulated rig: `demo` (workflows/demo.py) ---------------------
