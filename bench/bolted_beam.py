@@ -8,6 +8,12 @@ Force = the shaker amplifier's voltage (the voltage-to-force gain is unknown, so
 tip motion = the laser vibrometer's velocity (recon differentiates it once and integrates it once).
 Stages: linear = 0.05 V chirp, nonlinear = 0.30 V chirp, validation = 0.15 V chirp.
 The second column fits the exciter too (``reconstruct --drive``: the force is HP(u + u2 u^2)).
+
+Then two readings of what is left (docs/real-data.md):
+- the backbone: frequency and damping against amplitude from each chirp's ring-down
+  (recon.backbone), measured and as the --drive model simulates it;
+- the repeatability between records: each held-out record predicted again with its own
+  small-amplitude stiffness (the one number a record-to-record change of the joint would move).
 """
 from __future__ import annotations
 
@@ -22,6 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from recon import ReconSettings, reconstruct  # noqa: E402
+from recon.backbone import Backbone, free_decay_backbone  # noqa: E402
 from recon.estimator.fallback import simpler_models  # noqa: E402
 from recon.model import HystereticModel  # noqa: E402
 from recon.output_error.polish import polish  # noqa: E402
@@ -29,6 +36,16 @@ from recon.validation import nrmse  # noqa: E402
 from shakerlab.runfile.reader import load_run  # noqa: E402
 
 MAP = ["--map", "x=Time_Laser__X:v", "--map", "force=Time_Shaker__X"]
+CHIRPS = ("chirp_0p05", "chirp_0p10", "chirp_0p15", "chirp_0p20", "chirp_0p25", "chirp_0p30")
+F_MODE = 18.7            # Hz, the first bending mode
+# the ring-downs read for the backbone (s from the record's start): the chirps pass the mode at about
+# 3.7 s and 27.5 Hz at 5.5 s, from where the band F_MODE (1 +- BAND) holds the mode's ringing alone,
+# until the drive stops at 8 s (a 40 Hz sine cut off: its transient enters the band for about 0.5 s);
+# from 8.5 s on the decay is free
+RINGS = ((5.5, 7.5), (8.5, None))
+BAND = 0.25
+BACKBONE_UM = (30, 100, 300, 1500, 3000)
+K_SHIFTS = np.linspace(-0.006, 0.010, 33)   # relative shifts of the small-amplitude stiffness K tried
 HELD_OUT = ("chirp_0p10", "chirp_0p15", "chirp_0p20", "chirp_0p25", "sine_09p5Hz", "sine_17Hz", "sine_20Hz")
 
 
@@ -73,6 +90,32 @@ def exciter_evidence(data: Path) -> list[str]:
     return out
 
 
+def backbone_rows(stages: dict, model) -> list[str]:
+    """Frequency [Hz] and damping ratio [%] at BACKBONE_UM micrometres of each chirp's ring-down,
+    measured and as ``model`` simulates the same record."""
+    head = " | ".join(f"{a} um" for a in BACKBONE_UM)
+    out = [f"| record | {head} |", "| --- |" + " --- |" * len(BACKBONE_UM)]
+    for rec, st in stages.items():
+        _, ys = model.simulate_stage(st)
+        for label, y in (("measured", st.y), ("model", ys)):
+            parts = [free_decay_backbone(st.t - st.t[0], y, F_MODE, t_from=a, t_to=b, band=BAND) for a, b in RINGS]
+            bb = Backbone(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("t", "amplitude", "frequency",
+                                                                                       "damping")))
+            cells = []
+            for a in BACKBONE_UM:
+                f, z = bb.at(a * 1e-6)
+                cells.append("-" if f is None else f"{f:.3f} Hz, {100 * z:.2f} %")
+            out.append(f"| {rec} {label} | " + " | ".join(cells) + " |")
+    return out
+
+
+def with_stiffness_shift(model, shift: float):
+    """``model`` with its small-amplitude stiffness K = k + alpha moved by ``shift`` x K (through k)."""
+    m = HystereticModel.from_dict(model.to_dict())
+    m.k_m = model.k_m + shift * model.K_m
+    return m
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared/data/bolted_beam")
@@ -104,16 +147,31 @@ def main() -> int:
     print("linear yardstick with the exciter:", lin_drive.equation().replace("\n", "  |  "))
     print("\n| record | shakerlab NRMSE | shakerlab --drive NRMSE | linear OE NRMSE | linear OE + exciter NRMSE |"
           "\n| --- | --- | --- | --- | --- |")
+    stages = {"chirp_0p05": run.stage("linear"), "chirp_0p30": run.stage("nonlinear")}
     for rec in HELD_OUT:
         h5 = work / f"{rec}.h5"
         if not h5.exists():
             shakerlab("import", "-o", str(h5), "--validation", *files(a.data, rec), *MAP)
-        st = load_run(h5).stage("validation")
+        st = stages[rec] = load_run(h5).stage("validation")
         out = []
         for m in (res.model, drv.model, linear, lin_drive):
             _, ys = m.simulate_stage(st)
             out.append(nrmse(ys, st.y) if np.all(np.isfinite(ys)) else float("inf"))
         print("| " + rec + " | " + " | ".join(f"{v:.3f}" for v in out) + " |", flush=True)
+
+    print("\nBackbone from the ring-down after the mode (5.5-7.5 s and from 8.5 s; recon.backbone), measured and "
+          "as the --drive model simulates each chirp: frequency, damping ratio")
+    print("\n".join(backbone_rows({r: stages[r] for r in CHIRPS}, drv.model)), flush=True)
+
+    print("\nRepeatability: the --drive model with each record's own small-amplitude stiffness "
+          f"(K shifted by {100 * K_SHIFTS[0]:+.1f} ... {100 * K_SHIFTS[-1]:+.1f} %, best kept)")
+    print("| record | NRMSE as identified | best K shift | NRMSE with it |\n| --- | --- | --- | --- |")
+    for rec in ("chirp_0p05", "chirp_0p30", *HELD_OUT):
+        st = stages[rec]
+        scores = [nrmse(with_stiffness_shift(drv.model, s).simulate_stage(st)[1], st.y) for s in K_SHIFTS]
+        i = int(np.argmin(scores))
+        _, y0 = drv.model.simulate_stage(st)
+        print(f"| {rec} | {nrmse(y0, st.y):.3f} | {100 * K_SHIFTS[i]:+.2f} % | {scores[i]:.3f} |", flush=True)
     return 0
 
 
