@@ -8,13 +8,13 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def _handler(name: str):
-    """The handler ``workflows.handlers.<name>``, imported on first call."""
+def _handler(name: str, module: str = "workflows.handlers"):
+    """The handler ``<module>.<name>``, imported on first call."""
 
     def run(args) -> int:
-        from workflows import handlers  # heavy (numpy, scipy, h5py, recon): only when a command runs
+        import importlib  # the module is heavy (numpy, scipy, h5py, recon): imported only when a command runs
 
-        return getattr(handlers, name)(args)
+        return getattr(importlib.import_module(module), name)(args)
 
     run.__name__ = name
     return run
@@ -157,13 +157,7 @@ def register_backbone(subparsers) -> None:
     p.add_argument("--bins", type=int, default=8, help="amplitude bins (default 8)")
     p.add_argument("--model", metavar="MODEL.json", help="a saved model (reconstruct --save-model) to compare")
     p.add_argument("--json", action="store_true", help="print one JSON object (machine-readable)")
-    p.set_defaults(handler=_backbone)
-
-
-def _backbone(args) -> int:
-    from workflows.backbone import backbone_command  # heavy imports only when the command runs
-
-    return backbone_command(args)
+    p.set_defaults(handler=_handler("backbone_command", "workflows.backbone"))
 
 
 # --- the whole experiment on an embedded simulated rig: `demo` (workflows/demo.py) ---------------------
