@@ -5,6 +5,7 @@ Only the parsers live here, so ``shakerlab --help`` stays instant; the handlers 
 imported when a command runs."""
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
 
@@ -12,8 +13,7 @@ def _handler(name: str, module: str = "workflows.handlers"):
     """The handler ``<module>.<name>``, imported on first call."""
 
     def run(args) -> int:
-        import importlib  # the module is heavy (numpy, scipy, h5py, recon): imported only when a command runs
-
+        # the module is heavy (numpy, scipy, h5py, recon): imported only when a command runs
         return getattr(importlib.import_module(module), name)(args)
 
     run.__name__ = name
