@@ -69,7 +69,9 @@ def free_decay_backbone(t, y, f_mode: float, t_from: float | None = None, t_to: 
     fs = 1.0 / dt
     if not 0.0 < band < 1.0:
         raise UserFacingError(f"backbone: band must lie in (0, 1) (the pass band is f_mode (1 +- band)), got {band}")
-    if not 0.0 < f_mode * (1.0 + band) < 0.5 * fs:
+    if not (np.isfinite(f_mode) and f_mode > 0.0):
+        raise UserFacingError(f"backbone: the mode's frequency must be a positive number of Hz, got {f_mode}")
+    if not f_mode * (1.0 + band) < 0.5 * fs:
         raise UserFacingError(f"backbone: the mode's band {f_mode * (1 - band):.4g}-{f_mode * (1 + band):.4g} Hz "
                               f"does not lie below the Nyquist frequency {0.5 * fs:.4g} Hz")
     smooth_s = 10.0 / f_mode if smooth_s is None else float(smooth_s)

@@ -54,6 +54,7 @@ def test_binned_reports_empty_bins_as_none():
 
 @pytest.mark.parametrize("kw, msg", [
     ({"f_mode": 600.0}, "Nyquist"),
+    ({"f_mode": -3.0}, "positive"),
     ({"f_mode": 20.0, "band": 1.5}, "band"),
     ({"f_mode": 0.2}, "too short"),
 ])

@@ -18,7 +18,8 @@ N_BINS = 8
 
 
 def default_stage(run) -> str:
-    return "validation" if "validation" in run.stages else list(run.stages)[-1]
+    """The first validation stage (named validation*, as everywhere in recon), else the last stage."""
+    return next((n for n in run.stages if n.startswith("validation")), list(run.stages)[-1])
 
 
 def response_peak(stage) -> float:

@@ -148,7 +148,7 @@ def register_backbone(subparsers) -> None:
                     "for the model's simulation of the stage (docs/real-data.md).",
     )
     p.add_argument("run", metavar="RUN", help="run file (.h5 or .npz)")
-    p.add_argument("--stage", help="stage to read (default: validation, else the last)")
+    p.add_argument("--stage", help="stage to read (default: the first validation stage, else the last)")
     p.add_argument("--mode-hz", type=float, help="the mode's frequency (default: the model's sqrt(K)/2 pi with "
                                                  "--model, else the peak of the stage's response spectrum)")
     p.add_argument("--from", dest="t_from", type=float, metavar="S", help="read from S seconds after the stage's start")
