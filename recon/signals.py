@@ -22,6 +22,7 @@ from scipy.signal import savgol_coeffs
 
 from recon.differentiation import (choose_window, derivatives, estimate_spectrum, stable_coefficients,
                                    stable_derivatives, undo_passband_loss)
+from recon.input_band import BandLimit
 from shakerlab.quantities import (CONTINUOUS, DISPLACEMENT, ORDER, VELOCITY, channel_name, integrate,
                                   integrated_noise_rms)
 from shakerlab.run_data import BASE, Stage
@@ -169,8 +170,22 @@ class InputFilter:
     deriv: int = 0                 # Savitzky-Golay derivative taken of the channel
     measured: bool = False         # velocity or acceleration channel (stable coefficients)
     noise_std: float = 0.0
+    band: BandLimit | None = None  # the recording's own band (recon.input_band); None: as recorded
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
+        if self.band is None:
+            return self._smoothed(x)
+        inner = self.band(x) if self.window is None else -self.band(x, self.deriv, self.dt)
+        # an end in motion from the Savitzky-Golay filter (a local fit: the cosine series of a
+        # record that starts or stops abruptly rings there), crossfaded into the band over one
+        # window; an end at rest (recon.input_band.level_ends) from the band
+        start, end = self.band.level_ends(self.raw)
+        if start and end:
+            return inner
+        w = edge_crossfade(x.size, self.window or self.band.window, start, end)
+        return w * inner + (1.0 - w) * self._smoothed(x)
+
+    def _smoothed(self, x: np.ndarray) -> np.ndarray:
         if self.window is None:
             return x
         if not self.measured:
@@ -183,28 +198,47 @@ class InputFilter:
 
     def info(self) -> dict:
         out = {"channel": self.channel, "noise_std": float(self.noise_std)}
+        if self.band is not None:
+            out["band_share"] = self.band.kept_share
         if self.window is not None:
             out.update(window=self.window, order=self.order)
         return out
 
 
+def edge_crossfade(n: int, window: int, start_level: bool = False, end_level: bool = False) -> np.ndarray:
+    """Weights 0 over the first and last ``window`` samples, 1 from two windows in, a raised cosine
+    between; 1 throughout at an end that is level."""
+    w = np.ones(n)
+    m = max(min(window, n // 4), 1)
+    fade = np.concatenate([np.zeros(m), 0.5 * (1.0 - np.cos(np.pi * np.arange(m) / m))])
+    if not start_level:
+        w[:2 * m] = fade
+    if not end_level:
+        w[n - 2 * m:] = np.minimum(w[n - 2 * m:], fade[::-1])
+    return w
+
+
 def input_filter(stage: Stage) -> InputFilter:
-    """The :class:`InputFilter` of ``stage`` (its input channel, window and noise level)."""
+    """The :class:`InputFilter` of ``stage`` (its input channel, window and noise level, and the
+    channel's own band where it can be told from the noise: recon.input_band)."""
     if stage.excitation != BASE:
         f = stage.channels["force"]
-        return InputFilter("force", f, stage.dt, noise_std=float(estimate_spectrum(f, stage.dt).noise_std))
+        sd = float(estimate_spectrum(f, stage.dt).noise_std)
+        return InputFilter("force", f, stage.dt, noise_std=sd, band=BandLimit.of(f, sd))
     q = stage.quantities.get("x_base", DISPLACEMENT)
     if q == DISPLACEMENT:
         xb = stage.channels["x_base"]
         ch = choose_window({"x_base": xb}, stage.dt, deriv=2, for_regression=False)
-        return InputFilter("x_base", xb, stage.dt, ch.window, ch.order, 2,
-                           noise_std=float(ch.noise_level["x_base"]))
+        sd = float(ch.noise_level["x_base"])
+        return InputFilter("x_base", xb, stage.dt, ch.window, ch.order, 2, noise_std=sd,
+                           band=BandLimit.of(xb, sd, ch.window, ch.order))
     k = ORDER[q]
     name = channel_name("x_base", q)
     raw = stage.measured[name]
     ch = choose_window({name: raw}, stage.dt, deriv=2 - k, for_regression=False, coefficients=stable_coefficients)
-    return InputFilter(name, raw, stage.dt, ch.window, ch.order, 2 - k, measured=True,
-                       noise_std=float(ch.noise_level[name]))
+    sd = float(ch.noise_level[name])
+    return InputFilter(name, raw, stage.dt, ch.window, ch.order, 2 - k, measured=True, noise_std=sd,
+                       band=BandLimit.of(raw, sd, ch.window, ch.order))
 
 
 def stage_input(stage: Stage) -> np.ndarray:

@@ -36,8 +36,18 @@ def test_intervals_cover_truth_at_80_db(fitted):
         assert lo < p[k] < hi
         assert (hi - lo) < 0.2 * abs(p[k])             # informative, not a blanket
     assert set(unc["intervals"]["fn_m"]) == set(p["fn_m"])
-    c = covers(unc, truth.to_dict()["parameters"])
-    assert all(c.values()), c
+    # 95 % intervals on seven parameters: all seven hold the truth on about 70 % of records, so
+    # one record is asked for at most one miss, and that one close (bench/uncertainty_coverage.py
+    # measures the calibration over repetitions: 90-100 % per parameter at 80 dB)
+    tp = truth.to_dict()["parameters"]
+    c = covers(unc, tp)
+    missed = [k for k, ok in c.items() if not ok]
+    assert len(missed) <= 1, c
+    for k in missed:
+        name = k[len("fn_m["):-1] if k.startswith("fn_m[") else None
+        lo, hi = unc["intervals"]["fn_m"][name] if name else unc["intervals"][k]
+        v = tp["fn_m"][name] if name else tp[k]
+        assert lo - (hi - lo) / 2 <= v <= hi + (hi - lo) / 2, (k, lo, hi, v)
     # reproducible with the same seed, different with another
     again = parameter_intervals(result.model, run, S)
     assert again["intervals"] == unc["intervals"]
@@ -49,7 +59,10 @@ def test_width_follows_the_noise_and_the_input_noise_counts():
     """Intervals around the true model: 20 dB more noise makes every one wider (not a full 10
     times: at 80 dB part of the residual is the differentiated input's remaining error and the
     estimated start, which do not scale with the noise; measured ratios 1.2-5.4, median 2.0),
-    and leaving the input noise out of the ensemble makes them far too narrow."""
+    and leaving the input noise out of the ensemble makes them too narrow. (Since the input is
+    cleared above its band, recon.input_band, the input noise is a smaller part: c_m's interval
+    without it is 0.64 of the full width here, 0.09 with the Savitzky-Golay input, whose full
+    interval was 8 times wider.)"""
     w = {}
     for snr in (80.0, 60.0):
         run, truth = sdof_run("base", snr_db=snr, fs=1000.0, duration=4.0, seed=2)
@@ -58,7 +71,7 @@ def test_width_follows_the_noise_and_the_input_noise_counts():
     assert all(1.15 < r < 25.0 for r in ratio.values()), ratio
     assert np.median(list(ratio.values())) > 1.5, ratio
     narrow = _widths(parameter_intervals(truth, run, UncertaintySettings(n_resamples=100, input_noise=False)))
-    assert narrow["c_m"] < 0.5 * w[60.0]["c_m"]
+    assert narrow["c_m"] < 0.8 * w[60.0]["c_m"]
 
 
 def test_covers_and_bad_settings(fitted):

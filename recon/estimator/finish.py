@@ -138,6 +138,35 @@ def polished_cost(polish_info: dict) -> float:
 
 
 START_ROUNDS = 2
+POLISH_NFEV = 60          # recon.output_error.polish's default budget
+CONTINUE_ROUNDS = 3
+
+
+def continue_polish(model: HystereticModel, item: tuple, polish_info: dict):
+    """Polish again from where a polish stopped at its evaluation budget (at most
+    ``CONTINUE_ROUNDS`` more rounds, while the cost falls).
+
+    A polish started far from the optimum spends its budget on the way: independent recording 6
+    at 60 dB (paper protocol) started from an equation-error estimate with k 15 against 1200 and
+    stopped after 60 evaluations at NRMSE 0.001222 (the truth: 0.001198), with alpha 5.9 % off.
+    Returns (model, polish_info); ``polish_info["continued"]`` records the rounds."""
+    rounds = []
+    info = polish_info
+    while info.get("applied") and info.get("nfev", 0) >= POLISH_NFEV and len(rounds) < CONTINUE_ROUNDS:
+        try:
+            new, info = polish(model, [item])
+        except NUMERICAL_ERRORS as exc:
+            rounds.append({"failed": f"{type(exc).__name__}: {exc}"})
+            break
+        before, after = polished_cost(polish_info), polished_cost(info)
+        rounds.append({"cost_before": before, "cost_after": after, "nfev": info.get("nfev")})
+        if not (info["applied"] and admissible(new) and after < before):
+            break
+        model = new
+        polish_info = {**polish_info, "nrmse_after": after}
+    if rounds:
+        polish_info = {**polish_info, "continued": rounds}
+    return model, polish_info
 
 
 def refine_start(model: HystereticModel, stage, item: tuple, polish_info: dict):
@@ -189,6 +218,7 @@ def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info
         stage = run.stage(s.nonlinear_stage)
         item = model.fit_item(stage)
         model, polish_info = polish(model, [item])
+        model, polish_info = continue_polish(model, item, polish_info)
         if model.fn_m and not polish_info["applied"] and not polish_info["nrmse_before"] < START_NRMSE_LIMIT:
             model, polish_info = restart_fn_terms(model, item, polish_info)
         model, item, polish_info = refine_start(model, stage, item, polish_info)
