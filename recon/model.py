@@ -267,11 +267,12 @@ class HystereticModel:
         return simulate_sdof(u, dt, int(n_sub), self.input_gain, self.c_m, self.k_m, self.alpha_m,
                              self.gamma, self.delta, coef, p, r, y0, v0, z0)
 
-    def stage_input(self, stage: Stage) -> np.ndarray:
-        """The input u the model is driven by, built from the stage's channels (recon.signals)."""
+    def stage_input(self, stage: Stage, band: bool = True) -> np.ndarray:
+        """The input u the model is driven by, built from the stage's channels (recon.signals;
+        ``band``: taken in the channel's own band, recon.input_band)."""
         if stage.excitation != self.excitation:
             raise UserFacingError(f"stage {stage.name!r} is {stage.excitation} excitation, model is {self.excitation}")
-        return stage_input(stage)
+        return stage_input(stage, band)
 
     def stage_start(self, stage: Stage, u=None, fit: bool = True):
         """The stage's state at its first sample (y, y', z), estimated from the recording.

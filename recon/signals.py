@@ -218,9 +218,16 @@ def edge_crossfade(n: int, window: int, start_level: bool = False, end_level: bo
     return w
 
 
-def input_filter(stage: Stage) -> InputFilter:
-    """The :class:`InputFilter` of ``stage`` (its input channel, window and noise level, and the
-    channel's own band where it can be told from the noise: recon.input_band)."""
+def input_filter(stage: Stage, band: bool = True) -> InputFilter:
+    """The :class:`InputFilter` of ``stage`` (its input channel, window and noise level, and, with
+    ``band``, the channel's own band where it can be told from the noise: recon.input_band)."""
+    inner = input_filter_with_band(stage)
+    if not band:
+        inner.band = None
+    return inner
+
+
+def input_filter_with_band(stage: Stage) -> InputFilter:
     if stage.excitation != BASE:
         f = stage.channels["force"]
         sd = float(estimate_spectrum(f, stage.dt).noise_std)
@@ -241,9 +248,9 @@ def input_filter(stage: Stage) -> InputFilter:
                        band=BandLimit.of(raw, sd, ch.window, ch.order))
 
 
-def stage_input(stage: Stage) -> np.ndarray:
-    """The model input u of ``stage`` (:class:`InputFilter`)."""
-    f = input_filter(stage)
+def stage_input(stage: Stage, band: bool = True) -> np.ndarray:
+    """The model input u of ``stage`` (:class:`InputFilter`; ``band``: see :func:`input_filter`)."""
+    f = input_filter(stage, band)
     return f(f.raw)
 
 

@@ -126,7 +126,7 @@ class AugmentedModel:
 
     def simulate_stage(self, stage: Stage, u: np.ndarray | None = None):
         """Recorded-output prediction for the stage, started from its estimated initial state."""
-        u = self.baseline.stage_input(stage) if u is None else u
+        u = self.baseline.stage_input(stage, band=False) if u is None else u     # as rank.prepare
         x_in = stage.channels["x_base"] if stage.excitation == BASE else None
         return self.simulate(stage.t, u, x_in, initial=self.baseline.stage_start(stage, u))[0]
 
