@@ -14,24 +14,27 @@ multisine its range, the exciter's harmonics where they rise above the floor. Ou
 the input channel holds only noise. :class:`BandLimit` finds the band from the recording itself
 and keeps only it:
 
-- **Level ends.** A quadratic with the channel's slope at both ends (a polynomial fit over the
-  differentiation window; a slope within four times its own noise counts as zero, so a stage
-  that starts or ends at rest keeps a level end) is removed. What is left starts and ends level.
-- **Cosine series.** Its orthonormal DCT-II is the Fourier series of its mirror image, which is
-  then smooth at both joins (value, slope and curvature continue), so a mismatch of the ends
-  leaks nothing into the noise region. Under white noise of std sigma the coefficients are
-  independent N(0, sigma^2).
-- **The band.** The floor is the median of the upper half's squared coefficients; a coefficient
-  seeds the band when the mean of its five neighbours' squares exceeds the chi-square(5) level
-  of a 1 % false alarm over the whole series, and the band grows into neighbours above three
-  times the floor (hysteresis thresholding: a tone keeps its skirts and ramps).
+- **Level ends.** The first and third derivatives at each end (a polynomial fit over the
+  differentiation window; each within four times its own noise counts as zero, so a stage that
+  starts or ends at rest keeps its end as recorded) are removed by a local correction: a cubic
+  times a Gaussian of about one window's reach, added back exactly afterwards.
+- **Cosine series.** The orthonormal DCT-II of what is left is the Fourier series of its mirror
+  image, which is then smooth at both joins (value, slope, curvature and third derivative
+  continue), so a mismatch of the ends leaks little into the noise region. Under white noise of
+  std sigma the coefficients are independent N(0, sigma^2).
+- **The top of the band.** The floor is the median of the upper half's squared coefficients; a
+  coefficient seeds the band when the mean of its five neighbours' squares exceeds the
+  chi-square(5) level of a 1 % false alarm over the whole series, and the band grows into
+  neighbours above three times the floor (hysteresis thresholding: a tone keeps its skirts and
+  ramps). Every coefficient up to the last one so reached is kept, every one above dropped.
 - **Derivatives in the band.** y'' of the base from displacement (y' from velocity) is taken on
   the kept cosine series: exact there, and no noise above the band to amplify.
 
 It is a linear filter once the band is fixed, so the same filter passed over white noise gives
 the noise the cleared input still carries (the uncertainty ensemble's draws). A channel whose
-band cannot be told from its noise (too short, a floor of zero, a quarter of the series above
-the floor) is left as recorded: the caller falls back to its Savitzky-Golay filter.
+band cannot be told from its noise (too short, a floor of zero, nothing above the floor, or a
+band reaching half the Nyquist frequency) is left to the caller's Savitzky-Golay filter, which
+also takes over at an end in motion (recon.signals.InputFilter).
 """
 from __future__ import annotations
 
@@ -138,6 +141,8 @@ class BandLimit:
     window: int          # the end-derivative fit (recon.signals: the channel's own filter)
     order: int
     noise_std: float     # the channel's white-noise level
+    level_ends: tuple    # (start, end): the recording at rest there, its slope and third derivative
+                         # within their noise, so the cosine series continues it smoothly
 
     @classmethod
     def of(cls, x: np.ndarray, noise_std: float, window: int | None = None,
@@ -146,7 +151,11 @@ class BandLimit:
         x = np.asarray(x, float)
         window, order = window or min(64, x.size // 4), order or 3
         top, _ = band_top(x, window, order, noise_std)
-        return None if top is None else cls(top, x.size, int(window), int(order), float(noise_std))
+        if top is None:
+            return None
+        d = _edge_derivatives(x, window, order, noise_std)
+        return cls(top, x.size, int(window), int(order), float(noise_std),
+                   (d[0] == 0.0 and d[1] == 0.0, d[2] == 0.0 and d[3] == 0.0))
 
     def __call__(self, x: np.ndarray, deriv: int = 0, dt: float = 1.0) -> np.ndarray:
         """``x`` cleared of what lies above the band, or its ``deriv``-th derivative (sample
@@ -165,12 +174,6 @@ class BandLimit:
             spec = spec * (2j * np.pi * np.fft.rfftfreq(2 * n, dt)) ** deriv
         out = np.fft.irfft(spec, 2 * n)[:n]
         return out + _edge_function(n, d, tau, deriv) / dt ** deriv
-
-    def level_ends(self, x: np.ndarray) -> tuple[bool, bool]:
-        """Whether ``x`` starts and ends level (slope and third derivative within their noise):
-        a record at rest there, which the cosine series continues smoothly."""
-        d = _edge_derivatives(np.asarray(x, float), self.window, self.order, self.noise_std)
-        return d[0] == 0.0 and d[1] == 0.0, d[2] == 0.0 and d[3] == 0.0
 
     @property
     def kept_share(self) -> float:

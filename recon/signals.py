@@ -178,8 +178,8 @@ class InputFilter:
         inner = self.band(x) if self.window is None else -self.band(x, self.deriv, self.dt)
         # an end in motion from the Savitzky-Golay filter (a local fit: the cosine series of a
         # record that starts or stops abruptly rings there), crossfaded into the band over one
-        # window; an end at rest (recon.input_band.level_ends) from the band
-        start, end = self.band.level_ends(self.raw)
+        # window; an end at rest (BandLimit.level_ends) from the band
+        start, end = self.band.level_ends
         if start and end:
             return inner
         w = edge_crossfade(x.size, self.window or self.band.window, start, end)
@@ -221,31 +221,28 @@ def edge_crossfade(n: int, window: int, start_level: bool = False, end_level: bo
 def input_filter(stage: Stage, band: bool = True) -> InputFilter:
     """The :class:`InputFilter` of ``stage`` (its input channel, window and noise level, and, with
     ``band``, the channel's own band where it can be told from the noise: recon.input_band)."""
-    inner = input_filter_with_band(stage)
-    if not band:
-        inner.band = None
-    return inner
+    f = _savitzky_golay_filter(stage)
+    if band:
+        f.band = BandLimit.of(f.raw, f.noise_std, f.window, f.order)
+    return f
 
 
-def input_filter_with_band(stage: Stage) -> InputFilter:
+def _savitzky_golay_filter(stage: Stage) -> InputFilter:
     if stage.excitation != BASE:
         f = stage.channels["force"]
-        sd = float(estimate_spectrum(f, stage.dt).noise_std)
-        return InputFilter("force", f, stage.dt, noise_std=sd, band=BandLimit.of(f, sd))
+        return InputFilter("force", f, stage.dt, noise_std=float(estimate_spectrum(f, stage.dt).noise_std))
     q = stage.quantities.get("x_base", DISPLACEMENT)
     if q == DISPLACEMENT:
         xb = stage.channels["x_base"]
         ch = choose_window({"x_base": xb}, stage.dt, deriv=2, for_regression=False)
-        sd = float(ch.noise_level["x_base"])
-        return InputFilter("x_base", xb, stage.dt, ch.window, ch.order, 2, noise_std=sd,
-                           band=BandLimit.of(xb, sd, ch.window, ch.order))
+        return InputFilter("x_base", xb, stage.dt, ch.window, ch.order, 2,
+                           noise_std=float(ch.noise_level["x_base"]))
     k = ORDER[q]
     name = channel_name("x_base", q)
     raw = stage.measured[name]
     ch = choose_window({name: raw}, stage.dt, deriv=2 - k, for_regression=False, coefficients=stable_coefficients)
-    sd = float(ch.noise_level[name])
-    return InputFilter(name, raw, stage.dt, ch.window, ch.order, 2 - k, measured=True, noise_std=sd,
-                       band=BandLimit.of(raw, sd, ch.window, ch.order))
+    return InputFilter(name, raw, stage.dt, ch.window, ch.order, 2 - k, measured=True,
+                       noise_std=float(ch.noise_level[name]))
 
 
 def stage_input(stage: Stage, band: bool = True) -> np.ndarray:

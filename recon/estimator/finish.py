@@ -10,7 +10,7 @@ from recon.estimator.adequacy import noise_floor
 from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, with_term_scales
 from recon.estimator.result import ReconSettings
 from recon.model import HystereticModel
-from recon.output_error.polish import polish
+from recon.output_error.polish import MAX_NFEV, polish
 from recon.validation import nrmse
 from shakerlab.run_data import Run
 
@@ -138,7 +138,6 @@ def polished_cost(polish_info: dict) -> float:
 
 
 START_ROUNDS = 2
-POLISH_NFEV = 60          # recon.output_error.polish's default budget
 CONTINUE_ROUNDS = 3
 
 
@@ -152,7 +151,7 @@ def continue_polish(model: HystereticModel, item: tuple, polish_info: dict):
     Returns (model, polish_info); ``polish_info["continued"]`` records the rounds."""
     rounds = []
     info = polish_info
-    while info.get("applied") and info.get("nfev", 0) >= POLISH_NFEV and len(rounds) < CONTINUE_ROUNDS:
+    while info.get("applied") and info.get("nfev", 0) >= MAX_NFEV and len(rounds) < CONTINUE_ROUNDS:
         try:
             new, info = polish(model, [item])
         except NUMERICAL_ERRORS as exc:

@@ -34,7 +34,10 @@ def decimate(item: tuple, fs_target: float = POLISH_FS):
     return (t[::q], item[1][::q], item[2][::q], *item[3:]), q
 
 
-def polish(model: HystereticModel, data: list, max_nfev: int = 60, masks=None, fs_target: float | None = POLISH_FS,
+MAX_NFEV = 60          # the polish's evaluation budget (recon.estimator.finish.continue_polish)
+
+
+def polish(model: HystereticModel, data: list, max_nfev: int = MAX_NFEV, masks=None, fs_target: float | None = POLISH_FS,
            free: list | None = None):
     """Refine ``model`` on ``data`` = [(t, u, y_meas[, (y0, dy0, a0)]), ...]; returns (model, info).
     ``free``: the parameter keys refined (None: every key of the model, problem.parameter_keys).
