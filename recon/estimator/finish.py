@@ -6,11 +6,15 @@ import time
 
 import numpy as np
 
+from scipy.stats import chi2
+
+from recon.differentiation import estimate_spectrum
 from recon.estimator.adequacy import noise_floor
 from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, with_term_scales
 from recon.estimator.result import ReconSettings
 from recon.model import HystereticModel
-from recon.output_error.polish import MAX_NFEV, polish
+from recon.output_error.polish import MAX_NFEV, decimate, polish
+from recon.output_error.problem import OutputError
 from recon.validation import nrmse
 from shakerlab.run_data import Run
 
@@ -200,6 +204,74 @@ def refine_start(model: HystereticModel, stage, item: tuple, polish_info: dict):
     if rounds:
         polish_info = {**polish_info, "start_refined": polish_info.get("start_refined", []) + rounds}
     return model, item, polish_info
+
+
+# The joint fit is kept only when it costs the nonlinear stage no more than the noise allows: its
+# sum of squares there may rise by at most the chi-square(p) quantile at this false-alarm rate,
+# in noise variances (p free parameters). A larger rise means the stages disagree on the
+# parameters (model error, not noise), and the nonlinear stage's own fit stays.
+JOINT_FALSE_ALARM = 0.01
+
+
+def stage_cost(model: HystereticModel, item: tuple) -> tuple[float, int]:
+    """(NRMSE over the item as the polish fits it, decimated; the number of samples fitted)."""
+    dec, _ = decimate(item)
+    prob = OutputError(model, [dec])
+    r = prob.residual(np.zeros(len(prob.keys)))
+    return float(np.sqrt(r @ r)), int(dec[2].size)
+
+
+def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings):
+    """Polish the linear and nonlinear stages together, each weighted by its own noise (the
+    maximum-likelihood fit under white output noise), from the nonlinear stage's polished model.
+
+    With one tone per stage the nonlinear stage alone leaves the Bouc-Wen shape (gamma, delta)
+    and the damping poorly determined; the linear stage, at another amplitude and frequency,
+    constrains the small-amplitude stiffness and damping they trade against. On independent
+    recordings at 40 dB (paper protocol) seed 0's delta went from 8.5 % off to 4.5 %, seed 26's
+    from 14 % to 1.9 %. Weighting each stage by its rms instead (equal shares) let the small
+    linear stage, 20 dB further below the noise, pull c off by 4.3 % at 60 dB (seed 18).
+
+    Kept when admissible and consistent: the nonlinear stage's sum of squares rises by at most
+    the chi-square(p) quantile at ``JOINT_FALSE_ALARM`` in noise variances. Returns the model
+    (``model`` itself when not kept); its provenance's ``output_error_polish["two_stage"]``
+    records the figures either way."""
+    lin_name = s.linear_stage
+    if lin_name not in run.stages or lin_name == s.nonlinear_stage:
+        return model
+    nl = run.stage(s.nonlinear_stage)
+    lin = run.stage(lin_name)
+    polish_info = dict(model.provenance.get("output_error_polish") or {})
+    record = {"stages": [lin_name, s.nonlinear_stage]}
+
+    def with_record(m, **info):
+        m.provenance = {**model.provenance, "output_error_polish": {**polish_info, **info, "two_stage": record}}
+        return m
+
+    try:
+        item = model.fit_item(nl)
+        lin_item = model.fit_item(lin)
+        noise = [float(estimate_spectrum(st.y, st.dt).noise_std) for st in (lin, nl)]
+        if not all(v > 0 for v in noise):
+            record.update(applied=False, reason="no noise floor")
+            return with_record(model)
+        new, info = polish(model, [lin_item, item], noise=noise)
+        before, n = stage_cost(model, item)
+        after, _ = stage_cost(new, item)
+    except NUMERICAL_ERRORS as exc:
+        record.update(applied=False, reason=f"{type(exc).__name__}: {exc}")
+        return with_record(model)
+    rms = float(np.std(item[2])) or 1.0
+    p = len(OutputError(model, [item]).keys)
+    rise = n * (after ** 2 - before ** 2) / (noise[1] / rms) ** 2
+    limit = float(chi2.isf(JOINT_FALSE_ALARM, p))
+    record.update(noise_std=noise, nonlinear_cost_before=before, nonlinear_cost_after=after,
+                  rise_noise_variances=float(rise), rise_limit=limit, nfev=info.get("nfev"))
+    ok = bool(info["applied"] and admissible(new) and rise <= limit)
+    record["applied"] = ok
+    if not ok:
+        return with_record(model)
+    return with_record(new, applied=True, nrmse_after=after, stages=record["stages"], noise_std=noise)
 
 
 def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info: dict, timings: dict,

@@ -16,7 +16,7 @@ from recon.determinism import single_thread_blas
 from recon.estimator.adequacy import assess
 from recon.estimator.drive import fit_drive
 from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, held_out_stages, score, simpler_models
-from recon.estimator.finish import validate
+from recon.estimator.finish import two_stage_polish, validate
 from recon.estimator.input_offset import resolve_input_offset
 from recon.estimator.pointwise import reconstruct_pointwise
 from recon.estimator.result import ReconResult, ReconSettings
@@ -130,8 +130,10 @@ def _finish(result: ReconResult, run: Run, failures: dict, fallback: dict | None
 
 
 def _conclude(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool, failures: dict) -> ReconResult:
-    """An admissible result's end: its terms revised, then checked against the simpler models."""
+    """An admissible result's end: its terms revised, both stages polished together, then checked
+    against the simpler models."""
     result = _revise_terms(result, run, s, validate_model, failures)
+    result = _two_stage(result, run, s, validate_model)
     return _prefer_simpler(result, run, s, validate_model, failures)
 
 
@@ -229,6 +231,22 @@ def _trusted(r: ReconResult) -> bool:
     v = r.validation.get("nrmse", 0.0)
     return bool(admissible(r.model) and r.hysteresis_info.get("equation_error_admissible", True)
                 and np.isfinite(v) and not v >= 1.0)
+
+
+def _two_stage(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool) -> ReconResult:
+    """The linear and nonlinear stages polished together (recon.estimator.finish.two_stage_polish),
+    re-validated when the joint fit is kept."""
+    if not (s.polish and s.two_stage_polish and admissible(result.model)):
+        return result
+    t0 = time.perf_counter()
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        model = two_stage_polish(result.model, run, s)
+    result.timings["two_stage_polish"] = time.perf_counter() - t0
+    kept = model is not result.model
+    result.model = model
+    if kept and validate_model:
+        result.validation = validate(model, run)
+    return result
 
 
 def _revise_terms(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool,

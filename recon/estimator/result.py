@@ -23,6 +23,9 @@ class ReconSettings:
     # revise the fn terms by output error on held-out blocks of the nonlinear stage after the
     # polish (recon/term_selection.py); needs polish
     term_selection: bool = True
+    # at the end, polish the linear and nonlinear stages together, each weighted by its noise, and keep
+    # the joint fit when the nonlinear stage's fit stays within its noise (recon.estimator.finish)
+    two_stage_polish: bool = True
     # when the equation-error estimate is not physically admissible (lambda, alpha or K <= 0),
     # also run this form and keep whichever simulates the nonlinear stage better (None: never)
     fallback_form: str | None = "weak"

@@ -38,7 +38,7 @@ MAX_NFEV = 60          # the polish's evaluation budget (recon.estimator.finish.
 
 
 def polish(model: HystereticModel, data: list, max_nfev: int = MAX_NFEV, masks=None, fs_target: float | None = POLISH_FS,
-           free: list | None = None):
+           free: list | None = None, noise: list | None = None):
     """Refine ``model`` on ``data`` = [(t, u, y_meas[, (y0, dy0, a0)]), ...]; returns (model, info).
     ``free``: the parameter keys refined (None: every key of the model, problem.parameter_keys).
 
@@ -51,7 +51,7 @@ def polish(model: HystereticModel, data: list, max_nfev: int = MAX_NFEV, masks=N
         data, q = [d for d, _ in dec], [k for _, k in dec]
         if masks is not None:
             masks = [None if m is None else m[::k] for m, k in zip(masks, q)]
-    prob = OutputError(model, data, masks, free=free)
+    prob = OutputError(model, data, masks, free=free, noise=noise)
     p0 = np.zeros(len(prob.keys))
     r0 = prob.residual(p0)
     sol = least_squares(prob.residual, p0, method="trf", x_scale=1.0, diff_step=FD_STEP,

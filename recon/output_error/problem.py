@@ -99,7 +99,7 @@ class OutputError:
     initial state; z0 follows from the equation of motion for each trial parameter set."""
 
     def __init__(self, model: HystereticModel, data: list, masks=None, extra_terms: dict | None = None,
-                 free=None):
+                 free=None, noise=None):
         self.model = model
         self.data = data
         extra_terms = extra_terms or {}
@@ -115,6 +115,12 @@ class OutputError:
         self.masks = masks if masks is not None else [None] * len(data)
         self.rms = [float(np.sqrt(np.mean((d[2] - d[2].mean()) ** 2))) or 1.0 for d in data]
         self.n_rows = sum(int(d[2].size if m is None else np.count_nonzero(m)) for d, m in zip(data, self.masks))
+        self.item_weights = [1.0] * len(data)
+        if noise is not None:        # maximum likelihood under white output noise of std noise[i] per item
+            n = [int(d[2].size if m is None else np.count_nonzero(m)) for d, m in zip(data, self.masks)]
+            w = [r * np.sqrt(k) / s for r, k, s in zip(self.rms, n, noise)]
+            ref = w[int(np.argmax(self.rms))]
+            self.item_weights = [float(v / ref) for v in w]
 
     def build(self, p, values: bool = False) -> HystereticModel:
         """The model at scaled parameters ``p`` (or at parameter values ``p`` if ``values``)."""
@@ -150,8 +156,8 @@ class OutputError:
 
     def weighted(self, res: list) -> np.ndarray:
         """The fitted rows: masked samples, each item weighted by 1/sqrt(its sample count)."""
-        return np.concatenate([(e if mk is None else e[mk]) / np.sqrt(e.size if mk is None else np.count_nonzero(mk))
-                               for e, mk in zip(res, self.masks)])
+        return np.concatenate([(e if mk is None else e[mk]) * w / np.sqrt(e.size if mk is None else np.count_nonzero(mk))
+                               for e, mk, w in zip(res, self.masks, self.item_weights)])
 
     def residual(self, p) -> np.ndarray:
         res = self.simulate(self.build(p))

@@ -149,6 +149,9 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
     prob = OutputError(model, data)
     keys, x0, scale = prob.keys, prob.x0, prob.scale
     w = [1.0 / ((float(np.sqrt(np.mean((d[2] - d[2].mean()) ** 2))) or 1.0) * np.sqrt(d[2].size)) for d in data]
+    polished = (model.provenance or {}).get("output_error_polish") or {}
+    if polished.get("noise_std") and s.stages is None and list(polished.get("stages") or []) == names:
+        w = [1.0 / v for v in polished["noise_std"]]    # as the two-stage polish weighted them (finish.py)
 
     def resid(x):
         m = prob.build(x, values=True)
