@@ -15,7 +15,7 @@ import numpy as np
 
 from independent_run import model_of, score, to_run
 from recon import ReconSettings, reconstruct
-from recon.estimator.finish import two_stage_polish
+from recon.estimator.two_stage import two_stage_polish
 from recon.output_error.polish import polish
 from recon.library import monomials
 from recon.testing import independent as ind

@@ -6,15 +6,11 @@ import time
 
 import numpy as np
 
-from scipy.stats import chi2
-
-from recon.differentiation import estimate_spectrum
 from recon.estimator.adequacy import noise_floor
 from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, with_term_scales
 from recon.estimator.result import ReconSettings
 from recon.model import HystereticModel
-from recon.output_error.polish import MAX_NFEV, decimate, polish
-from recon.output_error.problem import OutputError
+from recon.output_error.polish import MAX_NFEV, polish
 from recon.validation import nrmse
 from shakerlab.run_data import Run
 
@@ -87,6 +83,21 @@ KNEES = (1.0, 3.0)
 SCREEN_NFEV = 20
 
 
+def generic_starts(model: HystereticModel, data: list):
+    """The generic Bouc-Wen starts (share, knee, model) of :func:`generic_restarts` on ``data`` (the
+    last item is the nonlinear stage, whose amplitude sets the knee)."""
+    amp = float(np.sqrt(2.0) * np.std(data[-1][2])) or 1.0
+    K = model.K_m
+    stiff = {k: model.fn_m.get(k, 0.0) for k in ("y^2", "y^3")}
+    for share in ALPHA_SHARES:
+        for knee in KNEES:
+            trial = HystereticModel.from_dict(model.to_dict())
+            trial.k_m, trial.alpha_m = (1.0 - share) * K, share * K
+            trial.gamma = trial.delta = 0.5 * knee / amp
+            trial.fn_m = dict(stiff)
+            yield share, knee, with_term_scales(trial, data)
+
+
 def generic_restarts(model: HystereticModel, item: tuple, polish_info: dict, floor: float):
     """Polish again from generic starts when the polished model does not fit the nonlinear stage
     to its noise floor: the equation-error estimate put the polish in another basin.
@@ -99,24 +110,14 @@ def generic_restarts(model: HystereticModel, item: tuple, polish_info: dict, flo
     the pointwise estimate had lambda = 20 against the truth's 2473, its polish stopped at an
     NRMSE of 0.0147 (noise floor 0.0011) with k < 0; the start s = 0.25, lambda Y = 3 reaches 0.00117,
     where the fit started at the truth ends."""
-    y = item[2]
-    amp = float(np.sqrt(2.0) * np.std(y)) or 1.0
-    K = model.K_m
-    stiff = {k: model.fn_m.get(k, 0.0) for k in ("y^2", "y^3")}
     screened = []
-    for share in ALPHA_SHARES:
-        for knee in KNEES:
-            trial = HystereticModel.from_dict(model.to_dict())
-            trial.k_m, trial.alpha_m = (1.0 - share) * K, share * K
-            trial.gamma = trial.delta = 0.5 * knee / amp
-            trial.fn_m = dict(stiff)
-            trial = with_term_scales(trial, [item])
-            try:
-                new, info = polish(trial, [item], max_nfev=SCREEN_NFEV)
-            except NUMERICAL_ERRORS:
-                continue
-            if np.isfinite(info["nrmse_after"]):
-                screened.append((info["nrmse_after"], share, knee, new))
+    for share, knee, trial in generic_starts(model, [item]):
+        try:
+            new, info = polish(trial, [item], max_nfev=SCREEN_NFEV)
+        except NUMERICAL_ERRORS:
+            continue
+        if np.isfinite(info["nrmse_after"]):
+            screened.append((info["nrmse_after"], share, knee, new))
     record = {"cost_before": polished_cost(polish_info),
               "noise_floor": floor, "screened": [{"alpha_share": s, "knee": k, "cost": c} for c, s, k, _ in screened]}
     if not screened:
@@ -204,74 +205,6 @@ def refine_start(model: HystereticModel, stage, item: tuple, polish_info: dict):
     if rounds:
         polish_info = {**polish_info, "start_refined": polish_info.get("start_refined", []) + rounds}
     return model, item, polish_info
-
-
-# The joint fit is kept only when it costs the nonlinear stage no more than the noise allows: its
-# sum of squares there may rise by at most the chi-square(p) quantile at this false-alarm rate,
-# in noise variances (p free parameters). A larger rise means the stages disagree on the
-# parameters (model error, not noise), and the nonlinear stage's own fit stays.
-JOINT_FALSE_ALARM = 0.01
-
-
-def stage_cost(model: HystereticModel, item: tuple) -> tuple[float, int]:
-    """(NRMSE over the item as the polish fits it, decimated; the number of samples fitted)."""
-    dec, _ = decimate(item)
-    prob = OutputError(model, [dec])
-    r = prob.residual(np.zeros(len(prob.keys)))
-    return float(np.sqrt(r @ r)), int(dec[2].size)
-
-
-def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings):
-    """Polish the linear and nonlinear stages together, each weighted by its own noise (the
-    maximum-likelihood fit under white output noise), from the nonlinear stage's polished model.
-
-    With one tone per stage the nonlinear stage alone leaves the Bouc-Wen shape (gamma, delta)
-    and the damping poorly determined; the linear stage, at another amplitude and frequency,
-    constrains the small-amplitude stiffness and damping they trade against. On independent
-    recordings at 40 dB (paper protocol) seed 0's delta went from 8.5 % off to 4.5 %, seed 26's
-    from 14 % to 1.9 %. Weighting each stage by its rms instead (equal shares) let the small
-    linear stage, 20 dB further below the noise, pull c off by 4.3 % at 60 dB (seed 18).
-
-    Kept when admissible and consistent: the nonlinear stage's sum of squares rises by at most
-    the chi-square(p) quantile at ``JOINT_FALSE_ALARM`` in noise variances. Returns the model
-    (``model`` itself when not kept); its provenance's ``output_error_polish["two_stage"]``
-    records the figures either way."""
-    lin_name = s.linear_stage
-    if lin_name not in run.stages or lin_name == s.nonlinear_stage:
-        return model
-    nl = run.stage(s.nonlinear_stage)
-    lin = run.stage(lin_name)
-    polish_info = dict(model.provenance.get("output_error_polish") or {})
-    record = {"stages": [lin_name, s.nonlinear_stage]}
-
-    def with_record(m, **info):
-        m.provenance = {**model.provenance, "output_error_polish": {**polish_info, **info, "two_stage": record}}
-        return m
-
-    try:
-        item = model.fit_item(nl)
-        lin_item = model.fit_item(lin)
-        noise = [float(estimate_spectrum(st.y, st.dt).noise_std) for st in (lin, nl)]
-        if not all(v > 0 for v in noise):
-            record.update(applied=False, reason="no noise floor")
-            return with_record(model)
-        new, info = polish(model, [lin_item, item], noise=noise)
-        before, n = stage_cost(model, item)
-        after, _ = stage_cost(new, item)
-    except NUMERICAL_ERRORS as exc:
-        record.update(applied=False, reason=f"{type(exc).__name__}: {exc}")
-        return with_record(model)
-    rms = float(np.std(item[2])) or 1.0
-    p = len(OutputError(model, [item]).keys)
-    rise = n * (after ** 2 - before ** 2) / (noise[1] / rms) ** 2
-    limit = float(chi2.isf(JOINT_FALSE_ALARM, p))
-    record.update(noise_std=noise, nonlinear_cost_before=before, nonlinear_cost_after=after,
-                  rise_noise_variances=float(rise), rise_limit=limit, nfev=info.get("nfev"))
-    ok = bool(info["applied"] and admissible(new) and rise <= limit)
-    record["applied"] = ok
-    if not ok:
-        return with_record(model)
-    return with_record(new, applied=True, nrmse_after=after, stages=record["stages"], noise_std=noise)
 
 
 def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info: dict, timings: dict,
