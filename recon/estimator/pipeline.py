@@ -241,7 +241,7 @@ def _trusted(r: ReconResult) -> bool:
 
 
 def _two_stage(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool) -> ReconResult:
-    """The linear and nonlinear stages polished together (recon.estimator.finish.two_stage_polish),
+    """The linear and nonlinear stages polished together (recon.estimator.two_stage.two_stage_polish),
     re-validated when the joint fit is kept."""
     if not (s.polish and s.two_stage_polish and admissible(result.model)):
         return result

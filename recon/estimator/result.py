@@ -24,7 +24,8 @@ class ReconSettings:
     # polish (recon/term_selection.py); needs polish
     term_selection: bool = True
     # at the end, polish the linear and nonlinear stages together, each weighted by its noise, and keep
-    # the joint fit when the nonlinear stage's fit stays within its noise (recon.estimator.finish)
+    # the joint fit when the nonlinear stage's fit stays within its noise; it also decides the fn terms
+    # (recon.estimator.two_stage)
     two_stage_polish: bool = True
     # when the equation-error estimate is not physically admissible (lambda, alpha or K <= 0),
     # also run this form and keep whichever simulates the nonlinear stage better (None: never)
