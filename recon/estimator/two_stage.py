@@ -134,7 +134,12 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
         return with_record(model)
     record.update(nonlinear_cost_before=before, rise_noise_variances=float(r), rise_limit=limit,
                   nfev=info.get("nfev"))
-    if info["applied"] and admissible(new) and r <= limit:
+    if not info["applied"]:
+        # the joint polish found nothing better than the nonlinear stage's model: the stages do not
+        # disagree under it, and there is nothing to decide (the demo run: 50 s of restarts saved)
+        record.update(applied=False, reason="the joint polish did not lower the joint cost")
+        return with_record(model)
+    if admissible(new) and r <= limit:
         new, record["terms"] = drop_terms(new, two)
         new, record["restart"] = restart(new, two)
     else:
