@@ -118,14 +118,20 @@ def test_garbage_reply_is_a_malformed_reply_and_the_link_recovers(rig, drivers, 
 
 
 def test_replies_split_into_single_bytes_are_reassembled(rig, drivers):
-    gen, _, tip = drivers
+    gen, _, _ = drivers
     rig.servers["generator"].inject("split")
     assert gen.frequency == 14.0
-    tip.arm(None)
-    gen.trigger()
-    rig.servers["sensor_tip"].inject("split")
-    blk = tip.fetch(20)
-    assert len(blk) == 20 and blk.index0 == 0
+    # a block reply sent byte by byte with 2 ms pauses takes about 0.5 s: this sensor waits longer
+    # (the test is about reassembly, not speed: under load the pauses stretch)
+    tip = LaserSensor(rig.addresses["sensor_tip"], timeout=5.0, name="tip")
+    try:
+        tip.arm(None)
+        gen.trigger()
+        rig.servers["sensor_tip"].inject("split")
+        blk = tip.fetch(20)
+        assert len(blk) == 20 and blk.index0 == 0
+    finally:
+        tip.close()
 
 
 @pytest.mark.parametrize("name", ["generator", "sensor_tip"])
