@@ -31,8 +31,9 @@ one session clock):
 - ``rig``: the stage structure of rig/base_target_protocol.toml, amplitudes scaled to the
   system: ``linear`` (0.563 f_n), ``resonance_search`` (stepped sine, 12 geometric steps
   0.42-2.1 f_n then 5 refine steps, 1.5 s each), ``nonlinear`` (0.88 f_res, levels x1.5
-  from 1/20 of the top level, 1.5 s dwell, raising stops when the harmonic distortion of y
-  over the last 0.75 s passes 1.2 % or the gain changed by 45 %, then a 4 s hold),
+  from 1/20 of the top level, 1.5 s dwell; from the second level on, as the rig judges, raising
+  stops when, over the last 0.75 s, the harmonic distortion of y passes 1.2 %, the gain changed
+  by 45 % or the loop loss factor by 200 % from the first level; then a 4 s hold),
   ``validation`` (0.7 f_res at 0.75 of the final level);
 - ``sweep``: log chirps (``linear`` small 0.3-2 f_n, ``nonlinear`` large 0.6-1.4 f_n up,
   ``validation`` 1.4-0.6 f_n down);
@@ -286,6 +287,23 @@ def _harmonics(t, y, f, n=5):
     return np.hypot(coef[1::2], coef[2::2])
 
 
+def _loss_factor(t, st, dr, f, exc):
+    """Loss factor of the loop over the whole periods at the end of a window, as the rig's level
+    analysis defines it: energy per cycle of r against y over pi |R_1| |Y_1|, with r = -x_tip''
+    (base excitation) or the force (force excitation); evaluated on the true states."""
+    dt = float(t[1] - t[0])
+    cycles = math.floor((t[-1] - t[0]) * f)
+    if cycles < 1:
+        return 0.0
+    n = int(round(cycles / f / dt))
+    y, dy = st[0][-n:], st[1][-n:]
+    r = -(dr[2] + np.gradient(st[1], dt)) if exc == "base" else dr[0]
+    r = r[-n:]
+    energy = float(np.sum(r * dy) * dt) / cycles
+    r1, y1 = _harmonics(t[-n:], r, f, 1)[0], _harmonics(t[-n:], y, f, 1)[0]
+    return energy / max(math.pi * r1 * y1, 1e-300)
+
+
 # --------------------------------------------------------------------------- effects
 def effect_parameters(effect: str, strength: float, s: dict, rng, peaks=None) -> dict:
     """The effect's physical parameters at ``strength`` x its nominal scale (relative to the
@@ -473,7 +491,7 @@ def _rig(sim, s, rng):
     t0 = sim.t
     segs = [Segment(t0, t0 + max(level / rate, 2 / f_nl), 0.0, level, _tone(w))]
     sols, x = _integrate(sim.s, sim.eff, sim.exc, segs, sim.x, sim.f_max)
-    g0 = None
+    g0 = l0 = None
     while True:
         segs.append(_continue(segs[-1], segs[-1].t1 + 1.5, level, level, w))
         new_sols, x = _integrate(sim.s, sim.eff, sim.exc, segs[-1:], x, sim.f_max)
@@ -483,14 +501,20 @@ def _rig(sim, s, rng):
         hy, hb = _harmonics(t_an, st[0], f_nl), _harmonics(t_an, dr[0], f_nl)
         thd = float(np.sqrt(np.sum(hy[1:] ** 2)) / hy[0])
         gain = float(hy[0] / hb[0])
-        g0 = gain if g0 is None else g0
-        levels.append({"amplitude": level, "thd": thd, "gain": gain})
-        if thd > 0.012:
-            reason = "thd"
-            break
-        if abs(gain / g0 - 1) > 0.45:
-            reason = "gain change"
-            break
+        loss = _loss_factor(t_an, st, dr, f_nl, sim.exc)
+        g0, l0 = (gain, loss) if g0 is None else (g0, l0)
+        levels.append({"amplitude": level, "thd": thd, "gain": gain, "loss_factor": loss})
+        # the first level is the reference: like rig/plans.py, the criteria are judged from the second on
+        if len(levels) > 1:
+            if thd > 0.012:
+                reason = "thd"
+                break
+            if abs(gain / g0 - 1) > 0.45:
+                reason = "gain change"
+                break
+            if l0 > 0 and abs(loss / l0 - 1) > 2.0:
+                reason = "loss change"
+                break
         if level * 1.5 > top * 1.0001:
             break
         new = level * 1.5
