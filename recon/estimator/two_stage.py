@@ -15,8 +15,11 @@ Three steps, each kept only on the evidence of the joint fit:
    at ``JOINT_FALSE_ALARM``, in noise variances. A larger rise is model error, not noise, and the
    nonlinear stage's own fit stays.
 2. :func:`drop_terms`: each fn term is dropped in turn and the joint fit repeated; the term whose
-   loss raises the joint sum of squares least goes when that rise is below log(n) noise
-   variances (the BIC price of one parameter), and again until every term pays for itself.
+   loss costs least goes when that cost is below log(n) noise variances (the BIC price of one
+   parameter), and again until every term pays for itself. The cost is the rise of the joint sum
+   of squares, each stage's share divided by the residual's :func:`colour` where the loss changes
+   the fit: the white-noise price is too low for a residual coloured by the input's noise at
+   resonance.
 3. :func:`restart`: when the joint fit stays above ``FLOOR_RATIO`` times the noise (mean square
    per sample, in noise variances), or step 1 finds the stages in disagreement, the fit may be in
    another basin: it restarts from the stiffness terms alone (y^2, y^3), and from the generic
@@ -31,6 +34,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import welch
 from scipy.stats import chi2
 
 from recon.differentiation import estimate_spectrum
@@ -79,16 +83,43 @@ class TwoStages:
         new, info = polish(model, items, noise=self.noise)
         return new, info, items
 
-    def sse(self, model: HystereticModel, items: list) -> tuple[float, int]:
-        """The joint sum of squares in noise variances over the items as the polish fits them
-        (decimated), and the number of samples."""
-        total, n = 0.0, 0
+    def residuals(self, model: HystereticModel, items: list) -> list[tuple[np.ndarray, float]]:
+        """Each stage's residual in units of its noise over the item as the polish fits it
+        (decimated), with its sample interval."""
+        out = []
         for item, sd in zip(items, self.noise):
             d, _ = decimate(item)
             ys = OutputError.response(model, d[0], d[1], d[3] if len(d) > 3 else None)
-            total += float(np.sum(((ys - d[2]) / sd) ** 2))
-            n += int(d[2].size)
-        return total, n
+            out.append(((ys - d[2]) / sd, float(d[0][1] - d[0][0])))
+        return out
+
+    def sse(self, model: HystereticModel, items: list) -> tuple[float, int]:
+        """The joint sum of squares in noise variances over the items as the polish fits them
+        (decimated), and the number of samples."""
+        res = self.residuals(model, items)
+        return float(sum(e @ e for e, _ in res)), int(sum(e.size for e, _ in res))
+
+
+def colour(residual: np.ndarray, change: np.ndarray, dt: float) -> float:
+    """How much more than white noise the residual holds where ``change`` lives: the residual's
+    spectral density (Welch, in units of its white noise, so white noise gives 1) averaged over
+    frequency with the weights |FFT(change)|^2.
+
+    A sum of squares rise of R noise variances from a change whose spectrum sits where the residual
+    is ``colour`` times the white level is worth R / colour under that residual: near a resonance,
+    the input's noise passed through the structure colours the output error, and a term that fits
+    that colour would otherwise pass for a term that fits the physics.
+    """
+    nper = int(min(1024, residual.size // 8))
+    if nper < 16 or not np.any(change):
+        return 1.0
+    f, p = welch(residual, fs=1.0 / dt, nperseg=nper)
+    density = p / (2.0 * dt)                 # white unit-variance noise: 1
+    weight = np.abs(np.fft.rfft(change)) ** 2
+    total = float(np.sum(weight))
+    if not total > 0:
+        return 1.0
+    return float(np.sum(weight * np.interp(np.fft.rfftfreq(change.size, dt), f, density)) / total)
 
 
 def stage_cost(model: HystereticModel, item: tuple) -> tuple[float, int]:
@@ -172,13 +203,18 @@ def _joint_fit(model: HystereticModel, two: TwoStages):
 
 
 def drop_terms(model: HystereticModel, two: TwoStages):
-    """Step 2 of the module doc: (model, record)."""
+    """Step 2 of the module doc: (model, record). A term's cost is the rise of each stage's sum of
+    squares divided by that stage's :func:`colour` where the loss changes the fit (never by less
+    than 1: a residual quieter than its white floor does not make a term dearer)."""
     try:
-        sse, n = two.sse(model, two.items(model))
+        items = two.items(model)
+        base = two.residuals(model, items)
     except NUMERICAL_ERRORS as exc:
         return model, {"failed": f"{type(exc).__name__}: {exc}"}
+    sse, n = float(sum(e @ e for e, _ in base)), int(sum(e.size for e, _ in base))
     price = float(np.log(n))
-    record = {"sse_noise_variances": sse, "samples": n, "price": price, "dropped": [], "rises": []}
+    record = {"sse_noise_variances": sse, "samples": n, "price": price, "dropped": [], "rises": [],
+              "costs": []}
     while model.fn_m:
         trials = []
         for k in sorted(model.fn_m):
@@ -186,15 +222,24 @@ def drop_terms(model: HystereticModel, two: TwoStages):
             trial.provenance = model.provenance
             del trial.fn_m[k]
             fit = _joint_fit(trial, two)
-            if fit is not None:
-                trials.append((fit[1] - sse, k, fit[0]))
-        record["rises"].append({k: r for r, k, _ in trials})
+            if fit is None:
+                continue
+            try:
+                res = two.residuals(fit[0], two.items(fit[0]))
+            except NUMERICAL_ERRORS:
+                continue
+            cost = 0.0
+            for (e0, dt), (e1, _) in zip(base, res):
+                cost += float(e1 @ e1 - e0 @ e0) / max(colour(e0, e1 - e0, dt), 1.0)
+            trials.append((cost, float(sum(e @ e for e, _ in res)) - sse, k, fit[0], res))
+        record["rises"].append({k: r for _, r, k, _, _ in trials})
+        record["costs"].append({k: c for c, _, k, _, _ in trials})
         if not trials:
             break
-        rise, k, new = min(trials, key=lambda t: t[0])
-        if not rise < price:
+        cost, rise, k, new, res = min(trials, key=lambda t: t[0])
+        if not cost < price:
             break
-        model, sse = new, sse + rise
+        model, sse, base = new, sse + rise, res
         record["dropped"].append(k)
     record["sse_after"] = sse
     return model, record
