@@ -102,3 +102,18 @@ def test_noise_is_at_the_requested_snr_of_each_channel():
         x = rec["stages"]["a"][ch]
         ratio = np.std(noisy["stages"]["a"][ch] - x) / np.sqrt(np.mean(x ** 2))
         assert ratio == pytest.approx(1e-2, rel=0.03)
+
+
+def test_rig_protocol_judges_its_stop_criteria_from_the_second_level_like_the_rig():
+    # recon stress seed 5: the first level's window, still ringing from its ramp, shows more than
+    # 1.2 % distortion; rig/plans.py takes that level as the reference and raises on
+    gen = _load()
+    rng = np.random.default_rng([5, 18])
+    system = gen.random_system(rng, hysteresis=True)
+    fs = float(np.round(math.exp(rng.uniform(math.log(1000.0), math.log(10000.0)))))
+    rec = gen.simulate(system, "rig", fs, seed=5)
+    desc = rec["stages"]["nonlinear"]["description"]
+    levels = desc["levels"]
+    assert levels[0]["thd"] > 0.012
+    assert len(levels) >= 2 and desc["stop"] in ("thd", "gain change", "loss change", "max level")
+    assert all(np.isfinite(lv["loss_factor"]) for lv in levels)

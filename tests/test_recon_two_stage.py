@@ -89,3 +89,24 @@ def test_a_fit_in_the_nonlinear_stages_own_basin_is_restarted():
     sc = score(res.model, rec["truth"])
     assert sc["exact"] and not sc["inadmissible"], sc
     assert sc["worst"] < 0.05, sc
+
+
+def test_colour_is_one_for_white_noise_and_grows_with_the_band_where_a_change_sits():
+    from scipy.signal import lfilter
+
+    from recon.estimator.two_stage import colour
+
+    rng = np.random.default_rng(0)
+    dt, n = 1e-3, 2 ** 15
+    t = np.arange(n) * dt
+    white = rng.normal(size=n)
+    tone, off = np.sin(2 * np.pi * 100.0 * t), np.sin(2 * np.pi * 300.0 * t)
+    assert abs(colour(white, tone, dt) - 1.0) < 0.1
+    # white noise plus noise through a resonance at 100 Hz (as the input's noise through the structure)
+    r = 0.99
+    band = lfilter([1.0 - r], [1.0, -2 * r * np.cos(2 * np.pi * 100.0 * dt), r * r], rng.normal(size=n))
+    band *= 0.5 / np.std(band)
+    small, large = colour(white + band, tone, dt), colour(white + 2 * band, tone, dt)
+    assert small > 5.0, small                                   # the band stands far above the floor there
+    assert abs((large - 1) / (small - 1) - 4.0) < 0.4, (small, large)   # density: the square of the size
+    assert colour(white + 2 * band, off, dt) < 1.1              # away from the band: the white floor
