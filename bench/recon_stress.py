@@ -100,11 +100,21 @@ def run_seed(task) -> list[dict]:
         row.update(status="inadmissible" if sc["inadmissible"] else "ok", result=res.model.to_dict()["parameters"],
                    validation_nrmse=val, form=res.settings.form,
                    passes=res.hysteresis_info.get("passes_compared"), pass_kept=res.hysteresis_info.get("pass"),
+                   two_stage=two_stage_summary(res.model),
                    **sc)
         if not meets_target(row):
             row["record_limit"] = record_limit(run, rec["truth"])
         rows.append(row)
     return rows
+
+
+def two_stage_summary(model) -> dict:
+    """The two-stage fit's figures from the model's provenance: whether it was kept, the joint mean
+    square per sample in noise variances, and whether a restart was kept."""
+    rec = (model.provenance.get("output_error_polish") or {}).get("two_stage") or {}
+    restart = rec.get("restart") or {}
+    return {"applied": rec.get("applied"), "mean_square": restart.get("mean_square_noise_variances"),
+            "restart_applied": restart.get("applied"), "dropped": (rec.get("terms") or {}).get("dropped")}
 
 
 def meets_target(row: dict) -> bool:

@@ -48,8 +48,11 @@ from shakerlab.run_data import Run, Stage
 
 JOINT_FALSE_ALARM = 0.01
 # mean square of the joint residual per sample, in noise variances, above which the joint fit is
-# taken to be in another basin (the truth's own fit is at 1.0-1.1 on the independent generator)
-FLOOR_RATIO = 1.5
+# taken to be in another basin. The truth's own joint fit is at 1.00-1.05 on the independent
+# generator's draws; the mean square's sampling spread is sqrt(2/n), under 0.01 for n > 20000, so
+# 10 % above the floor is model error (stress seed 6 at 50 dB: a spurious y^2 y' at 1.14, the truth
+# at 1.00; 1.5 until 2026-11-26 let it stand)
+FLOOR_RATIO = 1.1
 STIFFNESS_TERMS = ("y^2", "y^3")
 
 
