@@ -156,10 +156,16 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
     p = len(OutputError(model, [items[1]]).keys)
     limit = float(chi2.isf(JOINT_FALSE_ALARM, p))
 
+    last = {}     # the nonlinear stage's cost under the model rise() saw last, for the record at the end
+
+    def cost(m) -> float:
+        if last.get("model") is not m:
+            last.update(model=m, cost=stage_cost(m, m.fit_item(two.stages[1]))[0])
+        return last["cost"]
+
     def rise(m) -> float:
         """The nonlinear stage's sum of squares under ``m`` less under ``model``, in noise variances."""
-        after, _ = stage_cost(m, m.fit_item(two.stages[1]))
-        return n * (after ** 2 - before ** 2) / (two.noise[1] / rms) ** 2
+        return n * (cost(m) ** 2 - before ** 2) / (two.noise[1] / rms) ** 2
 
     try:
         r = rise(new)
@@ -175,7 +181,7 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
         return with_record(model)
     if admissible(new) and r <= limit:
         new, record["terms"] = drop_terms(new, two)
-        new, record["restart"] = restart(new, two)
+        new, record["restart"] = restart(new, two, known=record["terms"])
     else:
         # the stages disagree under this model: its basin may be the nonlinear stage's alone (terms
         # that fit one loop and not the other stage); restarted from the stiffness terms, the joint fit
@@ -188,7 +194,7 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
             record["applied"] = False
             return with_record(model)
     record["applied"] = True
-    after, _ = stage_cost(new, new.fit_item(two.stages[1]))
+    after = cost(new)
     record["nonlinear_cost_after"] = after
     return with_record(new, applied=True, nrmse_after=after, stages=two.names, noise_std=two.noise)
 
@@ -234,26 +240,30 @@ def drop_terms(model: HystereticModel, two: TwoStages):
             cost = 0.0
             for (e0, dt), (e1, _) in zip(base, res):
                 cost += float(e1 @ e1 - e0 @ e0) / max(colour(e0, e1 - e0, dt), 1.0)
-            trials.append((cost, float(sum(e @ e for e, _ in res)) - sse, k, fit[0], res))
-        record["rises"].append({k: r for _, r, k, _, _ in trials})
+            trials.append((cost, float(sum(e @ e for e, _ in res)), k, fit[0], res))
+        record["rises"].append({k: total - sse for _, total, k, _, _ in trials})
         record["costs"].append({k: c for c, _, k, _, _ in trials})
         if not trials:
             break
-        cost, rise, k, new, res = min(trials, key=lambda t: t[0])
+        cost, total, k, new, res = min(trials, key=lambda t: t[0])
         if not cost < price:
             break
-        model, sse, base = new, sse + rise, res
+        model, sse, base = new, total, res
         record["dropped"].append(k)
     record["sse_after"] = sse
     return model, record
 
 
-def restart(model: HystereticModel, two: TwoStages, force: bool = False):
-    """Step 3 of the module doc (``force``: whatever the joint fit's level): (model, record)."""
-    try:
-        sse, n = two.sse(model, two.items(model))
-    except NUMERICAL_ERRORS as exc:
-        return model, {"failed": f"{type(exc).__name__}: {exc}"}
+def restart(model: HystereticModel, two: TwoStages, force: bool = False, known: dict | None = None):
+    """Step 3 of the module doc (``force``: whatever the joint fit's level): (model, record).
+    ``known``: :func:`drop_terms`'s record for ``model``, whose joint sum of squares is reused."""
+    if known and "sse_after" in known:
+        sse, n = known["sse_after"], known["samples"]
+    else:
+        try:
+            sse, n = two.sse(model, two.items(model))
+        except NUMERICAL_ERRORS as exc:
+            return model, {"failed": f"{type(exc).__name__}: {exc}"}
     record = {"mean_square_noise_variances": sse / n, "limit": FLOOR_RATIO, "applied": False}
     if sse / n <= FLOOR_RATIO and not force:
         return model, record
