@@ -159,6 +159,12 @@ class OutputError:
         return np.concatenate([(e if mk is None else e[mk]) * w / np.sqrt(e.size if mk is None else np.count_nonzero(mk))
                                for e, mk, w in zip(res, self.masks, self.item_weights)])
 
+    def row_weights(self) -> list[float]:
+        """The factor :meth:`residual` multiplies each item's raw error y_sim - y_meas by: 1/(rms
+        sqrt(n)), times the item's weight (under ``noise``: in all, proportional to 1/noise)."""
+        return [w / (r * np.sqrt(d[2].size if mk is None else np.count_nonzero(mk)))
+                for d, r, mk, w in zip(self.data, self.rms, self.masks, self.item_weights)]
+
     def residual(self, p) -> np.ndarray:
         res = self.simulate(self.build(p))
         if res is None:

@@ -146,12 +146,13 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
         u = model.stage_input(st)
         data.append(model.fit_item(st, u))   # (t from 0, u, y, recorded start), as the polish fits it
         noise.append(InputNoise(st))
-    prob = OutputError(model, data)
-    keys, x0, scale = prob.keys, prob.x0, prob.scale
-    w = [1.0 / ((float(np.sqrt(np.mean((d[2] - d[2].mean()) ** 2))) or 1.0) * np.sqrt(d[2].size)) for d in data]
+    # the stages weighted as the polish weighted them: by their noise after the two-stage polish
+    # (recon.estimator.two_stage), else by their rms
     polished = (model.provenance or {}).get("output_error_polish") or {}
-    if polished.get("noise_std") and s.stages is None and list(polished.get("stages") or []) == names:
-        w = [1.0 / v for v in polished["noise_std"]]    # as the two-stage polish weighted them (finish.py)
+    joint = polished.get("noise_std") and s.stages is None and list(polished.get("stages") or []) == names
+    prob = OutputError(model, data, noise=polished["noise_std"] if joint else None)
+    keys, x0, scale = prob.keys, prob.x0, prob.scale
+    w = prob.row_weights()
 
     def resid(x):
         m = prob.build(x, values=True)
