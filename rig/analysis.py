@@ -97,6 +97,18 @@ def response(x_base: np.ndarray, x_tip: np.ndarray, fs: float, f: float, n_harmo
     )
 
 
+def gain_change(before: Response, after: Response) -> float:
+    """|G_after - G_before| / |G_after|, G = gain e^{i phase}: how far the relative motion's
+    fundamental (amplitude and phase against the base) moved between two windows at the same drive.
+    A transient from the last change of level (the free response at the resonance, beating with
+    the drive) moves it; a steady response leaves it where it is."""
+    ga = after.gain * np.exp(1j * np.radians(after.phase_deg))
+    gb = before.gain * np.exp(1j * np.radians(before.phase_deg))
+    if not (np.isfinite(ga) and np.isfinite(gb)) or after.gain <= 0:
+        return float("inf")
+    return float(abs(ga - gb) / after.gain)
+
+
 def peak_frequency(freqs, values) -> float:
     """Frequency of the maximum of ``values`` (a resonance curve), refined between grid points.
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from rig import analysis
-from rig.decisions import next_level, nonlinearity_reached
+from rig.decisions import next_level, nonlinearity_reached, settled_response
 from rig.messages import BeginStage, Checkpoint, ControlSine, EndStage, Log, Rest, SetFrequency
 from shakerlab.errors import UserFacingError
 
@@ -122,11 +122,14 @@ def nonlinear_stage(p: dict, settle_s: float, ctx):
             break
         w = res.window
         r = analysis.response(w.x_base, w.x_tip, w.fs, f)
+        settle = {}
+        if p["settle_tolerance"] > 0:     # the controller's last window, then more at the drive it holds
+            r, settle = yield from settled_response(p, f, r, None, f"level {len(levels) + 1}")
         first = first or r
         reasons = nonlinearity_reached(p, first, r) if len(levels) else []
         levels.append({"base_target_m": target, "effective_target_m": res.effective_target_m,
                        "control_error_db": res.error_db, "amplitude_vpp": res.vpp, "notched": res.notched,
-                       **r.to_dict(), "criteria": reasons})
+                       **r.to_dict(), **settle, "criteria": reasons})
         final_res, last_ok = res, target
         yield Log("info", f"nonlinear level {len(levels)}: base {r.base_amplitude * 1e3:.4f} mm (target "
                           f"{target * 1e3:.4g} mm, {res.error_db:+.2f} dB) at {res.vpp:.3f} Vpp, relative amplitude "

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from rig import analysis, control_plans
-from rig.decisions import next_level, nonlinearity_reached
+from rig.decisions import next_level, nonlinearity_reached, settled_response
 from rig.messages import Acquire, BeginStage, Checkpoint, CheckSetpoint, EndStage, Log, Ramp, Rest, SetFrequency
 
 
@@ -102,13 +102,18 @@ def nonlinear_stage(p: dict, settle_s: float, ctx: PlanContext):
     while True:
         yield Checkpoint()
         yield Ramp(vpp, f"level {len(levels) + 1}")
+        pre = None
         if p["dwell_s"] > p["analysis_s"]:
-            yield Acquire(p["dwell_s"] - p["analysis_s"])
+            pre = yield Acquire(p["dwell_s"] - p["analysis_s"])
         w = yield Acquire(p["analysis_s"])
         r = analysis.response(w.x_base, w.x_tip, w.fs, f)
+        settle = {}
+        if p["settle_tolerance"] > 0:
+            before = analysis.response(pre.x_base, pre.x_tip, pre.fs, f) if pre is not None else None
+            r, settle = yield from settled_response(p, f, r, before, f"level {len(levels) + 1}")
         first = first or r
         reasons = nonlinearity_reached(p, first, r) if len(levels) else []
-        levels.append({"amplitude_vpp": vpp, **r.to_dict(), "criteria": reasons})
+        levels.append({"amplitude_vpp": vpp, **r.to_dict(), **settle, "criteria": reasons})
         yield Log("info", f"nonlinear level {len(levels)}: {vpp:.3f} Vpp, relative amplitude "
                           f"{r.relative_amplitude * 1e3:.3f} mm, THD {r.thd * 100:.2f} %, gain {r.gain:.3f}, "
                           f"loss factor {r.loss_factor:.4f}")

@@ -90,6 +90,14 @@ SCHEMA = {
         "max_relative_mm": _base_fields()["max_relative_mm"],
         "dwell_s": Field("number", 1.5, **_POS, help="time at each level"),
         "analysis_s": Field("number", 0.75, **_POS, help="last part of each dwell that is analysed"),
+        "settle_tolerance": Field("number", 0.0, min=0.0, max=0.5,
+                                  help="judge a level only on a steady response: further analysis_s windows "
+                                       "are recorded until two in a row give the same complex gain (relative "
+                                       "over base displacement, fundamental) to this fraction; 0: the dwell "
+                                       "alone decides"),
+        "settle_max_s": Field("number", 20.0, **_POS,
+                              help="longest extra wait at one level for settle_tolerance; then the level is "
+                                   "judged as it is, with a warning"),
         "hold_s": Field("number", 2.0, min=0.0, help="extra time at the final level"),
         "thd_threshold": Field("number", 0.05, **_POS,
                                help="stop raising when the relative displacement's harmonic distortion exceeds this"),
