@@ -31,7 +31,9 @@ one session clock):
 - ``rig``: the stage structure of rig/base_target_protocol.toml, amplitudes scaled to the
   system: ``linear`` (0.563 f_n), ``resonance_search`` (stepped sine, 12 geometric steps
   0.42-2.1 f_n then 5 refine steps, 1.5 s each), ``nonlinear`` (0.88 f_res, levels x1.5
-  from 1/20 of the top level, 1.5 s dwell; from the second level on, as the rig judges, raising
+  from 1/20 of the top level, 1.5 s dwell, then 0.75 s windows until two in a row agree on the
+  complex gain of y to 0.5 %, at most 20 s more, as the rig's settle_tolerance does; from the
+  second level on, as the rig judges, raising
   stops when, over the last 0.75 s, the harmonic distortion of y passes 1.2 %, the gain changed
   by 45 % or the loop loss factor by 200 % from the first level; then a 4 s hold),
   ``validation`` (0.7 f_res at 0.75 of the final level);
@@ -57,6 +59,10 @@ STRUCTURAL_EFFECTS = ("cubic_stiffness", "quadratic_stiffness", "hysteresis")
 MORE_PHYSICAL_EFFECTS = ("amplitude_damping",)
 EFFECTS = ("none",) + PHYSICAL_EFFECTS + STRUCTURAL_EFFECTS + MORE_PHYSICAL_EFFECTS
 SETTLE_S = 1.0
+# the rig protocol's nonlinear levels are judged once steady: two 0.75 s windows in a row agree on
+# the complex gain of y over the base to SETTLE_TOLERANCE, waiting at most SETTLE_MAX_S more
+SETTLE_TOLERANCE = 0.005
+SETTLE_MAX_S = 20.0
 
 
 # --------------------------------------------------------------------------- systems
@@ -287,6 +293,16 @@ def _harmonics(t, y, f, n=5):
     return np.hypot(coef[1::2], coef[2::2])
 
 
+def _complex_gain(t, y, xb, f):
+    """Fundamental of y over that of the base motion xb, as complex amplitudes (least squares with
+    a constant)."""
+    w = 2 * math.pi * f
+    a = np.column_stack([np.ones_like(t), np.cos(w * t), np.sin(w * t)])
+    cy = np.linalg.lstsq(a, y, rcond=None)[0]
+    cb = np.linalg.lstsq(a, xb, rcond=None)[0]
+    return complex(cy[1], -cy[2]) / complex(cb[1], -cb[2])
+
+
 def _loss_factor(t, st, dr, f, exc):
     """Loss factor of the loop over the whole periods at the end of a window, as the rig's level
     analysis defines it: energy per cycle of r against y over pi |R_1| |Y_1|, with r = -x_tip''
@@ -496,14 +512,30 @@ def _rig(sim, s, rng):
         segs.append(_continue(segs[-1], segs[-1].t1 + 1.5, level, level, w))
         new_sols, x = _integrate(sim.s, sim.eff, sim.exc, segs[-1:], x, sim.f_max)
         sols += new_sols
-        t_an = np.arange(segs[-1].t1 - 0.75, segs[-1].t1, 1.0 / sim.fs)
+        # settle (settle_tolerance 0.005, settle_max_s 20 in the rig's protocol): more 0.75 s windows
+        # until two in a row give the same complex gain of y over the base to 0.5 %
+        t_an = np.arange(segs[-1].t1 - 1.5, segs[-1].t1 - 0.75, 1.0 / sim.fs)
         st, dr = _evaluate(segs[-1:], new_sols, t_an)
+        g_prev = _complex_gain(t_an, st[0], dr[0], f_nl) if sim.exc == "base" else None
+        extra = 0.0
+        while True:
+            t_an = np.arange(segs[-1].t1 - 0.75, segs[-1].t1, 1.0 / sim.fs)
+            st, dr = _evaluate(segs[-1:], new_sols, t_an)
+            if g_prev is None:
+                break
+            g = _complex_gain(t_an, st[0], dr[0], f_nl)
+            if abs(g - g_prev) <= SETTLE_TOLERANCE * abs(g) or extra + 0.75 > SETTLE_MAX_S:
+                break
+            g_prev, extra = g, extra + 0.75
+            segs.append(_continue(segs[-1], segs[-1].t1 + 0.75, level, level, w))
+            new_sols, x = _integrate(sim.s, sim.eff, sim.exc, segs[-1:], x, sim.f_max)
+            sols += new_sols
         hy, hb = _harmonics(t_an, st[0], f_nl), _harmonics(t_an, dr[0], f_nl)
         thd = float(np.sqrt(np.sum(hy[1:] ** 2)) / hy[0])
         gain = float(hy[0] / hb[0])
         loss = _loss_factor(t_an, st, dr, f_nl, sim.exc)
         g0, l0 = (gain, loss) if g0 is None else (g0, l0)
-        levels.append({"amplitude": level, "thd": thd, "gain": gain, "loss_factor": loss})
+        levels.append({"amplitude": level, "thd": thd, "gain": gain, "loss_factor": loss, "settle_extra_s": extra})
         # the first level is the reference: like rig/plans.py, the criteria are judged from the second on
         if len(levels) > 1:
             if thd > 0.012:
