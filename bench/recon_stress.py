@@ -201,9 +201,13 @@ def worst_draws(rows: list[dict], k: int = 15) -> list[str]:
 
 def main(a) -> int:
     snrs = [float(s) for s in a.snr.split(",")] if a.snr else list(SNRS)
-    n = a.seeds or 50
     protocols = tuple(a.protocols.split(","))
-    tasks = [(s, snrs, protocols) for s in range(a.first_seed, a.first_seed + n)]
+    if a.from_jsonl:
+        return report(stored_rows(a.from_jsonl, snrs), snrs, protocols, "stored rows: " + ", ".join(a.from_jsonl))
+    seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else \
+        list(range(a.first_seed, a.first_seed + (a.seeds or 50)))
+    n = len(seeds)
+    tasks = [(s, snrs, protocols) for s in seeds]
     rows = []
     t0 = time.perf_counter()
     out = open(a.jsonl, "w") if a.jsonl else None
@@ -227,8 +231,23 @@ def main(a) -> int:
     if out:
         out.close()
     wall = time.perf_counter() - t0
-    print(f"\nindependent generator, protocols {', '.join(protocols)}, seeds {a.first_seed}..{a.first_seed + n - 1}, "
-          f"{workers} worker(s), wall {wall:.0f} s")
+    return report(rows, snrs, protocols, f"seeds {seeds[0]}..{seeds[-1]} ({n}), {workers} worker(s), wall {wall:.0f} s")
+
+
+def stored_rows(paths, snrs) -> list[dict]:
+    """Rows of --jsonl files, the last one for each (seed, SNR) kept, at the SNRs asked for."""
+    rows = {}
+    for path in paths:
+        with open(path) as f:
+            for line in f:
+                r = json.loads(line)
+                if r["snr"] in snrs:
+                    rows[(r["seed"], r["snr"])] = r
+    return [rows[k] for k in sorted(rows)]
+
+
+def report(rows: list[dict], snrs, protocols, what: str) -> int:
+    print(f"\nindependent generator, protocols {', '.join(protocols)}, {what}")
     print("\n".join(table(rows, snrs)))
     ident = [r for r in rows if r.get("identifiability", {}).get("identifiable")]
     seeds_i = sorted({r["seed"] for r in ident})
