@@ -104,15 +104,21 @@ def test_noise_is_at_the_requested_snr_of_each_channel():
         assert ratio == pytest.approx(1e-2, rel=0.03)
 
 
+def _rig_draw(seed: int):
+    """(system, recording) of recon stress seed ``seed`` under the rig protocol, as
+    bench/recon_stress.py draws it."""
+    gen = _load()
+    rng = np.random.default_rng([seed, 18])
+    system = gen.random_system(rng, hysteresis=True)
+    fs = float(np.round(math.exp(rng.uniform(math.log(1000.0), math.log(10000.0)))))
+    return system, gen.simulate(system, "rig", fs, seed=seed)
+
+
 def test_rig_protocol_judges_its_stop_criteria_from_the_second_level_like_the_rig():
     # recon stress seed 5: the first level's 1.5 s dwell still rings from its ramp (1.2 % distortion
     # in its last 0.75 s); like the rig with settle_tolerance, the generator records more windows
     # until the level is steady, takes that level as the reference and raises on
-    gen = _load()
-    rng = np.random.default_rng([5, 18])
-    system = gen.random_system(rng, hysteresis=True)
-    fs = float(np.round(math.exp(rng.uniform(math.log(1000.0), math.log(10000.0)))))
-    rec = gen.simulate(system, "rig", fs, seed=5)
+    system, rec = _rig_draw(5)
     desc = rec["stages"]["nonlinear"]["description"]
     levels = desc["levels"]
     assert levels[0]["settle_extra_s"] > 0 and levels[0]["thd"] < 0.012
@@ -125,11 +131,7 @@ def test_rig_protocol_settles_each_level_before_judging_it():
     # dwell alone, its first level read 6.5 % distortion and the raising stopped at the second level,
     # the loop at lambda max|y| = 0.08; settled, every level reads under 1.2 % and the raising goes on
     # until the loop's loss factor has changed by 200 % (lambda max|y| = 0.94)
-    gen = _load()
-    rng = np.random.default_rng([41, 18])
-    system = gen.random_system(rng, hysteresis=True)
-    fs = float(np.round(math.exp(rng.uniform(math.log(1000.0), math.log(10000.0)))))
-    rec = gen.simulate(system, "rig", fs, seed=41)
+    system, rec = _rig_draw(41)
     desc = rec["stages"]["nonlinear"]["description"]
     assert len(desc["levels"]) >= 5 and desc["stop"] == "loss change"
     assert all(lv["thd"] < 0.012 for lv in desc["levels"])
