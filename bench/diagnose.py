@@ -50,6 +50,11 @@ def main(argv=None) -> int:
     ap.add_argument("--from-jsonl", nargs="+", default=None, metavar="JSONL",
                     help="--stress: print the table of rows saved by --jsonl (several files are joined; a "
                          "recording index seen twice keeps its last row) instead of running")
+    ap.add_argument("--oracle-of", nargs="+", default=None, metavar="JSONL",
+                    help="--stress: put the truth of each saved row's recording (generated again) to the "
+                         "diagnosis's rule against that row's reference; rows to --jsonl")
+    ap.add_argument("--rows", nargs="+", type=int, default=None, metavar="I",
+                    help="--stress: these recording indices (instead of --first/--n)")
     args = ap.parse_args(argv)
     if args.stress:
         import diagnose_stress  # bench/diagnose_stress.py

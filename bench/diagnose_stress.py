@@ -24,8 +24,9 @@ import warnings
 
 import numpy as np
 
-from independent_run import model_of, to_run
+from independent_run import model_of, to_run, true_model
 from recon import diagnose
+from recon.diagnosis import rank
 from recon.diagnosis.catalog import CATALOG
 from recon.testing import independent as ind
 
@@ -90,6 +91,30 @@ def contact_reach(rec: dict) -> dict | None:
             for n, st in rec["stages"].items()}
 
 
+def oracle(rec: dict, run, reference, baseline) -> dict | None:
+    """The truth itself put to the diagnosis's own test: the recording's true model (its system
+    with the concealed effect, parameters as generated, none fitted) scored on the held-out
+    samples against the diagnosis's reference (the better of the baseline as given and the null
+    model) with the rule a candidate must pass (recon.diagnosis.rank.score). Not significant: the
+    record does not show the effect beyond what the baseline already explains, so no candidate
+    fitted to it could be named by the rule either. ``reference`` is the diagnosis's reference
+    FitResult, or its held-out NRMSE alone (a stored row; the effective sample count is then
+    taken from the truth's own held-out residual). None for a clean recording."""
+    tm = true_model(rec) if rec["effect"] != "none" else None
+    if tm is None:
+        return None
+    am, k = tm
+    data = rank.prepare(run, baseline)
+    fr = rank.fit(am, [], data)
+    if not isinstance(reference, rank.FitResult):
+        yh = np.concatenate([d.y[d.held] - d.y[d.held].mean() for d in data if d.held.any()])
+        reference = rank.FitResult(model=None, cost_fit=float("nan"), mse_held=float(reference) ** 2 * float(np.mean(yh ** 2)),
+                                   nrmse={}, nrmse_held=float(reference), n_held=int(yh.size), resid_held=fr.resid_held)
+    s = rank.score(reference, fr, k, rank.held_noise_mse(data))
+    return {"held_out_nrmse": fr.nrmse_held, "reference_held_out_nrmse": reference.nrmse_held,
+            **{k_: s[k_] for k_ in ("significant", "explained", "gain_over_noise", "relative_gain", "dbic")}}
+
+
 # what each row keeps of every tested candidate (to study the decision rule offline)
 CANDIDATE_KEYS = ("id", "significant", "explained", "gain_over_noise", "relative_gain", "dbic", "held_out_nrmse",
                   "compared_with_held_out_nrmse", "baseline_terms_dropped", "implausible", "failed")
@@ -144,6 +169,10 @@ def run_one(i: int) -> dict:
                            for m in out["missing_physics"]},
                result=out["result"], unexplained=bool(out.get("unexplained_mismatch")),
                candidates=[{k: c[k] for k in CANDIDATE_KEYS if k in c} for c in out.get("candidates_tested", [])])
+    try:
+        row["oracle"] = oracle(rec, to_run(rec), dg.reference, dg.baseline.baseline)
+    except Exception as exc:  # noqa: BLE001 - the oracle is a bench figure, not the diagnosis
+        row["oracle"] = {"failed": f"{type(exc).__name__}: {exc}"[:200]}
     h = row["held_out"]
     if ids:
         row["after_beats_both"] = bool(h["after"] is not None and h["null"] is not None and h["as_given"] is not None
@@ -195,6 +224,15 @@ def report(rows: list[dict]) -> list[str]:
         out.append(f"contact recordings whose motion never reaches the gap (no contact in the record): {len(absent)} "
                    f"({which}); right first on the effect recordings that hold their effect: "
                    f"{sum(r.get('right', False) for r in present)}/{len(present)}")
+    judged = [r for r in eff if r["status"] == "ok" and isinstance(r.get("oracle"), dict) and "significant" in r["oracle"]]
+    if judged:
+        shows = [r for r in judged if r["oracle"]["significant"]]
+        hidden = [r for r in judged if not r["oracle"]["significant"]]
+        out.append(f"the truth itself put to the rule (oracle), on {len(judged)} effect recordings: it passes on "
+                   f"{len(shows)}; right first on those {sum(r.get('right', False) for r in shows)}/{len(shows)}"
+                   + (f" = {sum(r.get('right', False) for r in shows) / len(shows):.1%}" if shows else "")
+                   + f"; on the {len(hidden)} where it does not, right first {sum(r.get('right', False) for r in hidden)}"
+                   f"/{len(hidden)}")
     out.append(f"effects named nothing: {len(missed)}, of which {len(flagged)} flagged as an unexplained mismatch; "
                f"clean recordings named nothing but flagged: {len(clean_flag)}/{len(clean)}")
     secs = [r["seconds"] for r in rows if "seconds" in r]
@@ -221,7 +259,57 @@ def load_rows(paths: list[str]) -> list[dict]:
     return [rows[i] for i in sorted(rows)]
 
 
+def oracle_of_stored(row: dict) -> dict:
+    """``row`` (a stored row) with its oracle, the recording generated again from its index. A row
+    whose recording no longer comes out the same (another sample count: the generator's protocol
+    changed since) gets ``oracle = {"stale": ...}``."""
+    warnings.filterwarnings("ignore")
+    row = dict(row)
+    i = row["index"]
+    if row.get("status") != "ok" or row["effect"] == "none":
+        return row
+    d = draw(i)
+    rec = ind.add_noise(ind.simulate(d["system"], d["protocol"], d["fs"], d["effect"], d["strength"], seed=i),
+                        d["snr"], i, d["quantisation"])
+    n = sum(int(s["t"].size) for s in rec["stages"].values())
+    if n != row.get("samples"):
+        row["oracle"] = {"stale": f"the recording has {n} samples now, {row.get('samples')} when diagnosed"}
+        return row
+    h = row["held_out"]
+    ref = min(v for v in (h["as_given"], h["null"]) if v is not None)
+    tm = true_model(rec)
+    try:
+        row["oracle"] = oracle(rec, to_run(rec), ref, tm[0].baseline if tm else None)
+    except Exception as exc:  # noqa: BLE001
+        row["oracle"] = {"failed": f"{type(exc).__name__}: {exc}"[:200]}
+    return row
+
+
 def main(args) -> int:
+    if getattr(args, "oracle_of", None):
+        rows = load_rows(args.oracle_of)
+        if not args.jsonl:
+            raise SystemExit("--oracle-of needs --jsonl OUT (the rows with their oracle)")
+        try:
+            out = open(args.jsonl, "x")
+        except FileExistsError:
+            raise SystemExit(f"--jsonl: {args.jsonl} exists; name a new file (saved rows are never overwritten)")
+        pool = mp.get_context("fork").Pool(max(1, min(args.workers, 2))) if args.workers > 1 else None
+        done = []
+        with out:
+            for r in (pool.imap(oracle_of_stored, rows) if pool else map(oracle_of_stored, rows)):
+                done.append(r)
+                out.write(json.dumps(r, default=float) + "\n")
+                out.flush()
+                o = r.get("oracle")
+                print(f"#{r['index']} {r['effect']} {r['protocol']}: first={r.get('first')} oracle="
+                      + ("-" if o is None else o.get("stale") or o.get("failed")
+                         or f"{'significant' if o['significant'] else 'not significant'} "
+                            f"({o['held_out_nrmse']:.5f} vs {o['reference_held_out_nrmse']:.5f})"), flush=True)
+        if pool:
+            pool.close()
+        print("\n".join(report(done)))
+        return 0
     if getattr(args, "from_jsonl", None):
         rows = load_rows(args.from_jsonl)
         if not rows:
@@ -231,8 +319,8 @@ def main(args) -> int:
               f"{', '.join(args.from_jsonl)}")
         print("\n".join(report(rows)))
         return 0
-    n = args.n
-    ids = list(range(args.first, args.first + n))
+    ids = list(args.rows) if getattr(args, "rows", None) else list(range(args.first, args.first + args.n))
+    n = len(ids)
     workers = max(1, min(args.workers, 2))
     out = None
     if args.jsonl:
@@ -259,7 +347,7 @@ def main(args) -> int:
         pool.join()
     if out:
         out.close()
-    print(f"\n{n} recordings of the independent generator (#{args.first}..#{args.first + n - 1}), {workers} worker(s), "
+    print(f"\n{n} recordings of the independent generator (#{min(ids)}..#{max(ids)}), {workers} worker(s), "
           f"wall {time.perf_counter() - t0:.0f} s")
     print("\n".join(report(rows)))
     return 0

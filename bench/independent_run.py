@@ -60,3 +60,44 @@ def score(model: HystereticModel, truth: dict) -> dict:
     worst = max(err.values()) if err else float("nan")
     return {"errors": err, "worst": worst, "worst_param": max(err, key=err.get) if err else None,
             "spurious": spur, "missed": miss, "exact": not spur and not miss, "inadmissible": reasons}
+
+
+def true_model(rec: dict):
+    """The recording's own truth as the diagnosis's augmented model: the system with its
+    concealed effect, mapped from the generator's SI effect parameters to the per-unit-mass
+    extras of recon.diagnosis.augmented (the two share no code; this is the one place that
+    knows both). Returns (model, number of parameters the effect adds), or None for an effect
+    the augmented model cannot state."""
+    from recon.diagnosis.augmented import AugmentedModel
+
+    effect, e, m = rec["effect"], rec["effect_parameters"], rec["system"]["m"]
+    exc = "force" if "inv_m" in rec["truth"] else "base"
+    truth = dict(rec["truth"], fn_m=dict(rec["truth"]["fn_m"]))
+    extras, k = {}, 0
+    if effect == "coulomb_friction":
+        extras, k = {"mu": e["Fc"] / m, "v0": e["v_eps"]}, 1
+    elif effect == "quadratic_damping":
+        extras, k = {"c2": e["c2"] / m}, 1
+    elif effect == "amplitude_damping":
+        truth["fn_m"]["y^2*dy"] = e["b2"] / m
+        k = 1
+    elif effect == "channel_delay":
+        extras, k = {"delay": e["tau"]}, 1
+    elif effect == "higher_mode":
+        extras, k = {"w2": e["w2"], "zeta2": e["zeta2"], "phi2": e["phi2"]}, 3
+    elif effect == "parameter_drift":
+        extras, k = {"drift": e["drift_rate"]}, 1
+    elif effect == "sensor_scale":
+        extras, k = {"tip_scale": e["tip_scale"]}, 1
+    elif effect == "contact_stiffness":
+        extras, k = {"kc": e["kc"] / m, "gap": e["gap"], "side": e["side"]}, 2
+    elif effect == "offset":
+        truth["fn_m"]["y^0"] = -e["F0"] / m
+        k = 1
+    elif effect in ("cubic_stiffness", "quadratic_stiffness"):
+        k = 1
+    elif effect == "hysteresis":
+        k = 3
+    else:
+        return None
+    return AugmentedModel(model_of(truth, exc), extras), k

@@ -357,7 +357,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
 
     derivs = stage_derivatives(run, data)
     findings, ctx = locate(ref.model, run, data, sims, derivs)
-    noise_mse = float(np.sum([np.sum(d.held) * d.noise ** 2 for d in data]) / max(sum(int(d.held.sum()) for d in data), 1))
+    noise_mse = rank.held_noise_mse(data)
     tested = []
     fits = {}
     ids = candidates or list(CATALOG)
