@@ -230,9 +230,25 @@ def _held_start(am: AugmentedModel, d: StageData) -> tuple:
         return initial, None
     free = 3 if am.baseline.alpha_m != 0.0 else 2
     b = am.baseline
+    first = slice(0, max(int(START_FIT_SHARE * d.y.size), 10))
+
+    def first_error(state):
+        ys = am.simulate(d.t[first], d.u[first], None if d.x_in is None else d.x_in[first], tuple(state))[0]
+        r = ys - d.y[first]
+        return r if np.all(np.isfinite(r)) else np.full(r.size, DIVERGED_RESIDUAL * d.rms)
+
+    if free == 3 and s0[2] != 0.0:
+        # z0 from the force balance at the edge carries the edge's y'' noise, and a law whose z is
+        # small (alpha near 0) cannot hold it: also start from z0 = 0 and keep the better start on
+        # the first part (stress #6: a candidate fit with alpha 0.12 scored 1.38 on its validation
+        # stage from z0 = 0.22 fitted to 0.40, 0.0033 from z0 = 0)
+        with np.errstate(all="ignore"):
+            tries = [(float(r @ r), i, st) for i, st in enumerate((s0, np.array([s0[0], s0[1], 0.0])))
+                     for r in [first_error(st)]]
+        s0 = min(tries)[2]
+    base_state = tuple(float(v) for v in s0)
     w = math.sqrt(max(b.K_m, 1e-12))
     scale = np.maximum(np.abs(s0[:free]), 0.01 * d.rms * np.array([1.0, w, max(abs(b.alpha_m), 1e-12)])[:free])
-    first = slice(0, max(int(START_FIT_SHARE * d.y.size), 10))
 
     def state(p):
         out = s0.copy()
@@ -240,22 +256,21 @@ def _held_start(am: AugmentedModel, d: StageData) -> tuple:
         return tuple(out)
 
     def resid(p):
-        ys = am.simulate(d.t[first], d.u[first], None if d.x_in is None else d.x_in[first], state(p))[0]
-        r = ys - d.y[first]
-        return r if np.all(np.isfinite(r)) else np.full(r.size, DIVERGED_RESIDUAL * d.rms)
+        return first_error(state(p))
 
+    base = (initial, None) if base_state == tuple(float(v) for v in initial) else (base_state, None)
     try:
         with np.errstate(all="ignore"):
             sol = least_squares(resid, np.zeros(free), method="trf", x_scale=1.0, max_nfev=START_FIT_NFEV)
     except (ArithmeticError, ValueError, np.linalg.LinAlgError):
-        return initial, None
+        return base
     r0 = resid(np.zeros(free))
     if not float(sol.fun @ sol.fun) < float(r0 @ r0):
-        return initial, None
+        return base
     # a state fitted on the first part must also carry the simulation through the whole stage
     with np.errstate(all="ignore"):
         ys = am.simulate(d.t, d.u, d.x_in, state(sol.x))[0]
-    return (state(sol.x), ys) if np.all(np.isfinite(ys)) else (initial, None)
+    return (state(sol.x), ys) if np.all(np.isfinite(ys)) else base
 
 
 def simulate_all(am: AugmentedModel, data: list[StageData]) -> list[np.ndarray]:
@@ -288,6 +303,26 @@ def baseline_keys(model: HystereticModel) -> list[str]:
     return keys
 
 
+def fit_residual(am: AugmentedModel, data: list[StageData]) -> np.ndarray:
+    """The weighted residual :func:`fit` minimises: every fitting sample, each stage's error over its
+    rms and the square root of its sample count (DIVERGED_RESIDUAL throughout if a stage diverges)."""
+    out = []
+    for d in data:
+        if not d.fit.any():
+            continue
+        ys = am.simulate(d.t, d.u, d.x_in, initial_for(am, d))[0]
+        if not np.all(np.isfinite(ys)):
+            return np.full(sum(int(x.fit.sum()) for x in data), DIVERGED_RESIDUAL)
+        out.append((ys[d.fit] - d.y[d.fit]) * (1.0 / (d.rms * math.sqrt(max(int(d.fit.sum()), 1)))))
+    return np.concatenate(out)
+
+
+def fit_cost(am: AugmentedModel, data: list[StageData]) -> float:
+    """:attr:`FitResult.cost_fit` of ``am`` as it is, from the fitting stages alone."""
+    r = fit_residual(am, data)
+    return float(r @ r) / max(len([d for d in data if d.fit.any()]), 1)
+
+
 @dataclass
 class FitResult:
     model: AugmentedModel
@@ -314,8 +349,6 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
     hi = np.array([(bounds.get(k, (-np.inf, np.inf))[1] - x0[i]) / sc[i] for i, k in enumerate(keys)])
     lo = np.minimum(lo, -1e-12)
     hi = np.maximum(hi, 1e-12)
-    fit_n = sum(int(d.fit.sum()) for d in data)
-    w = [1.0 / (d.rms * math.sqrt(max(int(d.fit.sum()), 1))) for d in data]
 
     def build(p):
         m = am.copy()
@@ -324,16 +357,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
         return m
 
     def resid(p):
-        m = build(p)
-        out = []
-        for d, wi in zip(data, w):
-            if not d.fit.any():
-                continue
-            ys = m.simulate(d.t, d.u, d.x_in, initial_for(m, d))[0]
-            if not np.all(np.isfinite(ys)):
-                return np.full(fit_n, DIVERGED_RESIDUAL)
-            out.append((ys[d.fit] - d.y[d.fit]) * wi)
-        return np.concatenate(out)
+        return fit_residual(build(p), data)
 
     p0 = np.clip(np.zeros(len(keys)), lo, hi)
     if keys:
