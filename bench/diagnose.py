@@ -6,12 +6,17 @@
     python bench/diagnose.py --rig      # on the simulated rig's own physics (sim_backend, in-process)
     python bench/diagnose.py --stress --n 200 --workers 2 --jsonl diag.jsonl   # independent generator (issue 13)
     python bench/diagnose.py --stress --from-jsonl a.jsonl b.jsonl   # the table of saved rows, joined
+    python bench/diagnose.py --stress --rows 6 45 54 --workers 2 --jsonl r.jsonl   # chosen recordings
+    python bench/diagnose.py --stress --oracle-of a.jsonl --jsonl o.jsonl   # saved rows' oracle (below)
 
 --stress: recordings of recon/testing/independent.py (no code shared with recon): random
 systems, protocols (paper, rig, sweep, multisine), sample rates, SNR and effect strengths,
 each diagnosed as `shakerlab diagnose RUN.h5` does by default; confusion table, right-first
 share, false alarms on clean recordings, held-out NRMSE after against the baseline as given
-and the null model (bench/diagnose_stress.py).
+and the null model (bench/diagnose_stress.py). Each effect row also puts the recording's own
+truth (its system with the effect, parameters as generated) to the rule a candidate must pass,
+against the diagnosis's reference: where even the truth does not pass, the record does not show
+the effect beyond what the baseline explains (the "oracle" line of the table).
 
 Each recording (recon.testing.concealed: base excitation, 1 kHz, 3 x 4 s stages, 70 dB)
 has one catalog effect concealed; the diagnosis runs blind against the truth's model without
