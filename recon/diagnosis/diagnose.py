@@ -389,8 +389,13 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                 # the step is an equation-error estimate, and differentiation errors can point it the
                 # wrong way: kept only if the output error says it is a better start than none
                 # (stress #6, a stiffness drift on sweeps: from the refit the step gave drift +0.0016
-                # against the true -0.00074, and the fit stayed there; from 0 it reaches -0.00074)
-                if rank.fit_cost(stepped[i][0], data) > rank.fit_cost(starts[i][0], data):
+                # against the true -0.00074, and the fit stayed there; from 0 it reaches -0.00074).
+                # Only for a term free of bounds: "none" would put a bounded one (c2, kc, mu >= 0) on
+                # its bound, where the fit does not move it (stress #203 contact and #211 quadratic
+                # damping stayed at 0 and were not named)
+                lo_, hi_ = starts[i][3].get(starts[i][1][0], (-np.inf, np.inf))
+                if (not (np.isfinite(lo_) or np.isfinite(hi_))
+                        and rank.fit_cost(stepped[i][0], data) > rank.fit_cost(starts[i][0], data)):
                     stepped[i] = (starts[i][0].copy(), stepped[i][1])
             _, keys, sc, b = starts[i]
             m = stepped[i][0]
