@@ -48,6 +48,13 @@ def draw(i: int) -> dict:
             "effect": cyc[i % len(cyc)], "strength": float(rng.uniform(0.3, 1.5))}
 
 
+def recording(d: dict) -> dict:
+    """The noisy recording of the draw ``d`` (:func:`draw`), as the generator returns it."""
+    i = d["index"]
+    rec = ind.simulate(d["system"], d["protocol"], d["fs"], d["effect"], d["strength"], seed=i)
+    return ind.add_noise(rec, d["snr"], i, d["quantisation"])
+
+
 def _ambiguous_ids(out: dict) -> list[str] | None:
     """The ids of an 'ambiguous' answer, if the diagnosis JSON has such a key (issue 13)."""
     amb = out.get("ambiguous")
@@ -126,8 +133,7 @@ def run_one(i: int) -> dict:
     row = {k: v for k, v in d.items()}
     t0 = time.perf_counter()
     try:
-        rec = ind.simulate(d["system"], d["protocol"], d["fs"], d["effect"], d["strength"], seed=i)
-        rec = ind.add_noise(rec, d["snr"], i, d["quantisation"])
+        rec = recording(d)
     except Exception as exc:  # noqa: BLE001
         row.update(status="generator failed", error=f"{type(exc).__name__}: {exc}")
         return row
@@ -143,7 +149,8 @@ def run_one(i: int) -> dict:
     row["baseline"] = "paper" if baseline == "paper" else "truth without the term"
     t1 = time.perf_counter()
     try:
-        dg = diagnose(to_run(rec), baseline=baseline)
+        run = to_run(rec)
+        dg = diagnose(run, baseline=baseline)
         out = dg.to_dict()
     except Exception as exc:  # noqa: BLE001 - a raised diagnosis is a row
         row.update(status="failed", error=f"{type(exc).__name__}: {exc}"[:400],
@@ -170,7 +177,7 @@ def run_one(i: int) -> dict:
                result=out["result"], unexplained=bool(out.get("unexplained_mismatch")),
                candidates=[{k: c[k] for k in CANDIDATE_KEYS if k in c} for c in out.get("candidates_tested", [])])
     try:
-        row["oracle"] = oracle(rec, to_run(rec), dg.reference, dg.baseline.baseline)
+        row["oracle"] = oracle(rec, run, dg.reference, dg.baseline.baseline)
     except Exception as exc:  # noqa: BLE001 - the oracle is a bench figure, not the diagnosis
         row["oracle"] = {"failed": f"{type(exc).__name__}: {exc}"[:200]}
     h = row["held_out"]
@@ -268,9 +275,7 @@ def oracle_of_stored(row: dict) -> dict:
     i = row["index"]
     if row.get("status") != "ok" or row["effect"] == "none":
         return row
-    d = draw(i)
-    rec = ind.add_noise(ind.simulate(d["system"], d["protocol"], d["fs"], d["effect"], d["strength"], seed=i),
-                        d["snr"], i, d["quantisation"])
+    rec = recording(draw(i))
     n = sum(int(s["t"].size) for s in rec["stages"].values())
     if n != row.get("samples"):
         row["oracle"] = {"stale": f"the recording has {n} samples now, {row.get('samples')} when diagnosed"}

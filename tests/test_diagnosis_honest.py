@@ -374,13 +374,10 @@ def _stress6():
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    from diagnose_stress import draw
+    from diagnose_stress import draw, recording
     from independent_run import model_of, to_run
-    from recon.testing import independent as ind
 
-    d = draw(6)
-    rec = ind.add_noise(ind.simulate(d["system"], d["protocol"], d["fs"], d["effect"], d["strength"], seed=6),
-                        d["snr"], 6, d["quantisation"])
+    rec = recording(draw(6))
     base = model_of({"c_m": 1.7967713009469042, "k_m": 1141.9717984012016, "alpha_m": 29.3597336404073,
                      "gamma": 0.407418370328729, "delta": 1187.1075854625265,
                      "fn_m": {"y^2": 64988.61889301294, "y^3": 59009157.822042435}})
@@ -392,12 +389,8 @@ def test_a_held_out_stage_in_motion_starts_from_its_edge_even_when_the_baseline_
     # baseline reconstructed from that record is so wrong there that it simulates the stage better
     # from rest than from the edge estimate; the start must not be judged by it, or every model, the
     # truth too, scores 0.36-0.39 there
-    import sys
-    from pathlib import Path
-
     run, base, rec = _stress6()
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    from independent_run import true_model
+    from independent_run import true_model     # bench/, on the path since _stress6
 
     data = rank.prepare(run, base)
     val = next(x for x in data if x.name == "validation")
