@@ -414,3 +414,34 @@ def test_an_equation_step_that_points_the_wrong_way_is_not_the_start():
     assert c["significant"] and c["explained"] > 0.95, c
     drift = dg.best.get("drift")
     assert drift == pytest.approx(rec["effect_parameters"]["drift_rate"], rel=0.05)
+
+
+def test_a_candidate_whose_term_does_nothing_gets_no_credit_for_where_its_fit_ended():
+    # stress #26 (clean): the null model's refit stopped short, and friction at mu = 5e-6 m/s^2 (nothing
+    # beside a restoring force of 28 m/s^2) was named for the better baseline parameters its own fit
+    # reached. Here: a clean independent recording, a baseline 4 % stiff as the reference, and a
+    # "friction" fit whose mu is nil but whose c and k are the truth's
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from independent_run import model_of, to_run
+    from recon.diagnosis.diagnose import nested_null
+    from recon.testing import independent as ind
+
+    system = ind.random_system(np.random.default_rng(3), hysteresis=False, quadratic=False, cubic=False)
+    rec = ind.add_noise(ind.simulate(system, "paper", 2000.0, "none", 1.0, seed=3), 60.0, 3)
+    run = to_run(rec)
+    truth = model_of(ind.truth_per_unit_mass(system))
+    wrong = model_of({**ind.truth_per_unit_mass(system), "k_m": 1.04 * truth.k_m})
+    data = rank.prepare(run, wrong)
+    ref = rank.fit(AugmentedModel(wrong), [], data)
+    idle = AugmentedModel(truth, {"mu": 1e-9 * truth.k_m, "v0": 1e-3}, ["coulomb_friction"])
+    fr = rank.fit(idle, ["x:mu", "c_m", "k_m"], data, max_nfev=5)
+    noise = rank.held_noise_mse(data)
+    assert rank.score(ref, fr, 1, noise)["significant"]       # against the reference it "explains" a lot
+    nn = nested_null(fr, ["x:mu"], ["c_m", "k_m"], "coulomb_friction", ref.model, data, 30)
+    assert "mu" not in nn.model.extras and "v0" not in nn.model.extras
+    assert "coulomb_friction" not in nn.model.added
+    assert nn.mse_held < 1.05 * fr.mse_held
+    assert not rank.score(nn, fr, 1, noise)["significant"]
