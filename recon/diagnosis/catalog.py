@@ -46,7 +46,7 @@ def _fn_start(term: str, cid: str, scale_of: Callable):
 
 
 V0_FACTORS = (0.01, 0.05, 0.2)   # friction smoothing velocities tried, x the smallest stage rms velocity
-V0_LOWEST = 0.002                # the fitted v0 stays above this share of the smallest stage rms velocity
+V0_LOWEST = 0.01                 # the fitted v0 stays above this share of the smallest stage rms velocity
 
 
 def _coulomb(base, ctx):
