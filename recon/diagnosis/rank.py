@@ -368,6 +368,11 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
         stderr = {}
         try:
             J = sol.jac
+            if not np.all(np.any(J != 0.0, axis=0)):
+                # a column of zeros in the solver's last Jacobian (seen with friction's mu and v0
+                # after a bounded fit ended on its evaluation limit) would give that parameter a
+                # zero standard error: the Jacobian is taken again at the solution
+                J = _forward_jacobian(resid, p, sol.fun, lo, hi)
             dof = max(sol.fun.size - len(keys), 1)
             s2 = cost / dof
             cov = np.linalg.pinv(J.T @ J) * s2
@@ -389,6 +394,19 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
     return FitResult(model=m, cost_fit=cost / max(len([d for d in data if d.fit.any()]), 1), mse_held=mse,
                      nrmse=nrmse_per_stage(m, data, sims), nrmse_held=nh, n_held=int(rh.size), resid_held=rh,
                      stderr=stderr, seconds=time.perf_counter() - t0, sims=sims)
+
+
+def _forward_jacobian(resid, p: np.ndarray, f0: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Forward differences of ``resid`` at ``p`` (a step towards the inside where a bound is near)."""
+    J = np.empty((f0.size, p.size))
+    for i in range(p.size):
+        h = FD_STEP * max(1.0, abs(p[i]))
+        if p[i] + h > hi[i]:
+            h = -h
+        q = p.copy()
+        q[i] += h
+        J[:, i] = (resid(q) - f0) / h
+    return J
 
 
 def held_noise_mse(data: list[StageData]) -> float:
