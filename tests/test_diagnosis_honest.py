@@ -9,6 +9,8 @@ plausible effects with intervals.
   never reported, and every reported parameter has a 95 % interval.
 """
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +19,8 @@ from recon.diagnosis import rank
 from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.diagnose import diagnose, implausible, unexplained_mismatch
 from recon.testing.concealed import concealed_run
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))   # the independent generator's run helpers
 
 
 # ----------------------------------------------------------------- before / after
@@ -370,10 +374,6 @@ def test_a_candidate_starts_stages_in_motion_from_its_own_force_balance():
 def _stress6():
     """Independent stress recording #6 (a stiffness drift of -0.074 %/s, sweeps, 57.7 dB) as a run,
     the paper baseline reconstructed from it (its figures, stored), and the generator's record."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from diagnose_stress import draw, recording
     from independent_run import model_of, to_run
 
@@ -390,7 +390,7 @@ def test_a_held_out_stage_in_motion_starts_from_its_edge_even_when_the_baseline_
     # from rest than from the edge estimate; the start must not be judged by it, or every model, the
     # truth too, scores 0.36-0.39 there
     run, base, rec = _stress6()
-    from independent_run import true_model     # bench/, on the path since _stress6
+    from independent_run import true_model
 
     data = rank.prepare(run, base)
     val = next(x for x in data if x.name == "validation")
@@ -421,10 +421,6 @@ def test_a_candidate_whose_term_does_nothing_gets_no_credit_for_where_its_fit_en
     # beside a restoring force of 28 m/s^2) was named for the better baseline parameters its own fit
     # reached. Here: a clean independent recording, a baseline 4 % stiff as the reference, and a
     # "friction" fit whose mu is nil but whose c and k are the truth's
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from independent_run import model_of, to_run
     from recon.diagnosis.diagnose import nested_null
     from recon.testing import independent as ind
@@ -451,10 +447,6 @@ def test_friction_fits_its_smoothing_velocity_where_a_small_stage_moves_in_pre_s
     # independent sweeps whose small stage moves at about the generator's v_eps: there the friction acts
     # as a viscous damper mu / v0, and a v0 held at one of the starts (1-20 % of that stage's rms
     # velocity) cannot fit it (stress #119: that stage stayed at NRMSE 0.50). v0 is fitted with mu
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from independent_run import model_of, to_run, true_model
     from recon.testing import independent as ind
 

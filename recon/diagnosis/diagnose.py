@@ -369,7 +369,8 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     data = rank.prepare(run, base.baseline)
     bkeys = rank.baseline_keys(base.baseline)
     extra_keys = [f"x:{k}" for k in base.extras if k not in ("v0", "side")]
-    null = rank.fit(base, bkeys + extra_keys, data, max_nfev=max_nfev)
+    full_free = bkeys + extra_keys      # every parameter of the baseline
+    null = rank.fit(base, full_free, data, max_nfev=max_nfev)
     # the baseline as given, scored the same way (no parameter moved)
     given = rank.fit(base, [], data)
     before = given.nrmse
@@ -384,7 +385,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     # candidate fits free the baseline's parameters from the null model; from the baseline as given
     # only its linear terms (c, k: where a baseline reconstructed from the same data absorbs an
     # effect, friction as extra viscous damping), the rest stays as given
-    base_free = bkeys + extra_keys if refit_better else list(GIVEN_FREE)
+    base_free = full_free if refit_better else list(GIVEN_FREE)
     sims = ref.sims
 
     derivs = stage_derivatives(run, data)
@@ -463,14 +464,13 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     # against the reference
     origins = [(ref, base_free, bkeys if refit_better else list(GIVEN_FREE), ref_name)]
     if not refit_better and math.isfinite(null.mse_held):
-        origins.append((null, bkeys + extra_keys, bkeys, "refit"))
+        origins.append((null, full_free, bkeys, "refit"))
     elif refit_better and math.isfinite(given.mse_held):
         # and the other way round: a refit that is better alone can lead the candidate's fit astray
         # (stress #9, offset: from the refit, c and k went to 26 and 34748 against 9.0 and 21343
         # and the validation simulation diverged; from the baseline as given offset was found)
         origins.append((given, list(GIVEN_FREE), list(GIVEN_FREE), "as_given"))
     pruned_refs = {}
-    full_free = bkeys + extra_keys
     nulls = []          # null models fitted from where a significant candidate's fit ended
     references = {}     # candidate id: (the reference it was scored against, its added parameters)
 

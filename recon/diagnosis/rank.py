@@ -372,7 +372,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
                 # a column of zeros in the solver's last Jacobian (seen with friction's mu and v0
                 # after a bounded fit ended on its evaluation limit) would give that parameter a
                 # zero standard error: the Jacobian is taken again at the solution
-                J = _forward_jacobian(resid, p, sol.fun, lo, hi)
+                J = _forward_jacobian(resid, p, sol.fun, hi)
             dof = max(sol.fun.size - len(keys), 1)
             s2 = cost / dof
             cov = np.linalg.pinv(J.T @ J) * s2
@@ -396,8 +396,9 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
                      stderr=stderr, seconds=time.perf_counter() - t0, sims=sims)
 
 
-def _forward_jacobian(resid, p: np.ndarray, f0: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Forward differences of ``resid`` at ``p`` (a step towards the inside where a bound is near)."""
+def _forward_jacobian(resid, p: np.ndarray, f0: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Forward differences of ``resid`` at ``p`` (a backward step where the upper bound ``hi`` is
+    nearer than the step)."""
     J = np.empty((f0.size, p.size))
     for i in range(p.size):
         h = FD_STEP * max(1.0, abs(p[i]))
