@@ -461,3 +461,25 @@ def test_friction_fits_its_smoothing_velocity_where_a_small_stage_moves_in_pre_s
     assert dg.best.get("mu") == pytest.approx(truth.get("mu"), rel=0.02)
     assert dg.best.get("v0") == pytest.approx(truth.get("v0"), rel=0.02)
     assert set(dg.missing[0]["parameters"]) == {"mu", "v0"}
+
+
+def test_a_contact_starts_on_the_side_whose_step_stiffens():
+    # stress #60 (a one-sided stop on a multisine, 50.7 dB) against its paper baseline, which holds a
+    # y^2 term where the stop's asymmetry went. The equation residuals of the six contact starts
+    # (two sides, three gaps) differ by 3 % at most; the lowest was the wrong side, stepped to a
+    # negative kc, and the fit from there ended worse than no contact. A start whose step stays
+    # inside kc >= 0 is taken first
+    from diagnose_stress import draw, recording
+    from independent_run import model_of, to_run, true_model
+
+    rec = recording(draw(60))
+    base = model_of({"c_m": 6.76807713542047, "k_m": 54444.32164214024, "alpha_m": 34110.598553708565,
+                     "gamma": 2965.9304137720283, "delta": -663.8022471776521,
+                     "fn_m": {"y^2": 936317.1033636947, "y^3": 9829048364.107658}})
+    dg = diagnose(to_run(rec), baseline=base, candidates=["contact_stiffness"])
+    c = dg.candidates[0]
+    assert c["significant"], c
+    truth, _ = true_model(rec)
+    assert dg.best.get("side") == truth.get("side")
+    assert dg.best.get("gap") == pytest.approx(truth.get("gap"), rel=0.02)
+    assert dg.best.get("kc") == pytest.approx(truth.get("kc"), rel=0.05)
