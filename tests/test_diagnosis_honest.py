@@ -483,3 +483,19 @@ def test_a_contact_starts_on_the_side_whose_step_stiffens():
     assert dg.best.get("side") == truth.get("side")
     assert dg.best.get("gap") == pytest.approx(truth.get("gap"), rel=0.02)
     assert dg.best.get("kc") == pytest.approx(truth.get("kc"), rel=0.05)
+
+
+def test_hysteresis_is_fitted_inside_the_admissible_bouc_wen_range():
+    # stress #194 (paper protocol, 60 dB), the truth without its Bouc-Wen law as the baseline: the
+    # hysteresis fit started at alpha = 0 without a bound went to alpha = -414 beside a stiffer k
+    # (inadmissible, never reported, and cubic_stiffness was named instead). alpha is bounded at 0 and
+    # starts inside the bound
+    from diagnose_stress import draw, recording
+    from independent_run import model_of, to_run, true_model
+
+    rec = recording(draw(194))
+    dg = diagnose(to_run(rec), baseline=model_of(rec["baseline"]), candidates=["hysteresis"])
+    assert dg.candidates[0]["significant"], dg.candidates[0]
+    truth, _ = true_model(rec)
+    assert dg.best.baseline.alpha_m == pytest.approx(truth.baseline.alpha_m, rel=0.02)
+    assert dg.best.baseline.k_m == pytest.approx(truth.baseline.k_m, rel=0.01)

@@ -120,11 +120,15 @@ def _hysteresis(base, ctx):
     for lam_y in (1.0, 3.0):
         m = _am(base, {}, "hysteresis")
         lam = lam_y / ctx["y_rms"]
-        m.baseline.alpha_m = 0.0
+        m.baseline.alpha_m = 0.05 * abs(base.K_m)
         m.baseline.gamma = 0.6 * lam
         m.baseline.delta = 0.4 * lam
+        # alpha >= 0 (a loop traversed the other way feeds energy in), started inside the bound, at
+        # 5 % of K: from alpha = 0 without a bound, stress #194 reached alpha -414 beside a stiffer k,
+        # inadmissible and never reported; from 0 with the bound, #12 and #207 stayed at 0
         out.append((m, ["alpha_m", "gamma", "delta"],
-                    {"alpha_m": 0.05 * abs(base.K_m), "gamma": 0.3 * lam, "delta": 0.3 * lam}, {}))
+                    {"alpha_m": 0.05 * abs(base.K_m), "gamma": 0.3 * lam, "delta": 0.3 * lam},
+                    {"alpha_m": (0.0, np.inf)}))
     return out
 
 
