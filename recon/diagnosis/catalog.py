@@ -31,6 +31,7 @@ class Candidate:
     screen_keys: int = 99       # with several starts: how many of the new keys the screening frees
     column: Callable | None = None   # col(am, t, y, dy): the term's regressor when linear in its first key
     screen_output: bool = False      # with a column and several starts: pick the start by a short output-error fit
+    admissible_starts: Callable | None = None   # starts inside the physical range, tried when a fit ends implausible
 
 
 def _am(base: HystereticModel, extras: dict, cid: str) -> AugmentedModel:
@@ -115,21 +116,28 @@ def _exciter(base, ctx):
              {"drive_hp": (0.0, 2 * math.pi * 0.5 * ctx["f_res"])})]
 
 
-def _hysteresis(base, ctx):
+def _hysteresis_starts(base, ctx, alpha_share: float, bounds: dict):
     out = []
     for lam_y in (1.0, 3.0):
         m = _am(base, {}, "hysteresis")
         lam = lam_y / ctx["y_rms"]
-        m.baseline.alpha_m = 0.05 * abs(base.K_m)
+        m.baseline.alpha_m = alpha_share * abs(base.K_m)
         m.baseline.gamma = 0.6 * lam
         m.baseline.delta = 0.4 * lam
-        # alpha >= 0 (a loop traversed the other way feeds energy in), started inside the bound, at
-        # 5 % of K: from alpha = 0 without a bound, stress #194 reached alpha -414 beside a stiffer k,
-        # inadmissible and never reported; from 0 with the bound, #12 and #207 stayed at 0
         out.append((m, ["alpha_m", "gamma", "delta"],
-                    {"alpha_m": 0.05 * abs(base.K_m), "gamma": 0.3 * lam, "delta": 0.3 * lam},
-                    {"alpha_m": (0.0, np.inf)}))
+                    {"alpha_m": 0.05 * abs(base.K_m), "gamma": 0.3 * lam, "delta": 0.3 * lam}, dict(bounds)))
     return out
+
+
+def _hysteresis(base, ctx):
+    return _hysteresis_starts(base, ctx, 0.0, {})
+
+
+def _hysteresis_admissible(base, ctx):
+    # alpha >= 0 (a loop traversed the other way feeds energy in), started inside the bound at 5 %
+    # of K (from alpha = 0 on the bound the fit does not move): tried when the fit from alpha = 0
+    # ends inadmissible (stress #194: alpha -414 beside a stiffer k, and cubic_stiffness was named)
+    return _hysteresis_starts(base, ctx, 0.05, {"alpha_m": (0.0, np.inf)})
 
 
 CATALOG: dict[str, Candidate] = {c.id: c for c in (
@@ -201,7 +209,7 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
               "that the baseline without hysteresis cannot produce",
               "Bouc-Wen state z' = alpha y' - gamma |y'| z - delta y' |z| added to the restoring force",
               "the SDOF with its Bouc-Wen state", ("alpha_m", "gamma", "delta"), _hysteresis,
-              lambda b, c: b.alpha_m == 0.0),
+              lambda b, c: b.alpha_m == 0.0, admissible_starts=_hysteresis_admissible),
 )}
 
 

@@ -184,9 +184,10 @@ def _params_of(fr: rank.FitResult, keys) -> dict:
     return out
 
 
-def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data) -> list[str]:
+def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data, intervals: bool = True) -> list[str]:
     """Why the fitted candidate ``cid`` is not physical, or contradicts the rest of its model ([] if
-    it is plausible). Such a candidate is never reported, however well it fits."""
+    it is plausible). Such a candidate is never reported, however well it fits. ``intervals=False``:
+    the fitted values alone, not whether the first parameter's interval holds 0."""
     m = fr.model
     b, r = m.baseline, ref.baseline
     why = []
@@ -220,7 +221,7 @@ def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data) -> list
         why.append(f"inadmissible Bouc-Wen (alpha_m {b.alpha_m:.4g}, gamma + delta {b.gamma + b.delta:.4g})")
     cand = CATALOG[cid]
     k0 = cand.parameters[0]
-    if k0 in fr.stderr:
+    if intervals and k0 in fr.stderr:
         iv = _interval(get_parameter(m, k0), fr.stderr[k0])
         if iv is not None and iv[0] <= 0.0 <= iv[1]:
             why.append(f"the 95 % interval of {k0.split(':', 1)[-1]} [{iv[0]:.4g}, {iv[1]:.4g}] holds 0")
@@ -403,11 +404,22 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
 
     def fit_candidate(cid, cand, src, free, step_keys):
         """One candidate's augmented fit started from ``src`` with ``free`` baseline keys."""
-        starts = cand.starts(src.model.baseline, ctx)
-        for m, _, _, _ in starts:       # keep extras already in the baseline
-            for k, v in src.model.extras.items():
-                m.extras.setdefault(k, v)
-            m.added = list(src.model.added) + [cid]
+
+        def starts_from(make):
+            out = make(src.model.baseline, ctx)
+            for m, _, _, _ in out:      # keep extras already in the baseline
+                for k, v in src.model.extras.items():
+                    m.extras.setdefault(k, v)
+                m.added = list(src.model.added) + [cid]
+            return out
+
+        def screened(starts):
+            """(model, keys, scales, bounds) of the best of ``starts`` after a short fit of the new terms."""
+            fits = [rank.fit(m, keys[:cand.screen_keys], data, sc, max_nfev=5, bounds=b) for m, keys, sc, b in starts]
+            i = int(np.argmin([f.cost_fit for f in fits]))
+            return (fits[i].model,) + tuple(starts[i][1:])
+
+        starts = starts_from(cand.starts)
         if cand.column is not None:     # linear in its first parameter: equation-error step per start
             stepped = [rank.equation_step(m, step_keys, keys[0], cand.column, derivs, data)
                        for m, keys, _, _ in starts]
@@ -458,14 +470,17 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                 screened = [rank.fit(mm, [keys[0], "c_m", "k_m"], data, sc, max_nfev=8, bounds=b) for mm in tries]
                 m = screened[int(np.argmin([f.cost_fit for f in screened]))].model
         elif len(starts) > 1:           # screen the starts with only the new terms free
-            screened = [rank.fit(m, keys[:cand.screen_keys], data, sc, max_nfev=5, bounds=b)
-                        for m, keys, sc, b in starts]
-            i = int(np.argmin([s.cost_fit for s in screened]))
-            m, keys, sc, b = starts[i]
-            m = screened[i].model
+            m, keys, sc, b = screened(starts)
         else:
             m, keys, sc, b = starts[0]
         fr = rank.fit(m, list(dict.fromkeys(free + keys)), data, sc, max_nfev=max_nfev, bounds=b)
+        if cand.admissible_starts is not None and implausible(cid, fr, src.model, data, intervals=False):
+            # the fit ended outside the physical range (hysteresis: stress #194 reached alpha -414):
+            # fitted again from starts inside it, kept if it ends inside
+            m2, keys2, sc2, b2 = screened(starts_from(cand.admissible_starts))
+            fr2 = rank.fit(m2, list(dict.fromkeys(free + keys2)), data, sc2, max_nfev=max_nfev, bounds=b2)
+            if math.isfinite(fr2.mse_held) and not implausible(cid, fr2, src.model, data, intervals=False):
+                fr, keys, sc, b = fr2, keys2, sc2, b2
         if not (math.isfinite(fr.mse_held) and fr.n_held > 0):
             raise FloatingPointError(f"held-out mean-square error is {fr.mse_held} on {fr.n_held} samples")
         return fr, keys, sc, b
