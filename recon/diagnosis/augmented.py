@@ -6,7 +6,13 @@ force excitation):
     y'' + c y' + k (1 + drift t) y + fn(y, y') + z
         + mu tanh(y'/v0) + c2 y'|y'| + kc max(side*y - gap, 0)*side   = g u
     z'  = alpha y' - gamma |y'| z - delta y' |z|
-    q'' + 2 zeta2 w2 q' + w2^2 q = g u                  (higher mode, only when w2 > 0)
+    q'' + 2 zeta2 w2 q' + w2^2 q = g u - drive2 a       (higher mode, only when w2 > 0)
+
+where a is the measured point's absolute acceleration beyond what the input gives it: y''
+under base excitation (so drive2 = 1 drives q with -(x_base'' + y'')), y'' + g u under force
+excitation (drive2 = 1 drives q with -y''). drive2 = 0 is a structural mode driven as the
+first one is; drive2 = 1 a resonance riding on the measured point (a sensor mount, a local
+mass).
 
 What the sensors report (the output the model is compared with):
 
@@ -50,6 +56,8 @@ EXTRAS = {
     "w2": (0.0, "rad/s", "higher-mode natural frequency (0: off)"),
     "zeta2": (0.02, "-", "higher-mode damping ratio"),
     "phi2": (0.0, "m/m", "higher-mode participation in the displacement reading"),
+    "drive2": (0.0, "-", "what drives the higher mode: 0 the input (a structural mode), 1 the measured "
+                         "point's absolute acceleration (a resonance riding on it)"),
 }
 
 
@@ -111,7 +119,8 @@ class AugmentedModel:
         n_sub = min(n_sub, 64)
         P = np.array([m.input_gain, m.c_m, m.k_m, m.alpha_m, m.gamma, m.delta, mu, v0 or 1.0,
                       self.get("c2"), self.get("kc"), self.get("gap"), 1.0 if self.get("side") >= 0 else -1.0,
-                      self.get("drift"), w2, self.get("zeta2")], float)
+                      self.get("drift"), w2, self.get("zeta2"), self.get("drive2"),
+                      1.0 if m.excitation == BASE else 1.0 - self.get("drive2")], float)
         y0, dy0, z0 = (0.0, 0.0, 0.0) if initial is None else (float(v) for v in initial)
         st = simulate_extended(np.ascontiguousarray(u, float), float(t[0]), dt, int(n_sub), P, coef, p, r, y0, dy0, z0)
         y = st[0] + self.get("phi2") * st[3]
@@ -149,7 +158,10 @@ class AugmentedModel:
         out = lhs + (" " + " ".join(extra) if extra else "") + " + z = " + rest
         notes = []
         if self.get("w2"):
-            notes.append(f"q'' + 2*{self.get('zeta2'):.3g}*{self.get('w2'):.6g} q' + {self.get('w2'):.6g}^2 q = u; "
+            drive = "u" if not self.get("drive2") else (
+                f"u - {self.get('drive2'):.4g} y''" if self.excitation == BASE
+                else f"{1 - self.get('drive2'):.4g} u - {self.get('drive2'):.4g} y''")
+            notes.append(f"q'' + 2*{self.get('zeta2'):.3g}*{self.get('w2'):.6g} q' + {self.get('w2'):.6g}^2 q = {drive}; "
                          f"displacement reading += {self.get('phi2'):.4g} q  (higher mode at "
                          f"{self.get('w2') / 2 / math.pi:.4g} Hz)")
         if self.get("delay"):

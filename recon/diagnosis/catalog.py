@@ -99,10 +99,15 @@ def _drift(base, ctx):
 
 
 def _higher_mode(base, ctx):
+    # input-driven starts (a structural mode), then one riding on the measured point (drive2 = 1,
+    # driven by its absolute acceleration); which of the two is kept fixed in the fit: started on
+    # its bound, a free drive2 in [0, 1] stops the trust-region fit at its first step
     out = []
-    for f, phi in ctx["mode_starts"][:3]:
+    starts = [(f, phi, 0.0) for f, phi in ctx["mode_starts"][:3]]
+    starts += [(f, phi, 1.0) for f, phi in ctx.get("mode_starts_point", [])[:1]]
+    for f, phi, drive in starts:
         w = 2 * math.pi * f
-        m = _am(base, {"w2": w, "zeta2": 0.02, "phi2": phi}, "higher_mode")
+        m = _am(base, {"w2": w, "zeta2": 0.02, "phi2": phi, **({"drive2": drive} if drive else {})}, "higher_mode")
         out.append((m, ["x:phi2", "x:w2", "x:zeta2"], {"x:phi2": 0.01, "x:w2": 0.02 * w, "x:zeta2": 0.01},
                     {"x:w2": (0.5 * w, 2.0 * w), "x:zeta2": (0.001, 0.3)}))
     return out
@@ -183,8 +188,10 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
               column=lambda am, t, y, dy: am.baseline.k_m * t * y),
     Candidate("higher_mode",
               "a second resonance the one-mode model leaves out shows up in the displacement reading",
-              "model change: extra mode q'' + 2 zeta w q' + w^2 q = g u, reading += phi q",
-              "a second-order oscillator driven by the same input, added to the displacement output",
+              "model change: extra mode q'' + 2 zeta w q' + w^2 q = g u - drive2 a, reading += phi q "
+              "(a: the measured point's absolute acceleration beyond the input's)",
+              "a second-order oscillator driven by the input (drive2 = 0, a structural mode) or by the measured "
+              "point's motion (drive2 = 1, a resonance riding on it), added to the displacement output",
               ("x:w2", "x:zeta2", "x:phi2"), _higher_mode, screen_keys=1),
     Candidate("offset",
               "a constant force acts on the specimen (a preload, gravity on a tilted rig, a sensor or amplifier "

@@ -6,7 +6,13 @@ under force excitation):
     y'' = g u - c y' - k (1 + drift t) y - fn(y, y') - z
           - mu tanh(y'/v0) - c2 y'|y'| - side kc max(side y - gap, 0)
     z'  = alpha y' - gamma |y'| z - delta y' |z|
-    q'' = g u - 2 zeta2 w2 q' - w2^2 q          (a higher mode, only when w2 > 0)
+    q'' = d - 2 zeta2 w2 q' - w2^2 q            (a higher mode, only when w2 > 0)
+
+with the higher mode's drive d = g u when drive2 = 0 (a structural mode, driven as the first
+one is) and, in general, d = gu2 g u - drive2 y'': a share drive2 of the measured point's
+absolute acceleration drives it (drive2 = 1: a resonance riding on that point, such as a
+sensor mount; under base excitation -(x_base'' + y'') = g u - y'', so gu2 = 1; under force
+excitation gu2 = 1 - drive2).
 
 Every extra is off when its parameter is 0; with all of them off the arithmetic is
 exactly that of the plain model (the extras are subtracted after the plain terms).
@@ -32,7 +38,8 @@ import numpy as np
 from numba import njit
 
 # the layout of the parameter vector P of :func:`simulate_extended`
-P_NAMES = ("g", "c", "k", "alpha", "gamma", "delta", "mu", "v0", "c2", "kc", "gap", "side", "drift", "w2", "zeta2")
+P_NAMES = ("g", "c", "k", "alpha", "gamma", "delta", "mu", "v0", "c2", "kc", "gap", "side", "drift", "w2", "zeta2",
+           "drive2", "gu2")
 
 
 @njit(cache=True)
@@ -56,7 +63,10 @@ def _rhs(y, v, z, q, vq, t, u, P, coef, p, r):
     dz = P[3] * v - P[4] * abs(v) * z - P[5] * v * abs(z)
     aq = 0.0
     if P[13] > 0.0:
-        aq = gu - 2.0 * P[14] * P[13] * vq - P[13] * P[13] * q
+        drive = gu
+        if P[15] != 0.0:
+            drive = P[16] * gu - P[15] * acc
+        aq = drive - 2.0 * P[14] * P[13] * vq - P[13] * P[13] * q
     return acc, dz, aq
 
 
