@@ -36,6 +36,9 @@ def effect_cycle() -> list[str]:
     return ["none", "none"] + ids
 
 
+FIRST_MODE_DRIVE_ROW = 289
+
+
 def draw(i: int) -> dict:
     """The recording parameters of stress recording i."""
     rng = np.random.default_rng([i, 13])
@@ -45,13 +48,18 @@ def draw(i: int) -> dict:
             "fs": float(np.round(math.exp(rng.uniform(math.log(1000.0), math.log(10000.0))))),
             "snr": float(np.round(rng.uniform(40.0, 80.0), 1)),
             "quantisation": float(rng.uniform(0.2, 1.0)) if rng.random() < 0.5 else None,
-            "effect": cyc[i % len(cyc)], "strength": float(rng.uniform(0.3, 1.5))}
+            "effect": cyc[i % len(cyc)], "strength": float(rng.uniform(0.3, 1.5)),
+            # from row FIRST_MODE_DRIVE_ROW on, half the higher modes ride on the tip (driven by its
+            # absolute acceleration; the foreign set's c05), drawn apart so earlier rows stay as they were
+            **({"mode_drive": float(np.random.default_rng([i, 29]).random() < 0.5)}
+               if i >= FIRST_MODE_DRIVE_ROW and cyc[i % len(cyc)] == "higher_mode" else {})}
 
 
 def recording(d: dict) -> dict:
     """The noisy recording of the draw ``d`` (:func:`draw`), as the generator returns it."""
     i = d["index"]
-    rec = ind.simulate(d["system"], d["protocol"], d["fs"], d["effect"], d["strength"], seed=i)
+    rec = ind.simulate(d["system"], d["protocol"], d["fs"], d["effect"], d["strength"], seed=i,
+                       mode_drive=d.get("mode_drive", 0.0))
     return ind.add_noise(rec, d["snr"], i, d["quantisation"])
 
 

@@ -85,6 +85,8 @@ def true_model(rec: dict):
         extras, k = {"delay": e["tau"]}, 1
     elif effect == "higher_mode":
         extras, k = {"w2": e["w2"], "zeta2": e["zeta2"], "phi2": e["phi2"]}, 3
+        if e.get("drive2"):
+            extras["drive2"] = e["drive2"]
     elif effect == "parameter_drift":
         extras, k = {"drift": e["drift_rate"]}, 1
     elif effect == "sensor_scale":

@@ -1,7 +1,8 @@
 """Fit each candidate's augmented model by simulation and rank them on held-out data.
 
 Output-error fit: the free parameters (the baseline's own ones, refitted, plus the
-candidate's) minimise sum over fitting stages of |y_sim - y_rec|^2 / (N rms(y)^2).
+candidate's) minimise sum over fitting stages of |y_sim - y_rec|^2 / (N s^2), with
+s^2 = noise^2 + (FIT_MODEL_SHARE rms(y))^2 per stage (:func:`fit_scale`).
 The held-out data are the validation stage(s); without one, the last 30 % of
 every stage (the simulation runs through the whole stage, only the score is split).
 

@@ -9,7 +9,10 @@ Physics (SI units, not per unit mass). Base excitation, relative coordinate y = 
 
     m y'' + c y' + k (1 + r t_session) y + k2 y^2 + k3 y^3 + z + F_extra(y, y') - F0 = -m x_b''
     z' = alpha y' - gamma |y'| z - delta y' |z|          (z a force [N], Bouc-Wen n = 1)
-    q'' + 2 zeta2 w2 q' + w2^2 q = -x_b''                 (a second mode, seen by the tip sensor)
+    q'' + 2 zeta2 w2 q' + w2^2 q = -(1 - d2) x_b'' - d2 a_tip   (a second mode, seen by the tip sensor)
+
+(d2 = 0: a structural mode driven by the base; d2 = 1: a resonance riding on the tip, driven by
+its absolute acceleration a_tip = x_b'' + y''. Force excitation: (1 - d2) F/m - d2 y''.)
 
     F_extra = Fc tanh(y'/v_eps) + c2 y'|y'| + b2 y^2 y' + kc max(s y - gap, 0) s
 
@@ -231,7 +234,7 @@ def _rhs_factory(s: dict, eff: dict, excitation: str, seg: Segment):
     Fc, v_eps, c2, b2 = eff.get("Fc", 0.0), eff.get("v_eps", 1.0), eff.get("c2", 0.0), eff.get("b2", 0.0)
     kc, gap, side = eff.get("kc", 0.0), eff.get("gap", 0.0), eff.get("side", 1.0)
     rate, F0 = eff.get("drift_rate", 0.0), eff.get("F0", 0.0)
-    w2, zeta2 = eff.get("w2", 0.0), eff.get("zeta2", 0.0)
+    w2, zeta2, d2 = eff.get("w2", 0.0), eff.get("zeta2", 0.0), eff.get("drive2", 0.0)
     base = excitation == "base"
 
     def rhs(t, x):
@@ -249,8 +252,13 @@ def _rhs_factory(s: dict, eff: dict, excitation: str, seg: Segment):
             if p > 0:
                 f += kc * p * side
         dz = alpha * v - gamma * abs(v) * z - delta * v * abs(z)
-        dqd = u - 2 * zeta2 * w2 * qd - w2 * w2 * q if w2 else 0.0
-        return [v, u - f / m, dz, qd if w2 else 0.0, dqd]
+        ydd = u - f / m
+        drive = u
+        if d2:
+            a_tip = -u + ydd if base else ydd        # the tip's absolute acceleration (base: x_b'' = -u)
+            drive = (1.0 - d2) * u - d2 * a_tip
+        dqd = drive - 2 * zeta2 * w2 * qd - w2 * w2 * q if w2 else 0.0
+        return [v, ydd, dz, qd if w2 else 0.0, dqd]
 
     return rhs
 
@@ -660,9 +668,10 @@ def simulate_tone(system: dict, f: float, amplitude: float, hold_s: float, fs: f
 
 
 def simulate(system: dict, protocol: str = "paper", fs: float = 2000.0, effect: str = "none",
-             strength: float = 1.0, excitation: str = "base", seed: int = 0) -> dict:
+             strength: float = 1.0, excitation: str = "base", seed: int = 0, mode_drive: float = 0.0) -> dict:
     """A noise-free recording (plain dict). ``seed`` draws the protocol's random choices and
-    the effect's sign, side and gap."""
+    the effect's sign, side and gap. ``mode_drive`` (effect higher_mode): the share d2 of the
+    tip's absolute acceleration in the second mode's drive (see the module docstring)."""
     if protocol not in PROTOCOLS:
         raise ValueError(f"unknown protocol {protocol!r} (known: {', '.join(PROTOCOLS)})")
     if effect not in EFFECTS:
@@ -673,6 +682,8 @@ def simulate(system: dict, protocol: str = "paper", fs: float = 2000.0, effect: 
     if effect in STRUCTURAL_EFFECTS:
         s, baseline = apply_structural(effect, strength, s, rng)
     eff = {} if effect in STRUCTURAL_EFFECTS else effect_parameters(effect, strength, s, rng)
+    if effect == "higher_mode" and mode_drive:
+        eff["drive2"] = float(mode_drive)
     f_max = max(2.0 * s["f_n"], eff.get("w2", 0.0) / (2 * math.pi))   # highest drive / mode frequency
     sim = _Sim(s, {k: v for k, v in eff.items() if k not in ("kc",)}, excitation, fs, f_max)
     if effect == "contact_stiffness":
