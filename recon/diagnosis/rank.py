@@ -349,7 +349,8 @@ def fit_scale(d: StageData) -> float:
 
 def fit_residual(am: AugmentedModel, data: list[StageData]) -> np.ndarray:
     """The weighted residual :func:`fit` minimises: every fitting sample, each stage's error over its
-    rms and the square root of its sample count (DIVERGED_RESIDUAL throughout if a stage diverges)."""
+    :func:`fit_scale` and the square root of its sample count (DIVERGED_RESIDUAL throughout if a
+    stage diverges)."""
     out = []
     for d in data:
         if not d.fit.any():
