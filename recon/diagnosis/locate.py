@@ -150,35 +150,39 @@ def mode_response_to_motion(y, dt, w, zeta):
 
 def scan_modes(data, residuals, gain, f_lo, f_hi, n=40, zeta=0.02, motions=None, base=True):
     """Frequencies at which an extra mode's response best explains the output residual
-    (linear regression over the fitting samples); returns [(f, explained share, phi)] best first.
+    (linear regression over the fitting samples): ``(input_scan, point_scan)``, each a list of
+    (f, explained share, phi), best first.
 
-    With ``motions`` (per stage, the model's displacement y) the mode is driven by the measured
-    point's absolute acceleration instead of the input (augmented.py, drive2 = 1): under base
-    excitation by g u - y'', under force excitation by -y''."""
-    out = []
+    ``input_scan`` is for a mode driven by the input. ``point_scan`` (None without ``motions``,
+    the model's displacement y per stage) is for a mode driven by the measured point's absolute
+    acceleration (augmented.py, drive2 = 1): under base excitation by g u - y'', under force
+    excitation by -y''. Both come from one pass: the input-driven response is computed once per
+    frequency and stage."""
+    scans = ([], [] if motions is not None else None)
     for f in np.geomspace(f_lo, f_hi, n):
         w = 2 * math.pi * f
-        num = den = tot = 0.0
+        acc = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]   # num, den, tot per scan
         for i, (d, r) in enumerate(zip(data, residuals)):
             if not d.fit.any() or not np.all(np.isfinite(r)):
                 continue
-            if motions is None:
-                q = mode_response(d.u, d.dt, w, zeta, gain)
-            else:
-                if not np.all(np.isfinite(motions[i])):
-                    continue
-                q = mode_response_to_motion(motions[i], d.dt, w, zeta)
-                if base:
-                    q = q + mode_response(d.u, d.dt, w, zeta, gain)
-            q = q[d.fit]
+            q_in = mode_response(d.u, d.dt, w, zeta, gain)
             rr = r[d.fit]
-            num += float(q @ rr)
-            den += float(q @ q)
-            tot += float(rr @ rr)
-        if den > 0 and tot > 0:
-            out.append((float(f), num * num / den / tot, num / den))
-    out.sort(key=lambda x: -x[1])
-    return out
+            regressors = [(0, q_in)]
+            if motions is not None and np.all(np.isfinite(motions[i])):
+                q = mode_response_to_motion(motions[i], d.dt, w, zeta)
+                regressors.append((1, q + q_in if base else q))
+            for k, q in regressors:
+                q = q[d.fit]
+                acc[k][0] += float(q @ rr)
+                acc[k][1] += float(q @ q)
+                acc[k][2] += float(rr @ rr)
+        for out, (num, den, tot) in zip(scans, acc):
+            if out is not None and den > 0 and tot > 0:
+                out.append((float(f), num * num / den / tot, num / den))
+    for out in scans:
+        if out is not None:
+            out.sort(key=lambda x: -x[1])
+    return scans
 
 
 def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
@@ -307,7 +311,8 @@ def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
     ctx["mode_freqs"] = seen[:2]
     # scan for an extra mode explaining the output residual (regression on q(w), zeta = 0.02)
     res = [d.y - ys for d, ys in zip(data, sims)]
-    scan = scan_modes(data, res, m.input_gain, 1.3 * f_res, 0.4 * nyq)
+    scan, scan_p = scan_modes(data, res, m.input_gain, 1.3 * f_res, 0.4 * nyq, motions=sims,
+                              base=run.excitation == BASE)
     picked = []
     for f, share, phi in scan:
         if all(abs(f - p) > 0.08 * p for p, _ in picked):
@@ -316,11 +321,9 @@ def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
             break
     ctx["mode_scan"] = [{"frequency_hz": f, "explained_share": sh} for f, sh, _ in scan[:3]]
     ctx["mode_starts"] = picked + [(f, 0.0) for f in ctx["mode_freqs"]]
-    # the same scan for a resonance riding on the measured point (driven by its absolute
+    # scan_p: the same scan for a resonance riding on the measured point (driven by its absolute
     # acceleration; foreign recording c05: a 30 Hz mount resonance under a 8.3 Hz specimen, which
     # the input-driven scan did not find)
-    scan_p = scan_modes(data, res, m.input_gain, 1.3 * f_res, 0.4 * nyq, motions=sims,
-                        base=run.excitation == BASE)
     ctx["mode_scan_point"] = [{"frequency_hz": f, "explained_share": sh} for f, sh, _ in scan_p[:3]]
     ctx["mode_starts_point"] = [(f, phi) for f, _, phi in scan_p[:1]]
     for f in findings:
