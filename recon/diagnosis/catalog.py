@@ -55,8 +55,8 @@ def _coulomb(base, ctx):
     # micro-slip is smoother (0.2); each is a start, the best one is kept (see diagnose.py), and v0
     # is then fitted with mu. 1 and 3: a small stage that moves in pre-sliding, below v0, where the
     # friction acts as a viscous damper mu / v0 (stress #171: v0 2.9 x that stage's rms velocity; a
-    # paper baseline reconstructed there holds it as c 762 against the truth's 7.6). Independent stress #119: a small sweep stage that moves at 0.7 v0
-    # (pre-sliding, where the friction acts as a viscous damper of mu / v0), fitted at 0.2 v_rms
+    # paper baseline reconstructed there holds it as c 762 against the truth's 7.6). Independent
+    # stress #119: a small sweep stage that moves at 0.7 v0 (pre-sliding), fitted at 0.2 v_rms
     # left that stage at NRMSE 0.50; with v0 free the fit reached mu and v0 within 1 %
     out = []
     vmin = ctx["v_rms_min"]
