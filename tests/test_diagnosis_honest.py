@@ -520,6 +520,9 @@ def test_a_fitting_stage_at_rest_off_centre_starts_where_each_model_puts_it():
     assert lin.edge is not None and not any(lin.initial)        # the baseline chose rest
     fr = rank.fit(truth, [], data)
     assert fr.nrmse["linear"] < 0.01, fr.nrmse                  # the truth starts from the edge
+    # and the cost the diagnosis compares starts with is the fit's own (the stage from the edge)
+    assert rank.fit_cost(truth, data) == pytest.approx(fr.cost_fit, rel=1e-12)
+    assert rank.fit_cost(truth, data) < 0.01 * float(np.sum(rank.fit_residual(truth, data) ** 2))
     dg = diagnose(run, baseline=base, candidates=["offset"])
     assert dg.candidates[0]["significant"], dg.candidates[0]
     assert dg.best.baseline.fn_m["y^0"] == pytest.approx(truth.baseline.fn_m["y^0"], rel=0.01)

@@ -458,7 +458,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                 # from the source only adds damping and stays at 0; the step moves c and mu together
                 # (at v0 = 3 x the smallest stage rms velocity it stepped to c 7.8, mu 0.374 against
                 # 7.6 and 0.368)
-                step_cost = [rank.fit_cost(mm, rank.own_starts(mm, data))
+                step_cost = [rank.fit_cost(mm, data)
                              if within_bound(mm, starts[j][1][0], starts[j][3]) else math.inf
                              for j, (mm, _) in enumerate(stepped)]
                 j = int(np.argmin(step_cost))

@@ -363,8 +363,9 @@ def fit_residual(am: AugmentedModel, data: list[StageData]) -> np.ndarray:
 
 
 def fit_cost(am: AugmentedModel, data: list[StageData]) -> float:
-    """:attr:`FitResult.cost_fit` of ``am`` as it is, from the fitting stages alone."""
-    r = fit_residual(am, data)
+    """:attr:`FitResult.cost_fit` of ``am`` as it is, from the fitting stages alone (each stage
+    started as :func:`fit` starts it: :func:`own_starts`)."""
+    r = fit_residual(am, own_starts(am, data))
     return float(r @ r) / max(len([d for d in data if d.fit.any()]), 1)
 
 
