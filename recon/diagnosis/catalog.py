@@ -32,6 +32,7 @@ class Candidate:
     column: Callable | None = None   # col(am, t, y, dy): the term's regressor when linear in its first key
     screen_output: bool = False      # with a column and several starts: pick the start by a short output-error fit
     admissible_starts: Callable | None = None   # starts inside the physical range, tried when a fit ends implausible
+    fit_each: str | None = None      # an extra the fit cannot move (discrete): fitted once per value, the best kept
 
 
 def _am(base: HystereticModel, extras: dict, cid: str) -> AugmentedModel:
@@ -172,7 +173,7 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
               "term kc max(s*y - gap, 0) (s = +1 or -1) in the restoring force",
               "extra force kc (y - gap) when y is beyond the gap on side s", ("x:kc", "x:gap", "x:side"), _contact,
               screen_keys=1, column=lambda am, t, y, dy: (1.0 if am.get("side") >= 0 else -1.0)
-              * np.maximum((1.0 if am.get("side") >= 0 else -1.0) * y - am.get("gap"), 0.0)),
+              * np.maximum((1.0 if am.get("side") >= 0 else -1.0) * y - am.get("gap"), 0.0), fit_each="side"),
     Candidate("channel_delay",
               "the two sensors are not sampled at the same instant: the displacement channel lags the input channel",
               "model change: output y_rec(t) = x_tip(t - d) - x_base(t) (force: y(t - d))",

@@ -324,7 +324,7 @@ def within_bound(am: AugmentedModel, key: str, bounds: dict) -> bool:
     return bool(lo <= get_parameter(am, key) <= hi)
 
 
-def nested_null(fr: rank.FitResult, keys: list, free: list, cid: str, ref_model: AugmentedModel, data,
+def nested_null(fr: rank.FitResult, keys: list, free: list, cid: str | tuple, ref_model: AugmentedModel, data,
                 max_nfev: int) -> rank.FitResult | None:
     """The candidate's fit ``fr`` with its own terms put back to the reference's values (off), and
     the baseline parameters its fit freed refitted from there: a null model fitted from where the
@@ -345,12 +345,109 @@ def nested_null(fr: rank.FitResult, keys: list, free: list, cid: str, ref_model:
     for k in ("side", "v0"):            # shape parameters of an extra that is now off
         if k not in ref_model.extras:
             m.extras.pop(k, None)
-    m.added = [a for a in m.added if a != cid]
+    cids = (cid,) if isinstance(cid, str) else tuple(cid)
+    m.added = [a for a in m.added if a not in cids]
     try:
         out = rank.fit(m, list(free), data, max_nfev=max_nfev)
     except CANDIDATE_FAILURES:
         return None
     return out if math.isfinite(out.mse_held) else None
+
+
+def combined_fit(first: tuple, second: tuple, second_id: str, data, max_nfev: int) -> rank.FitResult:
+    """The fit of ``first`` (fit, keys, scales, bounds, free baseline keys) with ``second``'s new terms
+    added at their fitted values, and every parameter of both fitted together."""
+    fr0, keys0, sc0, b0, free0 = first
+    fr1, keys1, sc1, b1, _ = second
+    m = fr0.model.copy()
+    for k in keys1:
+        set_parameter(m, k, get_parameter(fr1.model, k))
+    if second_id == "contact_stiffness":
+        m.extras["side"] = fr1.model.get("side")
+    m.added = list(fr0.model.added) + [second_id]
+    return rank.fit(m, list(dict.fromkeys(free0 + keys0 + keys1)), data, {**sc0, **sc1}, max_nfev=max_nfev,
+                    bounds={**b0, **b1})
+
+
+def joint_pair(tested: list, fits: dict, nulls: list, ref_model: AugmentedModel, data, noise_mse: float,
+               max_nfev: int, refit_on=None, far_from_floor: bool = False) -> tuple[list, rank.FitResult | None]:
+    """When no candidate is significant alone: two fitted together. Two effects (or an effect and a
+    term the baseline lacks) can each explain too little of the mismatch alone.
+
+    First the two that lower the held-out error most: stress #99, a contact on sweeps whose paper
+    baseline lacks the truth's y^2, held-out 0.00905 as given, 0.00702 with the contact alone and
+    0.00748 with y^2 alone, neither enough; the truth scores 0.00518. They are fitted together from
+    the better one's fit with the other's terms added at their fitted values, and (``refit_on(id,
+    fit)``: a candidate's whole fit, its starts included, from another's fit) each fitted again from
+    the other's fit: from the contact's fit, its gap near 0 standing in for y^2, the pair stayed at
+    0.00701; the contact fitted on top of y^2 reached 0.00518.
+    Then, when the reference is far above the noise floor (``far_from_floor``), every other candidate
+    fitted on top of the one that lowers the fitting cost most, and the pair with the lowest fitting
+    cost tried: stress #80, friction on sweeps whose reconstructed baseline is linear (c 223 against
+    the truth's 8.0, and no y^3): friction alone ends at held-out 1.41 (its k takes the hardening),
+    y^3 alone at 0.96, the reference 0.95, the truth 0.00045.
+
+    A pair is named (the one that lowers the fitting cost more alone first) only if it passes the
+    rule against the best null model with both terms counted, each term adds significantly on top of
+    the other one's own fit, both are plausible, and the null model fitted from where the pair ended
+    does not explain it. Returns (the two tested entries, updated with the joint score, their
+    figures alone kept under "alone"; the joint fit), or ([], None)."""
+    fitted = [t for t in tested if t["id"] in fits]
+    lower = sorted((t for t in fitted if not t.get("implausible")
+                    and fits[t["id"]][0].nrmse_held < t["compared_with_held_out_nrmse"]),
+                   key=lambda t: fits[t["id"]][0].mse_held)[:2]
+    rounds = []
+    if len(lower) == 2:
+        a, b = lower
+        rounds.append([(a, b, lambda a=a, b=b: combined_fit(fits[a["id"]], fits[b["id"]], b["id"], data, max_nfev))]
+                      + ([(a, b, lambda a=a, b=b: refit_on(b["id"], fits[a["id"]])),
+                          (a, b, lambda a=a, b=b: refit_on(a["id"], fits[b["id"]]))] if refit_on else []))
+    plausible = [t for t in fitted if not t.get("implausible")]
+    if far_from_floor and refit_on is not None and plausible and len(fitted) > 1:
+        first = min(plausible, key=lambda t: fits[t["id"]][0].cost_fit)
+        rounds.append([(first, t, lambda first=first, t=t: refit_on(t["id"], fits[first["id"]]))
+                       for t in fitted if t is not first and not (lower and {first["id"], t["id"]} ==
+                                                                  {x["id"] for x in lower})])
+    against0 = min(nulls, key=lambda f: f.mse_held)
+    for tries in rounds:
+        got = []
+        for a, b, make in tries:
+            try:
+                fr = make()
+            except CANDIDATE_FAILURES:
+                continue
+            if math.isfinite(fr.mse_held) and fr.n_held > 0 and math.isfinite(fr.cost_fit):
+                got.append((fr, a, b))
+        if not got:
+            continue
+        frc, a, b = min(got, key=lambda g: g[0].cost_fit)
+        if fits[b["id"]][0].cost_fit < fits[a["id"]][0].cost_fit:
+            a, b = b, a
+        (fa, keys_a, _, _, free_a), (fb, keys_b, _, _, _) = fits[a["id"]], fits[b["id"]]
+        k2 = len(keys_a) + len(keys_b)
+        joint = rank.score(against0, frc, k2, noise_mse)
+        if not (joint["significant"] and rank.score(fb, frc, len(keys_a), noise_mse)["significant"]
+                and rank.score(fa, frc, len(keys_b), noise_mse)["significant"]):
+            continue
+        if implausible(a["id"], frc, ref_model, data) or implausible(b["id"], frc, ref_model, data):
+            continue
+        against = against0
+        nn = nested_null(frc, keys_a + keys_b, free_a, (a["id"], b["id"]), ref_model, data, max_nfev)
+        if nn is not None and nn.mse_held < against.mse_held:
+            against = nn
+            joint = rank.score(against, frc, k2, noise_mse)
+            if not joint["significant"]:
+                continue
+        for t, other in ((a, b), (b, a)):
+            t["alone"] = {k: t[k] for k in ("explained", "dbic", "significant", "held_out_nrmse",
+                                             "compared_with_held_out_nrmse") if k in t}
+            t.update(joint)
+            t["held_out_nrmse"] = frc.nrmse_held
+            t["jointly_with"] = other["id"]
+            t["compared_with_held_out_nrmse"] = against.nrmse_held
+            fits[t["id"]] = (frc,) + tuple(fits[t["id"]][1:4]) + (free_a,)
+        return [a, b], frc
+    return [], None
 
 
 def linear_core(base: AugmentedModel, data, bkeys: list, max_nfev: int) -> rank.FitResult | None:
@@ -421,7 +518,28 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     ids = candidates or list(CATALOG)
 
     def fit_candidate(cid, cand, src, free, step_keys):
-        """One candidate's augmented fit started from ``src`` with ``free`` baseline keys."""
+        """One candidate's augmented fit started from ``src`` with ``free`` baseline keys; a candidate
+        with a discrete shape parameter the fit cannot move (``fit_each``: the contact's side) is
+        fitted once per value, and the fit with the lower fitting cost is kept (stress #99: a
+        contact beside a y^2 the baseline lacks; from the stop's wrong side the fit ended at held-out
+        0.00646 and was the better start by output error, from the right side at 0.00518)."""
+        if not cand.fit_each:
+            return fit_from(cid, cand, src, free, step_keys, cand.starts)
+        values = sorted({m.extras[cand.fit_each] for m, _, _, _ in cand.starts(src.model.baseline, ctx)})
+        got, err = [], None
+        for v in values:
+            def group(base, ctx_, v=v):
+                return [s for s in cand.starts(base, ctx_) if s[0].extras[cand.fit_each] == v]
+            try:
+                got.append(fit_from(cid, cand, src, free, step_keys, group))
+            except CANDIDATE_FAILURES as exc:
+                err = exc
+        if not got:
+            raise err
+        return min(got, key=lambda g: g[0].cost_fit if math.isfinite(g[0].cost_fit) else math.inf)
+
+    def fit_from(cid, cand, src, free, step_keys, make_starts):
+        """:func:`fit_candidate` from the starts ``make_starts`` makes."""
 
         def starts_from(make):
             out = make(src.model.baseline, ctx)
@@ -437,7 +555,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             i = int(np.argmin([f.cost_fit for f in fits]))
             return (fits[i].model,) + tuple(starts[i][1:])
 
-        starts = starts_from(cand.starts)
+        starts = starts_from(make_starts)
         if cand.column is not None:     # linear in its first parameter: equation-error step per start
             stepped = [rank.equation_step(m, step_keys, keys[0], cand.column, derivs, data)
                        for m, keys, _, _ in starts]
@@ -473,7 +591,15 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                 # stop's side stepped to kc = -9839, residual 0.964, was picked over the true side
                 # at kc = +8138, 0.977; fitted from there the contact ended worse than no contact)
                 inside = [j for j, (mm, _) in enumerate(stepped) if within_bound(mm, starts[j][1][0], starts[j][3])]
-                i = min(inside or range(len(stepped)), key=lambda j: stepped[j][1])
+                if len(inside) > 1:
+                    # and among those, the step the output error says fits best: the equation
+                    # residuals differ by differentiation noise (stress #99, a contact fitted on
+                    # top of a y^2 fit: the stop's wrong side ranked first by equation residual,
+                    # and from there the pair ended at held-out 0.00646; from the right side at
+                    # 0.00518, the truth's figure)
+                    i = min(inside, key=lambda j: rank.fit_cost(stepped[j][0], data))
+                else:
+                    i = min(inside or range(len(stepped)), key=lambda j: stepped[j][1])
                 # the step is an equation-error estimate, and differentiation errors can point it the
                 # wrong way: kept only if the output error says it is a better start than none
                 # (stress #6, a stiffness drift on sweeps: from the refit the step gave drift +0.0016
@@ -621,23 +747,25 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     sig = [t for t in tested if t["significant"]]
     sig.sort(key=lambda t: -t["explained"])
     combined = None
+    if not sig:
+
+        def refit_on(cid, first):
+            """``cid``'s fit (its own starts) from the fit ``first`` of another candidate."""
+            fr0, keys0, _, _, free0 = first
+            return fit_candidate(cid, CATALOG[cid], fr0, list(dict.fromkeys(free0 + keys0)),
+                                 [k for k in free0 if k in bkeys])[0]
+
+        sig, combined = joint_pair(tested, fits, nulls + [ref], ref.model, data, noise_mse, max_nfev, refit_on,
+                                   unexplained_mismatch(ref, noise_mse, []) is not None)
     ranked = list(sig)
-    if len(sig) > 1:
+    if len(sig) > 1 and combined is None:
         # forward step: a runner-up is reported only if it still adds on top of the best one
-        best_fr, best_keys, best_sc, best_b, best_free = fits[sig[0]["id"]]
+        best_fr, _, _, _, best_free = fits[sig[0]["id"]]
         kept = [sig[0]]
         for t in sig[1:]:
-            cand = CATALOG[t["id"]]
-            fr1, keys1, sc1, b1, _ = fits[t["id"]]
-            m = best_fr.model.copy()
-            for k in keys1:
-                set_parameter(m, k, get_parameter(fr1.model, k))
-            if cand.id == "contact_stiffness":
-                m.extras["side"] = fr1.model.get("side")
-            m.added = list(best_fr.model.added) + [t["id"]]
+            _, keys1, sc1, b1, _ = fits[t["id"]]
             try:
-                frc = rank.fit(m, list(dict.fromkeys(best_free + best_keys + keys1)), data, {**best_sc, **sc1},
-                               max_nfev=max_nfev, bounds={**best_b, **b1})
+                frc = combined_fit(fits[sig[0]["id"]], fits[t["id"]], t["id"], data, max_nfev)
                 s2 = rank.score(best_fr, frc, len(keys1), noise_mse)
             except CANDIDATE_FAILURES as exc:
                 t["on_top_of_best"] = {"failed": f"{type(exc).__name__}: {exc}", "significant": False}
