@@ -574,6 +574,7 @@ def test_two_effects_neither_enough_alone_are_named_together():
     assert not by_id["contact_stiffness"]["alone"]["significant"]
     assert not by_id["quadratic_stiffness"]["alone"]["significant"]
     assert by_id["contact_stiffness"]["jointly_with"] == "quadratic_stiffness"
+    assert all(by_id[i]["significant"] and not by_id[i].get("implausible") for i in by_id)
     truth, _ = true_model(rec)
     assert dg.best.get("side") == truth.get("side")
     assert dg.best.get("gap") == pytest.approx(truth.get("gap"), rel=0.02)

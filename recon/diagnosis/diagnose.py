@@ -439,12 +439,16 @@ def joint_pair(tested: list, fits: dict, nulls: list, ref_model: AugmentedModel,
             if not joint["significant"]:
                 continue
         for t, other in ((a, b), (b, a)):
-            t["alone"] = {k: t[k] for k in ("explained", "dbic", "significant", "held_out_nrmse",
-                                             "compared_with_held_out_nrmse") if k in t}
+            t["alone"] = {k: t.pop(k) if k in ("implausible", "compared_with_nested_null") else t[k]
+                          for k in ("explained", "dbic", "significant", "held_out_nrmse",
+                                    "compared_with_held_out_nrmse", "implausible", "compared_with_nested_null")
+                          if k in t}
             t.update(joint)
             t["held_out_nrmse"] = frc.nrmse_held
             t["jointly_with"] = other["id"]
             t["compared_with_held_out_nrmse"] = against.nrmse_held
+            if against is nn:
+                t["compared_with_nested_null"] = True
             fits[t["id"]] = (frc,) + tuple(fits[t["id"]][1:4]) + (free_a,)
         return [a, b], frc
     return [], None
