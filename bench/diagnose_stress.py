@@ -28,6 +28,7 @@ from independent_run import model_of, to_run, true_model
 from recon import diagnose
 from recon.diagnosis import rank
 from recon.diagnosis.catalog import CATALOG
+from recon.output_error.problem import get_parameter
 from recon.testing import independent as ind
 
 
@@ -130,9 +131,28 @@ def oracle(rec: dict, run, reference, baseline) -> dict | None:
             **{k_: s[k_] for k_ in ("significant", "explained", "gain_over_noise", "relative_gain", "dbic")}}
 
 
+def true_size(rec: dict, out: dict) -> dict | None:
+    """The concealed effect's size in the unit of the diagnosis's detection limit for its candidate
+    (``candidates_tested[].detection_limit``): {parameter, truth, limit}, or None (a clean recording,
+    a candidate without a limit)."""
+    c = next((c for c in out.get("candidates_tested", []) if c["id"] == rec["effect"]), None)
+    lim = (c or {}).get("detection_limit") or {}
+    tm = true_model(rec) if rec["effect"] != "none" else None
+    if tm is None or lim.get("value") is None:
+        return None
+    am, name = tm[0], lim["parameter"]
+    key = f"x:{name}" if name in am.extras else f"fn:{name}" if name in am.baseline.fn_m else name
+    try:
+        v = float(get_parameter(am, key))
+    except (KeyError, AttributeError, ValueError):
+        return None
+    return {"parameter": name, "truth": v, "limit": float(lim["value"])}
+
+
 # what each row keeps of every tested candidate (to study the decision rule offline)
 CANDIDATE_KEYS = ("id", "significant", "explained", "gain_over_noise", "relative_gain", "dbic", "held_out_nrmse",
-                  "compared_with_held_out_nrmse", "baseline_terms_dropped", "implausible", "failed")
+                  "compared_with_held_out_nrmse", "baseline_terms_dropped", "implausible", "failed",
+                  "detection_limit")
 
 
 def run_one(i: int) -> dict:
@@ -184,6 +204,9 @@ def run_one(i: int) -> dict:
                            for m in out["missing_physics"]},
                result=out["result"], unexplained=bool(out.get("unexplained_mismatch")),
                candidates=[{k: c[k] for k in CANDIDATE_KEYS if k in c} for c in out.get("candidates_tested", [])])
+    size = true_size(rec, out)
+    if size is not None:
+        row["truth_size"] = size
     try:
         row["oracle"] = oracle(rec, run, dg.reference, dg.baseline.baseline)
     except Exception as exc:  # noqa: BLE001 - the oracle is a bench figure, not the diagnosis
@@ -248,6 +271,27 @@ def report(rows: list[dict]) -> list[str]:
                    + (f" = {sum(r.get('right', False) for r in shows) / len(shows):.1%}" if shows else "")
                    + f"; on the {len(hidden)} where it does not, right first {sum(r.get('right', False) for r in hidden)}"
                    f"/{len(hidden)}")
+        if hidden:
+            # why the truth fails: its effect hardly shows (the held-out NRMSE falls by less than the rule's
+            # relative minimum) or it shows but the rule's other margins (gain over the noise, BIC) refuse it
+            faint = [r for r in hidden if (r["oracle"].get("relative_gain") or 0.0) < rank.MIN_REL_GAIN]
+            held = [r for r in hidden if r not in faint]
+            out.append(f"  of those {len(hidden)}: {len(faint)} where the truth lowers the held-out NRMSE by less "
+                       f"than {rank.MIN_REL_GAIN:.0%} (" + ", ".join(f"#{r['index']}" for r in faint)
+                       + f"); {len(held)} where it lowers it more but fails the other margins ("
+                       + ", ".join(f"#{r['index']} gain {r['oracle'].get('gain_over_noise', float('nan')):.2f} noise var, "
+                                   f"dBIC {r['oracle'].get('dbic', float('nan')):.0f}" for r in held) + ")")
+    sized = [r for r in eff if r["status"] == "ok" and r.get("truth_size")]
+    if sized:
+        # the diagnosis's own detection limit for the true candidate against the concealed effect's size
+        above = [r for r in sized if abs(r["truth_size"]["truth"]) >= r["truth_size"]["limit"]]
+        below = [r for r in sized if r not in above]
+        out.append(f"the true candidate's detection limit (candidates_tested[].detection_limit) against the "
+                   f"concealed size, on {len(sized)} effect recordings: above its limit {len(above)}, right first "
+                   f"{sum(r.get('right', False) for r in above)}/{len(above)}; below it {len(below)}, right first "
+                   f"{sum(r.get('right', False) for r in below)}/{len(below)}"
+                   + (" (" + ", ".join(f"#{r['index']} {abs(r['truth_size']['truth']) / r['truth_size']['limit']:.2f}"
+                                       f" x the limit" for r in below) + ")" if below else ""))
     out.append(f"effects named nothing: {len(missed)}, of which {len(flagged)} flagged as an unexplained mismatch; "
                f"clean recordings named nothing but flagged: {len(clean_flag)}/{len(clean)}")
     secs = [r["seconds"] for r in rows if "seconds" in r]

@@ -205,6 +205,13 @@ def diagnose_command(args) -> int:
               f"{m['evidence']['held_out_nrmse_before']:.4g} -> {m['evidence']['held_out_nrmse_after']:.4g}")
     if out["missing_physics"]:
         print("augmented model:\n" + out["fit_after"]["model"])
+    else:
+        # what "nothing found" covers: each candidate's smallest size this record would show
+        lims = [(c["id"], c["detection_limit"]) for c in out["candidates_tested"]
+                if (c.get("detection_limit") or {}).get("value") is not None]
+        if lims:
+            print("not seen above (detection limits on this record): "
+                  + ", ".join(f"{cid} {d['parameter']} {d['value']:.3g}" for cid, d in lims))
     if out["unexplained_mismatch"]:
         print(f"unexplained: {out['unexplained_mismatch']['note']}")
     for p in out.get("report", []):

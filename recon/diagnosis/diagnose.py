@@ -30,6 +30,7 @@ from recon.diagnosis.ambiguity import ambiguous_pair, separating_stage
 from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.catalog import CATALOG
 from recon.diagnosis.locate import locate, stage_derivatives
+from recon.diagnosis.sensitivity import detection_limit
 from recon.differentiation import estimate_spectrum
 from recon.estimator.adequacy import NOISE_FACTOR, NRMSE_FLOOR
 from recon.estimator.pipeline import reconstruct
@@ -748,6 +749,15 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                     t.update(rank.score(best_null, fits[t["id"]][0], k_added, noise_mse))
                     t["compared_with_held_out_nrmse"] = best_null.nrmse_held
                     t["compared_with_nested_null"] = True
+    # what the record can show: each candidate's smallest size the rule would name (sensitivity.py)
+    for t in tested:
+        if t["id"] in fits:
+            fr_t, keys_t, sc_t = fits[t["id"]][:3]
+            try:
+                t["detection_limit"] = detection_limit(ref, fr_t.model, keys_t, sc_t, data, noise_mse)
+            except CANDIDATE_FAILURES as exc:
+                t["detection_limit"] = {"parameter": keys_t[0].split(":", 1)[-1], "value": None,
+                                        "note": f"{type(exc).__name__}: {exc}"}
     sig = [t for t in tested if t["significant"]]
     sig.sort(key=lambda t: -t["explained"])
     combined = None

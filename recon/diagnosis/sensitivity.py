@@ -1,0 +1,103 @@
+"""What a record can show: the smallest effect of each candidate that the diagnosis would name.
+
+A candidate is named when, on the held-out samples, it beats the reference (the better of the
+baseline as given and the null model) by the margins of :func:`recon.diagnosis.rank.score`. Were
+an effect present whose held-out output signature (the difference it makes to the reference's
+prediction) has mean square D, the reference would score mse_ref + D and a candidate that captured
+it would score mse_ref. :func:`smallest_detectable_mse` is the smallest D that passes the rule then.
+
+The candidate's signature per unit of its size parameter (its first key: mu, c2, kc, the delay, the
+scale error, the drift rate, phi2, a library coefficient, alpha) comes from one simulation of the
+reference with that parameter at a nominal value (the candidate fit's own scale: about 1 % of the
+record's force level) and its shape parameters (friction's v0, the contact's gap and side, the
+higher mode's frequency and damping, the Bouc-Wen exponents) where the candidate's fit left them.
+A small effect changes the prediction in proportion to its size, so the limit in the parameter's
+own unit is nominal x sqrt(D / D_nominal): the limit holds for that shape. An effect smaller than
+its limit is not named whatever the fit does; "nothing found" then means "nothing above these
+limits", which is what the record can tell.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from recon.diagnosis import rank
+from recon.diagnosis.augmented import AugmentedModel
+from recon.output_error.problem import get_parameter, set_parameter
+
+SEARCH_STEPS = 80        # bisection steps of smallest_detectable_mse (a factor 4 bracket, then halving)
+
+
+def smallest_detectable_mse(ref: rank.FitResult, k_added: int, noise_mse: float) -> float:
+    """The smallest held-out mean square D an effect with ``k_added`` parameters must add to the
+    reference ``ref`` for a candidate that removes it exactly to pass :func:`rank.score`; inf when
+    none does (a reference without held-out samples). The rule's margins all grow with D (the
+    BIC, the explained share, the gain over the noise, the relative gain), so a bracket and a
+    bisection find it."""
+    m = ref.mse_held
+    if not (math.isfinite(m) and m > 0 and ref.resid_held is not None and ref.resid_held.size):
+        return math.inf
+
+    def passes(d: float) -> bool:
+        null = dataclasses.replace(ref, mse_held=m + d)
+        cand = dataclasses.replace(ref, mse_held=m)
+        return rank.score(null, cand, k_added, noise_mse)["significant"]
+
+    hi = max(m, noise_mse, 1e-300)
+    for _ in range(SEARCH_STEPS):
+        if passes(hi):
+            break
+        hi *= 4.0
+    else:
+        return math.inf
+    lo = 0.0
+    for _ in range(SEARCH_STEPS):
+        mid = 0.5 * (lo + hi)
+        if passes(mid):
+            hi = mid
+        else:
+            lo = mid
+        if hi - lo <= 1e-6 * hi:
+            break
+    return hi
+
+
+def nominal_model(ref: AugmentedModel, fitted: AugmentedModel, keys: list[str], size: float) -> AugmentedModel:
+    """The reference with a candidate's term at ``size`` (its first key) and its other keys, and the
+    extras the candidate adds, where its fit ``fitted`` left them."""
+    m = ref.copy()
+    for k, v in fitted.extras.items():
+        m.extras.setdefault(k, v)
+    for k in keys[1:]:
+        set_parameter(m, k, get_parameter(fitted, k))
+    set_parameter(m, keys[0], size)
+    m.added = list(fitted.added)
+    return m
+
+
+def detection_limit(ref: rank.FitResult, fitted: AugmentedModel, keys: list[str], scales: dict,
+                    data: list, noise_mse: float) -> dict:
+    """The smallest size of a candidate's first parameter the record would show (module docstring):
+    {parameter, value, held_out_signature_nrmse, shape {other keys: values}}, or {parameter,
+    value: None, note} when its term does not change the held-out prediction at that shape."""
+    key = keys[0]
+    d_min = smallest_detectable_mse(ref, len(keys), noise_mse)
+    yh = np.concatenate([d.y[d.held] - d.y[d.held].mean() for d in data if d.held.any()])
+    ms_y = float(np.mean(yh ** 2)) if yh.size else 0.0
+    shape = {k.split(":", 1)[-1]: float(get_parameter(fitted, k)) for k in keys[1:]}
+    if "side" in fitted.extras:
+        shape["side"] = float(fitted.extras["side"])
+    out = {"parameter": key.split(":", 1)[-1], "shape": shape}
+    nominal = abs(float(scales.get(key) or 0.0))
+    if not (math.isfinite(d_min) and nominal > 0 and ms_y > 0):
+        return {**out, "value": None, "note": "no held-out samples to judge on"}
+    fr = rank.fit(nominal_model(ref.model, fitted, keys, nominal), [], data)
+    if not (fr.resid_held is not None and fr.resid_held.size == ref.resid_held.size and math.isfinite(fr.mse_held)):
+        return {**out, "value": None, "note": "the reference with the term did not simulate"}
+    d0 = float(np.mean((fr.resid_held - ref.resid_held) ** 2))
+    if not d0 > 0:
+        return {**out, "value": None, "note": "the term does not change the held-out prediction at this shape"}
+    return {**out, "value": nominal * math.sqrt(d_min / d0),
+            "held_out_signature_nrmse": math.sqrt(d_min / ms_y)}
