@@ -138,3 +138,18 @@ def test_rig_protocol_settles_each_level_before_judging_it():
     st = rec["stages"]["nonlinear"]
     y = np.asarray(st["x_tip"]) - np.asarray(st["x_base"])
     assert (system["gamma"] + system["delta"]) * np.max(np.abs(y)) > 0.5
+
+
+def test_a_contact_on_the_rig_protocol_is_reached_in_its_nonlinear_stage():
+    # the gap sits at 0.55-0.75 of the clean nonlinear stage's peak; on the rig protocol that peak
+    # is where the raising stopped, not the top level's (placed from the top level, this draw's
+    # motion reached 0.40 of its gap: a record without its effect)
+    gen = _load()
+    rng = np.random.default_rng([7, 18])
+    system = gen.random_system(rng, hysteresis=True)
+    rec = gen.simulate(system, "rig", 1500.0, "contact_stiffness", 1.0, seed=7)
+    e = rec["effect_parameters"]
+    st = rec["stages"]["nonlinear"]
+    y = np.asarray(st["x_tip"]) - np.asarray(st["x_base"])
+    assert st["description"]["stop"] != "max level"
+    assert np.max(e["side"] * y) > 1.1 * e["gap"]
