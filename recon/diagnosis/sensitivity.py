@@ -20,7 +20,7 @@ It is a lower bound, not a promise: the term's whole signature is counted, and w
 own parameters can take part of it (a drift the stiffness refit follows, a damping term the viscous
 c mimics at one amplitude) an effect somewhat above its limit can still go unnamed (independent
 stress #97: a drift 1.9 times its limit, which the truth itself did not get past the rule either).
-
+"""
 from __future__ import annotations
 
 import dataclasses
