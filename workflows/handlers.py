@@ -206,7 +206,7 @@ def diagnose_command(args) -> int:
     if out["missing_physics"]:
         print("augmented model:\n" + out["fit_after"]["model"])
     else:
-        # what "nothing found" covers: each candidate's smallest size this record would show
+        # what "nothing found" covers: the size at which each candidate would show on this record (an estimate)
         lims = [(c["id"], c["detection_limit"]) for c in out["candidates_tested"]
                 if (c.get("detection_limit") or {}).get("value") is not None]
         if lims:

@@ -749,7 +749,8 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                     t.update(rank.score(best_null, fits[t["id"]][0], k_added, noise_mse))
                     t["compared_with_held_out_nrmse"] = best_null.nrmse_held
                     t["compared_with_nested_null"] = True
-    # what the record can show: each candidate's smallest size the rule would name (sensitivity.py)
+    # what the record can show: the size at which each candidate's effect, added to it, would be named
+    # (an estimate; sensitivity.py)
     for t in tested:
         if t["id"] in fits:
             fr_t, keys_t, sc_t = fits[t["id"]][:3]
