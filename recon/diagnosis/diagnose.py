@@ -30,7 +30,7 @@ from recon.diagnosis.ambiguity import ambiguous_pair, separating_stage
 from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.catalog import CATALOG
 from recon.diagnosis.locate import locate, stage_derivatives
-from recon.diagnosis.sensitivity import detection_limit
+from recon.diagnosis.sensitivity import detection_limits
 from recon.differentiation import estimate_spectrum
 from recon.estimator.adequacy import NOISE_FACTOR, NRMSE_FLOOR
 from recon.estimator.pipeline import reconstruct
@@ -751,14 +751,10 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                     t["compared_with_nested_null"] = True
     # what the record can show: the size at which each candidate's effect, added to it, would be named
     # (an estimate; sensitivity.py)
+    limits = detection_limits(ref, fits, data, noise_mse, CANDIDATE_FAILURES)
     for t in tested:
-        if t["id"] in fits:
-            fr_t, keys_t, sc_t = fits[t["id"]][:3]
-            try:
-                t["detection_limit"] = detection_limit(ref, fr_t.model, keys_t, sc_t, data, noise_mse)
-            except CANDIDATE_FAILURES as exc:
-                t["detection_limit"] = {"parameter": keys_t[0].split(":", 1)[-1], "value": None,
-                                        "note": f"{type(exc).__name__}: {exc}"}
+        if t["id"] in limits:
+            t["detection_limit"] = limits[t["id"]]
     sig = [t for t in tested if t["significant"]]
     sig.sort(key=lambda t: -t["explained"])
     combined = None

@@ -84,15 +84,34 @@ def nominal_model(ref: AugmentedModel, fitted: AugmentedModel, keys: list[str], 
     return m
 
 
+def detection_limits(ref: rank.FitResult, fits: dict, data: list, noise_mse: float, failures: tuple) -> dict:
+    """:func:`detection_limit` of every fitted candidate, ``fits`` {id: (FitResult, keys, scales,
+    ...)}; the parts every candidate shares (the rule's smallest D per number of added parameters,
+    the held-out mean square) computed once. A candidate whose simulation raises one of ``failures``
+    gets value None and the failure as its note."""
+    held = [d.y[d.held] - d.y[d.held].mean() for d in data if d.held.any()]
+    ms_y = float(np.mean(np.concatenate(held) ** 2)) if held else 0.0
+    d_min = {}
+    out = {}
+    for cid, (fr, keys, scales, *_) in fits.items():
+        if len(keys) not in d_min:
+            d_min[len(keys)] = smallest_detectable_mse(ref, len(keys), noise_mse)
+        try:
+            out[cid] = detection_limit(ref, fr.model, keys, scales, data, d_min[len(keys)], ms_y)
+        except failures as exc:
+            out[cid] = {"parameter": keys[0].split(":", 1)[-1], "value": None,
+                        "note": f"{type(exc).__name__}: {exc}"}
+    return out
+
+
 def detection_limit(ref: rank.FitResult, fitted: AugmentedModel, keys: list[str], scales: dict,
-                    data: list, noise_mse: float) -> dict:
-    """The smallest size of a candidate's first parameter the record would show (module docstring):
-    {parameter, value, held_out_signature_nrmse, shape {other keys: values}}, or {parameter,
-    value: None, note} when its term does not change the held-out prediction at that shape."""
+                    data: list, d_min: float, ms_y: float) -> dict:
+    """The size of a candidate's first parameter at which its effect would be named (module
+    docstring), given the rule's smallest held-out mean square ``d_min`` for its number of
+    parameters and the held-out samples' mean square ``ms_y``: {parameter, value,
+    held_out_signature_nrmse, shape {other keys: values}}, or {parameter, value: None, note} when
+    its term does not change the held-out prediction at that shape."""
     key = keys[0]
-    d_min = smallest_detectable_mse(ref, len(keys), noise_mse)
-    yh = np.concatenate([d.y[d.held] - d.y[d.held].mean() for d in data if d.held.any()])
-    ms_y = float(np.mean(yh ** 2)) if yh.size else 0.0
     shape = {k.split(":", 1)[-1]: float(get_parameter(fitted, k)) for k in keys[1:]}
     if "side" in fitted.extras:
         shape["side"] = float(fitted.extras["side"])
