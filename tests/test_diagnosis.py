@@ -169,6 +169,34 @@ def test_run_without_validation_stage_holds_out_the_end_of_each_stage():
         diagnose(run, baseline, candidates=["friction"])
 
 
+def _tone_stages(tip_amplitudes: dict) -> "Run":
+    from shakerlab.run_data import Run, Stage
+    t = np.arange(0.0, 4.0, 1e-3)
+    xb = 1e-3 * np.sin(2 * np.pi * 5.0 * t)
+    return Run({n: Stage(n, t, {"x_base": xb, "x_tip": xb + a * np.sin(2 * np.pi * 5.0 * t + 0.3)})
+                for n, a in tip_amplitudes.items()})
+
+
+@pytest.mark.parametrize("validation, held_in_nonlinear", [(0.3e-3, True), (0.8e-3, False)])
+def test_held_out_data_span_the_amplitudes_the_fit_saw(validation, held_in_nonlinear):
+    # the rig protocol's validation tone moves y to about a third of the nonlinear stage's peak: the
+    # nonlinear stage's end is then held out too, so an effect of large amplitudes can be scored
+    from recon.diagnosis import rank
+    from recon.model import HystereticModel
+    run = _tone_stages({"linear": 0.05e-3, "nonlinear": 1e-3, "validation": validation})
+    assert rank.uncovered_stages(run) == ({"nonlinear"} if held_in_nonlinear else set())
+    data = {d.name: d for d in rank.prepare(run, HystereticModel("base", 2.0, 4e3, 0.0, 0.0, 0.0, {}))}
+    assert data["validation"].held.all() and not data["validation"].fit.any()
+    assert data["linear"].fit.all() and not data["linear"].held.any()
+    nl = data["nonlinear"]
+    n = nl.y.size
+    if held_in_nonlinear:
+        cut = int((1 - rank.HOLD_FRACTION) * n)
+        assert nl.fit[:cut].all() and not nl.fit[cut:].any() and nl.held[cut:].all() and not nl.held[:cut].any()
+    else:
+        assert nl.fit.all() and not nl.held.any()
+
+
 def test_cli_default_baseline_is_the_paper_reconstruction(tmp_path, capsys):
     # `diagnose RUN` without --baseline reconstructs the run with the paper's method first
     # (the baseline then partly absorbs the concealed term, e.g. as y'^3) and still names it
