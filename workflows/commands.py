@@ -122,7 +122,8 @@ def register_diagnosis(subparsers) -> None:
         help="locate where a model and a recording disagree, name the missing physics, show the fit improve",
         description="Compare a model's simulation with RUN, locate the mismatch (time, frequency, state plane, "
                     "channel), fit every candidate from the physics catalog as an augmented model and rank them "
-                    "on held-out data (validation stage, else the last 30 % of each stage).",
+                    "on held-out data (validation stage, else the last 30 % of each stage; also the last 30 % of a stage "
+                    "whose peak the validation stages reach less than half of).",
     )
     p.add_argument("run", metavar="RUN", help="run file (.h5 or .npz)")
     p.add_argument("--baseline", default="paper", metavar="paper|linear|MODEL.json",
