@@ -177,7 +177,7 @@ def _tone_stages(tip_amplitudes: dict) -> "Run":
                 for n, a in tip_amplitudes.items()})
 
 
-@pytest.mark.parametrize("validation, held_in_nonlinear", [(0.3e-3, True), (0.8e-3, False)])
+@pytest.mark.parametrize("validation, held_in_nonlinear", [(0.3e-3, True), (0.5e-3, False)])
 def test_held_out_data_span_the_amplitudes_the_fit_saw(validation, held_in_nonlinear):
     # the rig protocol's validation tone moves y to about a third of the nonlinear stage's peak: the
     # nonlinear stage's end is then held out too, so an effect of large amplitudes can be scored

@@ -123,7 +123,7 @@ def register_diagnosis(subparsers) -> None:
         description="Compare a model's simulation with RUN, locate the mismatch (time, frequency, state plane, "
                     "channel), fit every candidate from the physics catalog as an augmented model and rank them "
                     "on held-out data (validation stage, else the last 30 % of each stage; also the last 30 % of a stage "
-                    "whose peak the validation stages reach less than half of).",
+                    "whose peak the validation stages reach less than 0.4 of).",
     )
     p.add_argument("run", metavar="RUN", help="run file (.h5 or .npz)")
     p.add_argument("--baseline", default="paper", metavar="paper|linear|MODEL.json",
