@@ -195,6 +195,14 @@ def test_held_out_data_span_the_amplitudes_the_fit_saw(validation, held_in_nonli
         assert nl.fit[:cut].all() and not nl.fit[cut:].any() and nl.held[cut:].all() and not nl.held[:cut].any()
     else:
         assert nl.fit.all() and not nl.held.any()
+    # what a baseline reconstructed for the diagnosis ('paper', 'linear') is fitted on
+    part = rank.fitting_part(run)
+    if held_in_nonlinear:
+        assert part.stages["nonlinear"].t.size == cut
+        assert np.array_equal(part.stages["nonlinear"].y, nl.y[:cut])
+        assert part.stages["linear"] is run.stages["linear"] and part.stages["validation"] is run.stages["validation"]
+    else:
+        assert part is run
 
 
 def test_cli_default_baseline_is_the_paper_reconstruction(tmp_path, capsys):
