@@ -119,6 +119,7 @@ def test_cli_json_contract_and_report(tmp_path, capsys):
     for key in ("baseline", "fit_before", "fit_after", "mismatch", "missing_physics"):
         assert key in out
     assert set(out["fit_before"]["nrmse"]) == {"linear", "nonlinear", "validation"}
+    assert out["fit_before"]["held_out_share"] == {"validation": 1.0}     # its validation stage spans the fit
     assert out["missing_physics"][0]["id"] == "quadratic_damping"
     for key in ("id", "explanation", "parameters", "evidence", "fit_after"):
         assert key in out["missing_physics"][0]

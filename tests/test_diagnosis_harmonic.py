@@ -66,6 +66,9 @@ def test_each_effect_is_named_from_one_tone_per_stage(effect):
     # right first, or reported as one of an ambiguous pair (with the stage that would separate them)
     assert (effect in amb) if amb else (ids[:1] == [effect]), (ids, amb, out["candidates_tested"])
     fb, fa = out["fit_before"], out["fit_after"]
+    if effect == "contact_stiffness":
+        assert fb["held_out_share"]["validation"] == 1.0
+        assert fb["held_out_share"]["nonlinear"] == pytest.approx(rank.HOLD_FRACTION, abs=1e-3)
     assert fa["held_out_nrmse"] < fb["held_out_nrmse_as_given"]
     assert fa["held_out_nrmse"] < fb["refit_held_out_nrmse"]
 

@@ -849,7 +849,10 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     fit_before = {"nrmse": before, "refit_nrmse": null.nrmse, "held_out_nrmse": given.nrmse_held,
                   "held_out_nrmse_as_given": given.nrmse_held, "refit_held_out_nrmse": null.nrmse_held,
                   "compared_with": ref_name,
-                  "noise_nrmse": {d.name: d.noise / d.rms for d in data}}
+                  "noise_nrmse": {d.name: d.noise / d.rms for d in data},
+                  # the share of each stage's samples the models are compared on (a validation stage
+                  # whole; the end of a stage the validation stages do not reach, rank.uncovered_stages)
+                  "held_out_share": {d.name: float(np.mean(d.held)) for d in data if d.held.any()}}
     if core is not None:
         # candidate fits also started from the baseline's linear core (LINEAR_CORE_NRMSE)
         fit_before["linear_core_held_out_nrmse"] = core.nrmse_held
