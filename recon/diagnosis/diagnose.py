@@ -79,7 +79,6 @@ def linear_baseline(run: Run) -> HystereticModel:
 def resolve_baseline(run: Run, baseline, whole: bool = False) -> tuple[AugmentedModel, str]:
     """The baseline as an augmented model and its kind. ``paper`` and ``linear`` are reconstructed
     from :func:`rank.fitting_part` of ``run`` (from all of it when ``whole``)."""
-    fit_run = run if whole else rank.fitting_part(run)
     if isinstance(baseline, AugmentedModel):
         return baseline.copy(), "model"
     if isinstance(baseline, HystereticModel):
@@ -87,7 +86,7 @@ def resolve_baseline(run: Run, baseline, whole: bool = False) -> tuple[Augmented
     if baseline in (None, "paper"):
         # reconstructed from the fitting samples only (rank.fitting_part: a stage the validation
         # stages do not cover has its end held out), so the baseline's held-out score is out of sample
-        model = reconstruct(fit_run).model
+        model = reconstruct(run if whole else rank.fitting_part(run)).model
         if model.input_offset is not None and (model.provenance.get("input_offset_rule") or {}).get("on"):
             # the paper's model has no constant term: an offset reconstruct fitted on its own
             # (recon.estimator.input_offset) is taken out of the baseline, so that the catalog's
@@ -96,7 +95,7 @@ def resolve_baseline(run: Run, baseline, whole: bool = False) -> tuple[Augmented
             model.input_offset = None
         return AugmentedModel(model), "paper"
     if baseline == "linear":
-        return AugmentedModel(linear_baseline(fit_run)), "linear"
+        return AugmentedModel(linear_baseline(run if whole else rank.fitting_part(run))), "linear"
     path = Path(str(baseline))
     if path.suffix != ".json" and not path.exists():
         raise UserFacingError(f"--baseline must be 'paper', 'linear' or a model JSON file, got {baseline!r}")
@@ -482,12 +481,17 @@ def linear_core(base: AugmentedModel, data, bkeys: list, max_nfev: int) -> rank.
     return fr if math.isfinite(fr.mse_held) and fr.n_held > 0 else None
 
 
+def every_parameter(base: AugmentedModel) -> list[str]:
+    """Every free parameter of the baseline: its own (rank.baseline_keys) and its extras' (but v0 and
+    side, which a candidate's fit sets)."""
+    return rank.baseline_keys(base.baseline) + [f"x:{k}" for k in base.extras if k not in ("v0", "side")]
+
+
 def _reference_fits(run: Run, base: AugmentedModel, max_nfev: int):
     """(stage data, the null model: every baseline parameter refitted, the baseline as given scored
     the same way with no parameter moved)."""
     data = rank.prepare(run, base.baseline)
-    full_free = rank.baseline_keys(base.baseline) + [f"x:{k}" for k in base.extras if k not in ("v0", "side")]
-    null = rank.fit(base, full_free, data, max_nfev=max_nfev)
+    null = rank.fit(base, every_parameter(base), data, max_nfev=max_nfev)
     given = rank.fit(base, [], data)
     return data, null, given
 
@@ -517,7 +521,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
         raise UserFacingError(f"baseline model is {base.excitation} excitation, {run.source or 'run'} is {run.excitation}")
     data, null, given = _reference_fits(run, base, max_nfev)
     if (kind in ("paper", "linear") and not (math.isfinite(null.mse_held) or math.isfinite(given.mse_held))
-            and rank.fitting_part(run) is not run):
+            and rank.uncovered_stages(run)):
         # reconstructed without the held-out end of a stage (rank.fitting_part), the baseline does
         # not simulate that stage: it is reconstructed from the whole run instead, and its score on
         # that end is then in sample (stress #73, a contact passed at 5.9 x its gap on the rig
@@ -526,8 +530,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
         base.baseline.provenance["fitted_on_held_out"] = "the whole run (its fitting part alone diverged)"
         data, null, given = _reference_fits(run, base, max_nfev)
     bkeys = rank.baseline_keys(base.baseline)
-    extra_keys = [f"x:{k}" for k in base.extras if k not in ("v0", "side")]
-    full_free = bkeys + extra_keys      # every parameter of the baseline
+    full_free = every_parameter(base)
     before = given.nrmse
     _check_null(null if math.isfinite(null.mse_held) else given, data, run)
     # the reference every candidate must beat on the held-out samples: the better of the baseline as

@@ -160,7 +160,7 @@ def prepare(run: Run, model: HystereticModel) -> list[StageData]:
                 fit[:] = False
                 held[:] = True
         else:
-            cut = int((1 - HOLD_FRACTION) * y.size)
+            cut = fit_cut(y.size)
             fit[cut:] = False
             held[cut:] = True
         if st.excitation == BASE:
@@ -199,6 +199,12 @@ def prepare(run: Run, model: HystereticModel) -> list[StageData]:
                 d.initial, d.start_model = start, model
         out.append(d)
     return out
+
+
+def fit_cut(n: int) -> int:
+    """Where a stage of ``n`` samples that is partly held out stops being fitted (its last
+    HOLD_FRACTION is held out)."""
+    return int((1 - HOLD_FRACTION) * n)
 
 
 def response_peak(y: np.ndarray) -> float:
@@ -242,7 +248,7 @@ def fitting_part(run: Run) -> Run:
     stages = {}
     for n, st in run.stages.items():
         if n in cut_stages:
-            cut = int((1 - HOLD_FRACTION) * st.t.size)
+            cut = fit_cut(st.t.size)
             st = Stage(n, st.t[:cut], {c: v[:cut] for c, v in st.recorded().items()}, st.excitation,
                        dict(st.settings))
         stages[n] = st
