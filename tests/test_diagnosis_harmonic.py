@@ -87,3 +87,28 @@ def test_a_resonance_riding_on_the_tip_is_named_with_its_drive():
     assert out["augmented_model"]["extras"].get("drive2") == 1.0
     assert out["missing_physics"][0]["parameters"]["w2"]["value"] == pytest.approx(e["w2"], rel=0.01)
     assert out["fit_after"]["held_out_nrmse"] < 0.5 * out["fit_before"]["held_out_nrmse_as_given"]
+
+
+def test_quadratic_damping_a_baseline_took_up_as_a_hysteresis_loop_is_named_without_it():
+    # stress #16: reconstructed from a record with quadratic damping and no hysteresis, the paper
+    # baseline had a Bouc-Wen law (alpha 880, gamma 25.7) that dissipated in its place, and from there
+    # c2 stayed at 0. Here the baseline is the truth without the effect, 40 % of its stiffness moved
+    # into a made-up loop: the named model must have dropped the loop and found c2
+    system = ind.random_system(np.random.default_rng(16), hysteresis=False, quadratic=False, cubic=True,
+                               fn_range=(8.0, 20.0))
+    rec = ind.add_noise(ind.simulate(system, "paper", 2000.0, "quadratic_damping", 1.0, seed=1), 60.0, 1)
+    p = dict(rec["baseline"] if "baseline" in rec else rec["truth"])
+    a = 0.4 * p["k_m"]
+    p.update(k_m=p["k_m"] - a, alpha_m=a, gamma=0.5 / system["Y"], delta=0.0)
+    out = diagnose(to_run(rec), model_of(p), candidates=["quadratic_damping", "coulomb_friction",
+                                                        "cubic_stiffness"]).to_dict()
+    ids = [m["id"] for m in out["missing_physics"]]
+    assert ids[:1] == ["quadratic_damping"], (ids, out["candidates_tested"])
+    named = out["missing_physics"][0]
+    assert named["hysteresis_dropped"] is True
+    assert out["augmented_model"]["baseline"]["parameters"]["alpha_m"] == 0.0
+    lo, hi = named["parameters"]["c2"]["interval"]
+    c2 = rec["effect_parameters"]["c2"] / system["m"]
+    assert lo <= c2 <= hi or named["parameters"]["c2"]["value"] == pytest.approx(c2, rel=0.1)
+    assert out["fit_after"]["held_out_nrmse"] < out["fit_before"]["held_out_nrmse_as_given"]
+    assert out["fit_after"]["held_out_nrmse"] < out["fit_before"]["refit_held_out_nrmse"]

@@ -33,6 +33,9 @@ class Candidate:
     screen_output: bool = False      # with a column and several starts: pick the start by a short output-error fit
     admissible_starts: Callable | None = None   # starts inside the physical range, tried when a fit ends implausible
     fit_each: str | None = None      # an extra the fit cannot move (discrete): fitted once per value, the best kept
+    # a dissipation a reconstructed Bouc-Wen law can take up (its |y'| z terms dissipate more at larger
+    # amplitude): also fitted from the baseline without its hysteresis (diagnose.hysteresis_free_core)
+    hysteresis_absorbs: bool = False
 
 
 def _am(base: HystereticModel, extras: dict, cid: str) -> AugmentedModel:
@@ -162,12 +165,13 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
     Candidate("quadratic_damping",
               "dissipation grows with the square of the velocity (air drag, turbulent losses)",
               "term c2 y'|y'| in the restoring force", "extra force c2 y'|y'|", ("x:c2",), _quad_damp,
-              column=lambda am, t, y, dy: dy * np.abs(dy)),
+              column=lambda am, t, y, dy: dy * np.abs(dy), hysteresis_absorbs=True),
     Candidate("coulomb_friction",
               "dry friction: a force of constant size opposing the motion, independent of amplitude",
               "term mu sign(y') (smoothed: tanh(y'/v0)) in the restoring force",
               "extra force mu tanh(y'/v0); v0 fitted from 1, 5, 20, 100 or 300 % of the smallest stage rms velocity (the best start)",
-              ("x:mu", "x:v0"), _coulomb, column=lambda am, t, y, dy: np.tanh(dy / am.get("v0")), screen_output=True),
+              ("x:mu", "x:v0"), _coulomb, column=lambda am, t, y, dy: np.tanh(dy / am.get("v0")), screen_output=True,
+              hysteresis_absorbs=True),
     Candidate("contact_stiffness",
               "one-sided contact: beyond a gap the specimen touches a stop and gets stiffer on that side only",
               "term kc max(s*y - gap, 0) (s = +1 or -1) in the restoring force",
@@ -207,7 +211,8 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
               "a y^2 y' dissipation term",
               "library term y^2*dy in fn", "fn gains b y^2 y' (RK4 of the augmented SDOF)", ("fn:y^2*dy",),
               _fn_start("y^2*dy", "amplitude_damping", lambda c: 0.01 * c["acc_rms"] / (c["y_rms"] ** 2 * c["v_rms"])),
-              lambda b, c: "y^2*dy" not in b.fn_m, column=lambda am, t, y, dy: y ** 2 * dy),
+              lambda b, c: "y^2*dy" not in b.fn_m, column=lambda am, t, y, dy: y ** 2 * dy,
+              hysteresis_absorbs=True),
     Candidate("exciter_distortion",
               "the input is the exciter's drive (an amplifier voltage), and the exciter does not turn it into "
               "force in proportion: an even-order distortion (u^2) and a low-frequency roll-off",
