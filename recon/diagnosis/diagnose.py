@@ -486,8 +486,8 @@ HYSTERESIS_KEYS = ("alpha_m", "gamma", "delta")
 
 def hysteresis_free_core(base: AugmentedModel, data, free: list, max_nfev: int) -> rank.FitResult | None:
     """The baseline without its Bouc-Wen law: alpha folded into k (the loop's small-amplitude
-    stiffness is k + alpha), alpha, gamma and delta at 0 and held there, the rest of ``free``
-    refitted by output error. None for a baseline without hysteresis or when the fit fails.
+    stiffness is k + alpha), alpha, gamma and delta at 0 and held there, ``free`` (keys without
+    HYSTERESIS_KEYS) refitted by output error. None for a baseline without hysteresis or when the fit fails.
 
     A reconstructed Bouc-Wen law can take up a dissipation it does not hold: its |y'| z terms
     dissipate more at larger amplitude, as quadratic damping or friction does (stress #16,
@@ -501,7 +501,7 @@ def hysteresis_free_core(base: AugmentedModel, data, free: list, max_nfev: int) 
     b.k_m += b.alpha_m
     b.alpha_m = b.gamma = b.delta = 0.0
     try:
-        fr = rank.fit(m, [k for k in free if k not in HYSTERESIS_KEYS], data, max_nfev=max_nfev)
+        fr = rank.fit(m, free, data, max_nfev=max_nfev)
     except CANDIDATE_FAILURES:
         return None
     return fr if math.isfinite(fr.mse_held) and fr.n_held > 0 else None
@@ -728,15 +728,17 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
         # truth's figure. The core is also a null model every candidate must beat
         origins.append((core, full_free, bkeys, "linear_core"))
         nulls.append(core)
-    unlooped = None
+    unlooped_origins = []
     if any(CATALOG[c].hysteresis_absorbs for c in ids if c in CATALOG):
         # dissipative candidates also start from the baseline without its Bouc-Wen law (a law the
         # reconstruction may have made of the missing dissipation); that core alone is a null
         # model too, so a candidate gets no credit for dropping the law
-        unlooped = hysteresis_free_core(base, data, full_free, max_nfev)
+        loopless_free = [k for k in full_free if k not in HYSTERESIS_KEYS]
+        unlooped = hysteresis_free_core(base, data, loopless_free, max_nfev)
         if unlooped is not None:
             nulls.append(unlooped)
-    loopless_free = [k for k in full_free if k not in HYSTERESIS_KEYS]
+            unlooped_origins.append((unlooped, loopless_free, [k for k in bkeys if k not in HYSTERESIS_KEYS],
+                                     "without_hysteresis"))
     references = {}     # candidate id: (the reference it was scored against, its added parameters)
 
     for cid in ids:
@@ -748,9 +750,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
         tc = time.perf_counter()
         try:
             got, errs = [], []
-            own = origins + ([(unlooped, loopless_free, [k for k in bkeys if k not in HYSTERESIS_KEYS],
-                               "without_hysteresis")] if unlooped is not None and cand.hysteresis_absorbs else [])
-            for src, free, step_keys, oname in own:
+            for src, free, step_keys, oname in origins + (unlooped_origins if cand.hysteresis_absorbs else []):
                 try:
                     got.append((fit_candidate(cid, cand, src, free, step_keys), free, oname))
                     fr0, keys0, sc0, b0 = got[-1][0]
