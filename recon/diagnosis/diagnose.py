@@ -418,7 +418,7 @@ def joint_pair(tested: list, fits: dict, nulls: list, ref_model: AugmentedModel,
     if far_from_floor and refit_on is not None and plausible and len(fitted) > 1:
         first = min(plausible, key=lambda t: fits[t["id"]][0].cost_fit)
         rounds.append([(first, t, lambda first=first, t=t: refit_on(t["id"], fits[first["id"]]))
-                       for t in fitted if t is not first and not (lower and {first["id"], t["id"]} ==
+                       for t in plausible if t is not first and not (lower and {first["id"], t["id"]} ==
                                                                   {x["id"] for x in lower})])
     against0 = min(nulls, key=lambda f: f.mse_held)
     for tries in rounds:
