@@ -583,6 +583,38 @@ def test_two_effects_neither_enough_alone_are_named_together():
     assert dg.best_fit.nrmse_held < dg.fit_before["held_out_nrmse"]
 
 
+def test_a_pair_on_top_of_the_cheapest_fit_takes_only_members_plausible_alone():
+    # the real bolted beam with its paper baseline (docs/diagnosis.md, 2026-11-28): a one-sided stop
+    # whose stiffness interval held 0 when fitted alone was fitted on top of exciter_distortion and
+    # named with it, a stop the beam does not have. Far above the floor, only the candidates
+    # plausible alone are fitted on top of the one that lowers the fitting cost most
+    from recon.diagnosis.diagnose import joint_pair
+    from recon.model import HystereticModel
+
+    base = HystereticModel("base", c_m=2.0, k_m=1.0e4, alpha_m=0.0, gamma=0.0, delta=0.0)
+
+    def fr(cost, held):
+        return rank.FitResult(AugmentedModel(base), cost_fit=cost, mse_held=held ** 2, nrmse={},
+                              nrmse_held=held, n_held=100)
+
+    ref = fr(1.0, 0.20)
+    tested = [{"id": "exciter_distortion", "compared_with_held_out_nrmse": 0.20},
+              {"id": "coulomb_friction", "compared_with_held_out_nrmse": 0.20},
+              {"id": "contact_stiffness", "compared_with_held_out_nrmse": 0.20,
+               "implausible": ["the 95 % interval of kc [-19.68, 91.78] holds 0"]}]
+    fits = {"exciter_distortion": (fr(0.5, 0.197), [], {}, {}, []),
+            "coulomb_friction": (fr(0.9, 0.203), [], {}, {}, []),
+            "contact_stiffness": (fr(0.8, 0.206), [], {}, {}, [])}
+    tried = []
+
+    def refit_on(cid, first):
+        tried.append(cid)
+        raise ValueError("not fitted in this test")
+
+    assert joint_pair(tested, fits, [ref], ref.model, [], 1e-8, 5, refit_on, far_from_floor=True) == ([], None)
+    assert tried == ["coulomb_friction"]
+
+
 def test_friction_beside_a_stiffness_the_linear_baseline_lacks():
     # stress #80 (friction on sweeps, 72.6 dB): the reconstructed baseline is linear with c 223
     # (truth 8.0) and no y^3 (truth 4.87e9): friction alone ends at held-out 1.41 (k takes the
