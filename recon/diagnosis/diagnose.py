@@ -755,14 +755,17 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                     got.append((fit_candidate(cid, cand, src, free, step_keys), free, oname))
                     fr0, keys0, sc0, b0 = got[-1][0]
                     if (oname == "as_given" and not refit_better and set(full_free) - set(free)
-                            and fr0.cost_fit < FOLLOW_ON_SHARE * src.cost_fit
-                            and fr0.mse_held > ref.mse_held):
+                            and fr0.cost_fit < FOLLOW_ON_SHARE * src.cost_fit):
                         # the refit alone is worse than the baseline as given, and the term took
-                        # half the fitting cost with only c and k free but predicts the held-out
-                        # samples worse: the rest of the baseline, fitted without the term, is
-                        # refitted beside it too (stress #119, friction: the paper baseline's
-                        # Bouc-Wen law had absorbed it; with c and k alone held-out 0.0126 against
-                        # 0.0073 as given, with every parameter 0.00023, the truth's)
+                        # half the fitting cost with only c and k free: the rest of the baseline,
+                        # fitted without the term, is refitted beside it too (stress #119, friction:
+                        # the paper baseline's Bouc-Wen law had absorbed it; with c and k alone
+                        # held-out 0.0126 against 0.0073 as given, with every parameter 0.00023, the
+                        # truth's). Also where the c-and-k fit already predicts the held-out samples
+                        # better (until 2026-11-28 it was refitted only where it predicted them
+                        # worse): stress #353, friction on the paper protocol, took 93 % of the
+                        # fitting cost with c and k and reached 0.00639 against 0.00666 as given,
+                        # not significant; with every parameter 0.00232, the truth's figure
                         fa = rank.fit(fr0.model, list(dict.fromkeys(full_free + keys0)), data, sc0,
                                       max_nfev=max(max_nfev // 2, 5), bounds=b0)
                         if math.isfinite(fa.mse_held) and fa.n_held > 0:
