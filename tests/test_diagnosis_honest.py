@@ -584,7 +584,7 @@ def test_two_effects_neither_enough_alone_are_named_together():
 
 
 def test_a_pair_on_top_of_the_cheapest_fit_takes_only_members_plausible_alone():
-    # the real bolted beam with its paper baseline (docs/diagnosis.md, 2026-11-28): a one-sided stop
+    # the real bolted beam with its paper baseline (docs/diagnosis.md, 2026-11-27, sixth): a one-sided stop
     # whose stiffness interval held 0 when fitted alone was fitted on top of exciter_distortion and
     # named with it, a stop the beam does not have. Far above the floor, only the candidates
     # plausible alone are fitted on top of the one that lowers the fitting cost most

@@ -762,7 +762,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                         # the paper baseline's Bouc-Wen law had absorbed it; with c and k alone
                         # held-out 0.0126 against 0.0073 as given, with every parameter 0.00023, the
                         # truth's). Also where the c-and-k fit already predicts the held-out samples
-                        # better (until 2026-11-28 it was refitted only where it predicted them
+                        # better (until 2026-11-27, sixth, it was refitted only where it predicted them
                         # worse): stress #353, friction on the paper protocol, took 93 % of the
                         # fitting cost with c and k and reached 0.00639 against 0.00666 as given,
                         # not significant; with every parameter 0.00232, the truth's figure
