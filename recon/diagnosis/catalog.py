@@ -104,6 +104,11 @@ def _drift(base, ctx):
     return [(m, ["x:drift"], {"x:drift": 0.01 / max(ctx["t_end"], 1e-9)}, {})]
 
 
+# the range a second mode's damping ratio is fitted in; a fit that ends at its top is not a
+# resonance (see diagnose.implausible)
+ZETA2_RANGE = (0.001, 0.3)
+
+
 def _higher_mode(base, ctx):
     # input-driven starts (a structural mode), then one riding on the measured point (drive2 = 1,
     # driven by its absolute acceleration); which of the two is kept fixed in the fit: started on
@@ -115,7 +120,7 @@ def _higher_mode(base, ctx):
         w = 2 * math.pi * f
         m = _am(base, {"w2": w, "zeta2": 0.02, "phi2": phi, **({"drive2": drive} if drive else {})}, "higher_mode")
         out.append((m, ["x:phi2", "x:w2", "x:zeta2"], {"x:phi2": 0.01, "x:w2": 0.02 * w, "x:zeta2": 0.01},
-                    {"x:w2": (0.5 * w, 2.0 * w), "x:zeta2": (0.001, 0.3)}))
+                    {"x:w2": (0.5 * w, 2.0 * w), "x:zeta2": ZETA2_RANGE}))
     return out
 
 
