@@ -401,8 +401,9 @@ def joint_pair(tested: list, fits: dict, nulls: list, ref_model: AugmentedModel,
     the other's fit: from the contact's fit, its gap near 0 standing in for y^2, the pair stayed at
     0.00701; the contact fitted on top of y^2 reached 0.00518.
     Then, when the reference is far above the noise floor (``far_from_floor``), every other candidate
-    fitted on top of the one that lowers the fitting cost most, and the pair with the lowest fitting
-    cost tried: stress #80, friction on sweeps whose reconstructed baseline is linear (c 223 against
+    plausible alone fitted on top of the one that lowers the fitting cost most, and the pair with the
+    lowest fitting cost tried (a candidate refused alone is not taken: on the real bolted beam a
+    contact whose kc interval held 0 alone was named on top of the exciter's distortion): stress #80, friction on sweeps whose reconstructed baseline is linear (c 223 against
     the truth's 8.0, and no y^3): friction alone ends at held-out 1.41 (its k takes the hardening),
     y^3 alone at 0.96, the reference 0.95, the truth 0.00045.
 
