@@ -403,8 +403,9 @@ def joint_pair(tested: list, fits: dict, nulls: list, ref_model: AugmentedModel,
     Then, when the reference is far above the noise floor (``far_from_floor``), every other candidate
     plausible alone fitted on top of the one that lowers the fitting cost most, and the pair with the
     lowest fitting cost tried (a candidate refused alone is not taken: on the real bolted beam a
-    contact whose kc interval held 0 alone was named on top of the exciter's distortion): stress #80, friction on sweeps whose reconstructed baseline is linear (c 223 against
-    the truth's 8.0, and no y^3): friction alone ends at held-out 1.41 (its k takes the hardening),
+    contact whose kc interval held 0 alone was named on top of the exciter's distortion): stress #80,
+    friction on sweeps whose reconstructed baseline is linear (c 223 against the truth's 8.0, and no
+    y^3): friction alone ends at held-out 1.41 (its k takes the hardening),
     y^3 alone at 0.96, the reference 0.95, the truth 0.00045.
 
     A pair is named (the one that lowers the fitting cost more alone first) only if it passes the
@@ -412,9 +413,8 @@ def joint_pair(tested: list, fits: dict, nulls: list, ref_model: AugmentedModel,
     the other one's own fit, both are plausible, and the null model fitted from where the pair ended
     does not explain it. Returns (the two tested entries, updated with the joint score, their
     figures alone kept under "alone"; the joint fit), or ([], None)."""
-    fitted = [t for t in tested if t["id"] in fits]
-    lower = sorted((t for t in fitted if not t.get("implausible")
-                    and fits[t["id"]][0].nrmse_held < t["compared_with_held_out_nrmse"]),
+    plausible = [t for t in tested if t["id"] in fits and not t.get("implausible")]
+    lower = sorted((t for t in plausible if fits[t["id"]][0].nrmse_held < t["compared_with_held_out_nrmse"]),
                    key=lambda t: fits[t["id"]][0].mse_held)[:2]
     rounds = []
     if len(lower) == 2:
@@ -422,8 +422,7 @@ def joint_pair(tested: list, fits: dict, nulls: list, ref_model: AugmentedModel,
         rounds.append([(a, b, lambda a=a, b=b: combined_fit(fits[a["id"]], fits[b["id"]], b["id"], data, max_nfev))]
                       + ([(a, b, lambda a=a, b=b: refit_on(b["id"], fits[a["id"]])),
                           (a, b, lambda a=a, b=b: refit_on(a["id"], fits[b["id"]]))] if refit_on else []))
-    plausible = [t for t in fitted if not t.get("implausible")]
-    if far_from_floor and refit_on is not None and plausible and len(fitted) > 1:
+    if far_from_floor and refit_on is not None and len(plausible) > 1:
         first = min(plausible, key=lambda t: fits[t["id"]][0].cost_fit)
         rounds.append([(first, t, lambda first=first, t=t: refit_on(t["id"], fits[first["id"]]))
                        for t in plausible if t is not first and not (lower and {first["id"], t["id"]} ==
@@ -495,7 +494,8 @@ HYSTERESIS_KEYS = ("alpha_m", "gamma", "delta")
 def hysteresis_free_core(base: AugmentedModel, data, free: list, max_nfev: int) -> rank.FitResult | None:
     """The baseline without its Bouc-Wen law: alpha folded into k (the loop's small-amplitude
     stiffness is k + alpha), alpha, gamma and delta at 0 and held there, ``free`` (keys without
-    HYSTERESIS_KEYS) refitted by output error. None for a baseline without hysteresis or when the fit fails.
+    HYSTERESIS_KEYS) refitted by output error. None for a baseline without hysteresis or when the
+    fit fails.
 
     A reconstructed Bouc-Wen law can take up a dissipation it does not hold: its |y'| z terms
     dissipate more at larger amplitude, as quadratic damping or friction does (stress #16,
