@@ -664,6 +664,30 @@ def test_a_sensor_error_found_with_the_baseline_as_given_where_moving_c_and_k_hu
     assert 0.3 * truth.get("tip_scale") < dg.best.get("tip_scale") < 1.5 * truth.get("tip_scale")
 
 
+def test_a_mode_above_the_input_band_is_found_from_a_start_above_it():
+    # stress #213 (a 104.6 Hz second mode, sweeps that end at 42 Hz, 68.9 dB) against its paper baseline:
+    # the mode answers the sweep quasi-statically, with no peak in the residual, and the scan's starts
+    # (49-54 Hz, the hardening baseline's misfit) never reached it. A start twice above the input's band does
+    from diagnose_stress import draw, recording
+    from independent_run import model_of, to_run, true_model
+
+    rec = recording(draw(213))
+    run = to_run(rec)
+    base = model_of({"c_m": 4.7074261151607635, "k_m": 30005.0332240132, "alpha_m": 11774.945984970831,
+                     "gamma": 2689.404564241297, "delta": -647.9868289578399,
+                     "fn_m": {"y^3": 14313272292.393688, "dy^3": 101.8317642459877}})
+    dg = diagnose(run, baseline=base, candidates=["higher_mode"])
+    c = dg.candidates[0]
+    top = dg.context["mode_start_above_band"] / 2.0
+    assert 35.0 < top < 50.0, top      # the sweeps' band ends near 42 Hz
+    assert all(f < 70.0 for f, _ in dg.context["mode_starts"][:3])
+    assert c["significant"], c
+    truth, _ = true_model(rec)
+    assert dg.best.get("w2") == pytest.approx(truth.get("w2"), rel=0.03)
+    assert dg.best.get("phi2") == pytest.approx(truth.get("phi2"), rel=0.1)
+    assert c["held_out_nrmse"] < 0.25 * dg.fit_before["held_out_nrmse"]
+
+
 def test_friction_beside_a_stiffness_the_linear_baseline_lacks():
     # stress #80 (friction on sweeps, 72.6 dB): the reconstructed baseline is linear with c 223
     # (truth 8.0) and no y^3 (truth 4.87e9): friction alone ends at held-out 1.41 (k takes the

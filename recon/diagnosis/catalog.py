@@ -115,6 +115,9 @@ def _higher_mode(base, ctx):
     # its bound, a free drive2 in [0, 1] stops the trust-region fit at its first step
     out = []
     starts = [(f, phi, 0.0) for f, phi in ctx["mode_starts"][:3]]
+    above = ctx.get("mode_start_above_band")
+    if above is not None and all(abs(above - f) > 0.1 * f for f, _, _ in starts):
+        starts.append((above, 0.0, 0.0))
     starts += [(f, phi, 1.0) for f, phi in ctx.get("mode_starts_point", [])[:1]]
     for f, phi, drive in starts:
         w = 2 * math.pi * f
