@@ -719,6 +719,11 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     origins = [(ref, base_free, bkeys if refit_better else list(GIVEN_FREE), ref_name)]
     if not refit_better and math.isfinite(null.mse_held):
         origins.append((null, full_free, bkeys, "refit"))
+    elif refit_better and math.isfinite(given.mse_held):
+        # and the other way round: a refit that is better alone can lead the candidate's fit astray
+        # (stress #9, offset: from the refit, c and k went to 26 and 34748 against 9.0 and 21343
+        # and the validation simulation diverged; from the baseline as given offset was found)
+        origins.append((given, list(GIVEN_FREE), list(GIVEN_FREE), "as_given"))
     if not refit_better:
         # and the baseline as given with only the term's own parameters free: where refitting the
         # baseline hurts the held-out samples, c and k moved beside the term can too (stress #7, a
@@ -726,11 +731,6 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
         # model, truth included, held the fitting cost, and with c and k free the fit traded the
         # nonlinear stage for it, held-out 0.0121 against 0.0083 as given; the scale alone 0.0064)
         origins.append((given, [], [], "term_alone"))
-    elif refit_better and math.isfinite(given.mse_held):
-        # and the other way round: a refit that is better alone can lead the candidate's fit astray
-        # (stress #9, offset: from the refit, c and k went to 26 and 34748 against 9.0 and 21343
-        # and the validation simulation diverged; from the baseline as given offset was found)
-        origins.append((given, list(GIVEN_FREE), list(GIVEN_FREE), "as_given"))
     pruned_refs = {}
     nulls = []          # null models fitted from where a significant candidate's fit ended
     core = linear_core(base, data, bkeys, max_nfev) if ref.nrmse_held > LINEAR_CORE_NRMSE else None
