@@ -136,8 +136,16 @@ def test_a_candidate_that_reaches_the_noise_floor_needs_a_smaller_gain():
     part = rank.score(_fr(3.0), _fr(1.6), 1, 1.0)
     assert part["explained"] == pytest.approx(0.7) and part["gain_over_noise"] == pytest.approx(1.4)
     assert not part["significant"]
-    # and reaching the floor of a tiny excess is not either (gain 0.28 noise variances)
+    # and reaching the floor of a tiny excess is not either (93 % of it, gain 0.28 noise variances)
     assert not rank.score(_fr(1.3), _fr(1.02), 1, 1.0)["significant"]
+    # unless the candidate leaves at most 5 % of it (98 %, gain 0.295: stress #159, #211, #226)
+    floor = rank.score(_fr(1.3), _fr(1.005), 1, 1.0)
+    assert floor["explained"] >= rank.FLOOR_EXPLAINED and floor["gain_over_noise"] < rank.NEAR_FLOOR_GAIN
+    assert floor["significant"]
+    # clean stress #365's candidate: 84.5 % of the excess at a gain of 0.34 stays below every tier
+    assert not rank.score(_fr(1.4047), _fr(1.0625), 1, 1.0)["significant"]
+    # nor does a gain under FLOOR_GAIN count, however complete
+    assert not rank.score(_fr(1.2), _fr(1.0), 1, 1.0)["significant"]
 
 
 # ----------------------------------------------------------------- plausibility
