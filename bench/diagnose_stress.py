@@ -264,8 +264,10 @@ def report(rows: list[dict]) -> list[str]:
                    f"{sum(r.get('right', False) for r in present)}/{len(present)}")
     judged = [r for r in eff if r["status"] == "ok" and isinstance(r.get("oracle"), dict) and "significant" in r["oracle"]]
     if judged:
-        shows = [r for r in judged if r["oracle"]["significant"]]
-        hidden = [r for r in judged if not r["oracle"]["significant"]]
+        # the rule applied now to the oracle's stored figures, so that rows diagnosed under an older
+        # rule are judged by the current one (the figures themselves do not depend on the rule)
+        shows = [r for r in judged if _oracle_passes(r["oracle"])]
+        hidden = [r for r in judged if r not in shows]
         out.append(f"the truth itself put to the rule (oracle), on {len(judged)} effect recordings: it passes on "
                    f"{len(shows)}; right first on those {sum(r.get('right', False) for r in shows)}/{len(shows)}"
                    + (f" = {sum(r.get('right', False) for r in shows) / len(shows):.1%}" if shows else "")
@@ -304,6 +306,13 @@ def report(rows: list[dict]) -> list[str]:
         by_p[r["protocol"]].append(r.get("right", False))
     out.append("right first by protocol: " + ", ".join(f"{p} {sum(v)}/{len(v)}" for p, v in sorted(by_p.items())))
     return out
+
+
+def _oracle_passes(o: dict) -> bool:
+    """The current significance rule on an oracle's stored held-out figures."""
+    if not all(k in o for k in ("dbic", "explained", "gain_over_noise", "relative_gain")):
+        return bool(o.get("significant"))
+    return rank.passes(o["dbic"], o["explained"], o["gain_over_noise"], o["relative_gain"])
 
 
 def load_rows(paths: list[str]) -> list[dict]:

@@ -530,6 +530,16 @@ def held_noise_mse(data: list[StageData]) -> float:
     return float(np.sum([np.sum(d.held) * d.noise ** 2 for d in data]) / max(sum(int(d.held.sum()) for d in data), 1))
 
 
+def passes(dbic: float, explained: float, gain: float, rel: float) -> bool:
+    """The significance rule on a candidate's held-out figures (see the module docstring): the BIC
+    margin, the share of the excess explained, the relative NRMSE cut, and a gain over the noise
+    that may be smaller the nearer the candidate brings the residual to the floor."""
+    return bool(dbic < -BIC_MARGIN and explained >= MIN_EXPLAINED and rel >= MIN_REL_GAIN
+                and (gain >= MIN_GAIN_NOISE
+                     or (explained >= NEAR_FLOOR_EXPLAINED and gain >= NEAR_FLOOR_GAIN)
+                     or (explained >= FLOOR_EXPLAINED and gain >= FLOOR_GAIN)))
+
+
 def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> dict:
     """Held-out comparison of a candidate with the null model (see the module docstring)."""
     n_eff = effective_samples(null.resid_held)
@@ -544,10 +554,7 @@ def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> d
     rel = 1.0 - math.sqrt(cand.mse_held / null.mse_held)
     return {"dbic": float(dbic), "explained": float(explained), "gain_over_noise": float(gain),
             "n_eff": float(n_eff), "relative_gain": float(rel),
-            "significant": bool(dbic < -BIC_MARGIN and explained >= MIN_EXPLAINED and rel >= MIN_REL_GAIN
-                                and (gain >= MIN_GAIN_NOISE
-                                     or (explained >= NEAR_FLOOR_EXPLAINED and gain >= NEAR_FLOOR_GAIN)
-                                     or (explained >= FLOOR_EXPLAINED and gain >= FLOOR_GAIN)))}
+            "significant": passes(dbic, explained, gain, rel)}
 
 
 def equation_step(am: AugmentedModel, keys: list[str], new_key: str | None, column, derivs: dict,
