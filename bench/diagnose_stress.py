@@ -150,7 +150,7 @@ def true_size(rec: dict, out: dict) -> dict | None:
 
 
 # what each row keeps of every tested candidate (to study the decision rule offline)
-CANDIDATE_KEYS = ("id", "significant", "explained", "gain_over_noise", "relative_gain", "dbic", "held_out_nrmse",
+CANDIDATE_KEYS = ("id", "significant", "explained", "gain_over_noise", "relative_gain", "blocks_improved", "dbic", "held_out_nrmse",
                   "compared_with_held_out_nrmse", "baseline_terms_dropped", "implausible", "failed",
                   "detection_limit")
 

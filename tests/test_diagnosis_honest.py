@@ -715,3 +715,13 @@ def test_friction_beside_a_stiffness_the_linear_baseline_lacks():
     assert dg.best.get("mu") == pytest.approx(truth.get("mu"), rel=0.01)
     assert dg.best.baseline.fn_m["y^3"] == pytest.approx(truth.baseline.fn_m["y^3"], rel=0.01)
     assert dg.best_fit.nrmse_held < 2.0 * rank.fit(truth, [], rank.prepare(run, base)).nrmse_held
+
+
+def test_blocks_improved_counts_the_held_out_pieces_a_candidate_helps():
+    r = np.random.default_rng(2).normal(0, 1, 4000)
+    assert rank.blocks_improved(r, 0.5 * r) == 1.0
+    # better on the first half, worse on the second: a fit of a passing error
+    mixed = np.concatenate([0.5 * r[:2000], 2.0 * r[2000:]])
+    assert rank.blocks_improved(r, mixed) == pytest.approx(0.5)
+    assert rank.blocks_improved(r, r[:100]) is None
+    assert rank.score(_fr(1.6, r), _fr(1.05, 0.8 * r), 1, 1.0)["blocks_improved"] == 1.0
