@@ -128,7 +128,8 @@ def oracle(rec: dict, run, reference, baseline) -> dict | None:
                                    nrmse={}, nrmse_held=float(reference), n_held=int(yh.size), resid_held=fr.resid_held)
     s = rank.score(reference, fr, k, rank.held_noise_mse(data))
     return {"held_out_nrmse": fr.nrmse_held, "reference_held_out_nrmse": reference.nrmse_held,
-            **{k_: s[k_] for k_ in ("significant", "explained", "gain_over_noise", "relative_gain", "dbic")}}
+            **{k_: s[k_] for k_ in ("significant", "explained", "gain_over_noise", "relative_gain", "dbic",
+                                    "blocks_improved")}}
 
 
 def true_size(rec: dict, out: dict) -> dict | None:
@@ -312,7 +313,7 @@ def _oracle_passes(o: dict) -> bool:
     """The current significance rule on an oracle's stored held-out figures."""
     if not all(k in o for k in ("dbic", "explained", "gain_over_noise", "relative_gain")):
         return bool(o.get("significant"))
-    return rank.passes(o["dbic"], o["explained"], o["gain_over_noise"], o["relative_gain"])
+    return rank.passes(o["dbic"], o["explained"], o["gain_over_noise"], o["relative_gain"], o.get("blocks_improved"))
 
 
 def load_rows(paths: list[str]) -> list[dict]:

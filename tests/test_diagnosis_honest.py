@@ -109,10 +109,12 @@ def test_averaged_and_quantised_records_cannot_go_below_the_resolution():
     assert fq["std"] >= q / math.sqrt(12)
 
 
-def _fr(mse, resid=None):
+def _fr(mse, resid=None, pieces=True):
+    """A fit result with held-out MSE ``mse``; ``pieces=False``: no residual kept, so the rule's route
+    through blocks_improved is closed (the tests of the other routes)."""
     r = resid if resid is not None else np.random.default_rng(0).normal(0, math.sqrt(mse), 4000)
     return rank.FitResult(model=None, cost_fit=0.0, mse_held=mse, nrmse={}, nrmse_held=math.sqrt(mse), n_held=r.size,
-                          resid_held=r)
+                          resid_held=r if pieces else None)
 
 
 def test_a_tiny_noise_floor_does_not_make_a_small_gain_significant():
@@ -128,24 +130,25 @@ def test_a_tiny_noise_floor_does_not_make_a_small_gain_significant():
 
 
 def test_a_candidate_that_reaches_the_noise_floor_needs_a_smaller_gain():
+    # candidates without held-out residuals: the route through blocks_improved is closed here
     # noise variance 1: the reference leaves 0.6 over the floor, the candidate all but 0.05 of it
-    near = rank.score(_fr(1.6), _fr(1.05), 1, 1.0)
+    near = rank.score(_fr(1.6), _fr(1.05, pieces=False), 1, 1.0)
     assert near["explained"] >= rank.NEAR_FLOOR_EXPLAINED and near["gain_over_noise"] < rank.MIN_GAIN_NOISE
     assert near["significant"]
     # clean stress #65's false candidate: 70 % of an excess of 2 noise variances (gain 1.4) is not enough
-    part = rank.score(_fr(3.0), _fr(1.6), 1, 1.0)
+    part = rank.score(_fr(3.0), _fr(1.6, pieces=False), 1, 1.0)
     assert part["explained"] == pytest.approx(0.7) and part["gain_over_noise"] == pytest.approx(1.4)
     assert not part["significant"]
     # and reaching the floor of a tiny excess is not either (93 % of it, gain 0.28 noise variances)
-    assert not rank.score(_fr(1.3), _fr(1.02), 1, 1.0)["significant"]
+    assert not rank.score(_fr(1.3), _fr(1.02, pieces=False), 1, 1.0)["significant"]
     # unless the candidate leaves at most 5 % of it (98 %, gain 0.295: stress #159, #211, #226)
-    floor = rank.score(_fr(1.3), _fr(1.005), 1, 1.0)
+    floor = rank.score(_fr(1.3), _fr(1.005, pieces=False), 1, 1.0)
     assert floor["explained"] >= rank.FLOOR_EXPLAINED and floor["gain_over_noise"] < rank.NEAR_FLOOR_GAIN
     assert floor["significant"]
-    # clean stress #365's candidate: 84.5 % of the excess at a gain of 0.34 stays below every tier
-    assert not rank.score(_fr(1.4047), _fr(1.0625), 1, 1.0)["significant"]
+    # clean stress #365's candidate: 84.5 % of the excess at a gain of 0.34 stays below these tiers
+    assert not rank.score(_fr(1.4047), _fr(1.0625, pieces=False), 1, 1.0)["significant"]
     # nor does a gain under FLOOR_GAIN count, however complete
-    assert not rank.score(_fr(1.2), _fr(1.0), 1, 1.0)["significant"]
+    assert not rank.score(_fr(1.2), _fr(1.0, pieces=False), 1, 1.0)["significant"]
 
 
 # ----------------------------------------------------------------- plausibility
@@ -725,3 +728,28 @@ def test_blocks_improved_counts_the_held_out_pieces_a_candidate_helps():
     assert rank.blocks_improved(r, mixed) == pytest.approx(0.5)
     assert rank.blocks_improved(r, r[:100]) is None
     assert rank.score(_fr(1.6, r), _fr(1.05, 0.8 * r), 1, 1.0)["blocks_improved"] == 1.0
+
+
+def test_a_candidate_that_helps_throughout_the_held_out_record_needs_less_of_the_excess():
+    # noise variance 1, reference MSE 1.4047, candidate 1.0625: 84.5 % of the excess, gain 0.34
+    # noise variances (the figures of clean stress #365's higher mode)
+    r = np.random.default_rng(3).normal(0, 1, 8000)
+    r /= np.sqrt(np.mean(r ** 2))
+    ref = _fr(1.4047, math.sqrt(1.4047) * r)
+    steady = rank.score(ref, _fr(1.0625, math.sqrt(1.0625) * r), 1, 1.0)
+    assert steady["explained"] < rank.NEAR_FLOOR_EXPLAINED and steady["blocks_improved"] == 1.0
+    assert steady["significant"]
+    # the same mean-square errors, but better on the first half of the held-out samples and worse on
+    # the second (#365 itself: 5 of 10 pieces): not significant
+    half = r.size // 2
+    lo = np.sqrt(np.mean(r[:half] ** 2)); hi = np.sqrt(np.mean(r[half:] ** 2))
+    first = 0.6 * math.sqrt(1.4047) * r[:half] / lo
+    second_ms = 2 * 1.0625 - np.mean(first ** 2)
+    mixed = np.concatenate([first, math.sqrt(second_ms) * r[half:] / hi])
+    assert np.mean(mixed ** 2) == pytest.approx(1.0625)
+    split = rank.score(ref, _fr(1.0625, mixed), 1, 1.0)
+    assert split["blocks_improved"] == pytest.approx(0.5)
+    assert not split["significant"]
+    # and a steady candidate that explains less than CONSISTENT_EXPLAINED is not either (#84's
+    # sensor scale: 39 % of the excess on 10 of 10 pieces)
+    assert not rank.score(ref, _fr(1.24, math.sqrt(1.24) * r), 1, 1.0)["significant"]
