@@ -742,7 +742,8 @@ def test_a_candidate_that_helps_throughout_the_held_out_record_needs_less_of_the
     # the same mean-square errors, but better on the first half of the held-out samples and worse on
     # the second (#365 itself: 5 of 10 pieces): not significant
     half = r.size // 2
-    lo = np.sqrt(np.mean(r[:half] ** 2)); hi = np.sqrt(np.mean(r[half:] ** 2))
+    lo = np.sqrt(np.mean(r[:half] ** 2))
+    hi = np.sqrt(np.mean(r[half:] ** 2))
     first = 0.6 * math.sqrt(1.4047) * r[:half] / lo
     second_ms = 2 * 1.0625 - np.mean(first ** 2)
     mixed = np.concatenate([first, math.sqrt(second_ms) * r[half:] / hi])

@@ -83,6 +83,7 @@ FLOOR_GAIN = 0.25
 # on at least CONSISTENT_BLOCKS of HELD_BLOCKS consecutive pieces of the held-out samples
 CONSISTENT_EXPLAINED = 0.8
 CONSISTENT_BLOCKS = 0.9
+HELD_BLOCKS = 10
 HOLD_FRACTION = 0.3
 COVER_SHARE = 0.4     # a validation stage below 0.4 of a fitting stage's peak leaves that stage's top untested
 # Each fitting stage's error is divided by hypot(noise floor, FIT_MODEL_SHARE x rms): the maximum-
@@ -540,9 +541,6 @@ def _forward_jacobian(resid, p: np.ndarray, f0: np.ndarray, hi: np.ndarray) -> n
 def held_noise_mse(data: list[StageData]) -> float:
     """The noise floor's mean square over every held-out sample (each stage at its own floor)."""
     return float(np.sum([np.sum(d.held) * d.noise ** 2 for d in data]) / max(sum(int(d.held.sum()) for d in data), 1))
-
-
-HELD_BLOCKS = 10
 
 
 def blocks_improved(ref_resid, cand_resid, blocks: int = HELD_BLOCKS) -> float | None:
