@@ -47,6 +47,17 @@ that fits a passing error (input estimation, the baseline's own misfit) helps on
 hurts on others. On the stored rows only five candidates stood in this route's range: the true one
 on #18, #84, #97 and #288 (run again: 10 of 10 pieces each) and the higher mode on clean #365 (5
 of 10).
+
+A fifth (2026-11-28b): a small term that acts throughout the record. A candidate that beats its
+reference on at least CONSISTENT_BLOCKS of the held-out pieces, with at least STEADY_GAIN (0.1)
+noise variances and a held-out NRMSE lower by at least STEADY_REL_GAIN (4 %), passes with the BIC
+margin and MIN_EXPLAINED alone. Weak effects (0.3-0.6 of the stress scale: quadratic damping
+against a refitted linear damping, a higher mode far above the band) lower the held-out error by
+4-10 % and, on a record at 40-80 dB, by a fraction of the noise variance; the pieces tell such a
+term from a fit of a passing error. Run again on 894d496, the true candidate stood in this range
+on 11 of the 25 stress records whose truth failed the rule and on #95 (10 of 10 pieces on 10 of
+the 12, 9 on #71 and #110); on the clean rows the nearest were #105's sensor scale (10 of 10 pieces, but 2.1 % and 0.05 noise
+variances) and #326's friction (6.6 %, 0.18, but 5 of 10 pieces).
 """
 from __future__ import annotations
 
@@ -83,6 +94,10 @@ FLOOR_GAIN = 0.25
 # on at least CONSISTENT_BLOCKS of HELD_BLOCKS consecutive pieces of the held-out samples
 CONSISTENT_EXPLAINED = 0.8
 CONSISTENT_BLOCKS = 0.9
+# fifth: a small term that beats its reference on CONSISTENT_BLOCKS of the pieces, with STEADY_GAIN
+# noise variances and a held-out NRMSE lower by STEADY_REL_GAIN (in place of MIN_REL_GAIN)
+STEADY_GAIN = 0.1
+STEADY_REL_GAIN = 0.04
 HELD_BLOCKS = 10
 HOLD_FRACTION = 0.3
 COVER_SHARE = 0.4     # a validation stage below 0.4 of a fitting stage's peak leaves that stage's top untested
@@ -558,13 +573,17 @@ def passes(dbic: float, explained: float, gain: float, rel: float, blocks: float
     """The significance rule on a candidate's held-out figures (see the module docstring): the BIC
     margin, the share of the excess explained, the relative NRMSE cut, and a gain over the noise
     that may be smaller the nearer the candidate brings the residual to the floor, or where it
-    helps on all but one of the held-out pieces (``blocks``, :func:`blocks_improved`)."""
-    return bool(dbic < -BIC_MARGIN and explained >= MIN_EXPLAINED and rel >= MIN_REL_GAIN
-                and (gain >= MIN_GAIN_NOISE
-                     or (explained >= NEAR_FLOOR_EXPLAINED and gain >= NEAR_FLOOR_GAIN)
-                     or (explained >= FLOOR_EXPLAINED and gain >= FLOOR_GAIN)
-                     or (explained >= CONSISTENT_EXPLAINED and gain >= FLOOR_GAIN
-                         and blocks is not None and blocks >= CONSISTENT_BLOCKS)))
+    helps on all but one of the held-out pieces (``blocks``, :func:`blocks_improved`); a candidate
+    that helps on those pieces needs only STEADY_GAIN and STEADY_REL_GAIN."""
+    if not (dbic < -BIC_MARGIN and explained >= MIN_EXPLAINED):
+        return False
+    steady = blocks is not None and blocks >= CONSISTENT_BLOCKS
+    return bool((rel >= MIN_REL_GAIN
+                 and (gain >= MIN_GAIN_NOISE
+                      or (explained >= NEAR_FLOOR_EXPLAINED and gain >= NEAR_FLOOR_GAIN)
+                      or (explained >= FLOOR_EXPLAINED and gain >= FLOOR_GAIN)
+                      or (explained >= CONSISTENT_EXPLAINED and gain >= FLOOR_GAIN and steady)))
+                or (steady and gain >= STEADY_GAIN and rel >= STEADY_REL_GAIN))
 
 
 def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> dict:
