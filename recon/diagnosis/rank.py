@@ -55,8 +55,8 @@ margin and MIN_EXPLAINED alone. Weak effects (0.3-0.6 of the stress scale: quadr
 against a refitted linear damping, a higher mode far above the band) lower the held-out error by
 4-10 % and, on a record at 40-80 dB, by a fraction of the noise variance; the pieces tell such a
 term from a fit of a passing error. Run again on 894d496, the true candidate stood in this range
-on 11 of the 25 stress records whose truth failed the rule and on #95 (10 of 10 pieces on 10 of
-the 12, 9 on #71 and #110); on the clean rows the nearest were #105's sensor scale (10 of 10 pieces, but 2.1 % and 0.05 noise
+on 12 of the 25 stress records whose truth failed the rule and on #95 (10 of 10 pieces on 11 of
+the 13, 9 on #71 and #110); on the clean rows the nearest were #105's sensor scale (10 of 10 pieces, but 2.1 % and 0.05 noise
 variances) and #326's friction (6.6 %, 0.18, but 5 of 10 pieces).
 """
 from __future__ import annotations
