@@ -47,8 +47,11 @@ def smallest_detectable_mse(ref: rank.FitResult, k_added: int, noise_mse: float)
     if not (math.isfinite(m) and m > 0 and ref.resid_held is not None and ref.resid_held.size):
         return math.inf
 
+    # the effect's error spread evenly over the held-out samples (a term that acts throughout the
+    # record): the reference's residual scaled, so that the rule's routes through the held-out pieces
+    # (rank.blocks_improved) count it as helping on every piece
     def passes(d: float) -> bool:
-        null = dataclasses.replace(ref, mse_held=m + d)
+        null = dataclasses.replace(ref, mse_held=m + d, resid_held=ref.resid_held * math.sqrt((m + d) / m))
         cand = dataclasses.replace(ref, mse_held=m)
         return rank.score(null, cand, k_added, noise_mse)["significant"]
 
