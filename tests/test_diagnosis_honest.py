@@ -754,7 +754,7 @@ def test_a_candidate_that_helps_throughout_the_held_out_record_needs_less_of_the
     split = rank.score(ref, _fr(1.0625, mixed), 1, 1.0)
     assert split["blocks_improved"] == pytest.approx(0.5)
     assert not split["significant"]
-    # and a steady candidate that explains less than CONSISTENT_EXPLAINED needs STEADY_GAIN and
+    # and a steady candidate that stays above the floor tiers needs STEADY_GAIN and
     # STEADY_REL_GAIN: clean #105's sensor scale (10 of 10 pieces, 2.1 % and 0.05 noise variances) fails
     small = rank.score(ref, _fr(1.345, math.sqrt(1.345) * r), 1, 1.0)
     assert small["blocks_improved"] == 1.0 and small["relative_gain"] < rank.STEADY_REL_GAIN
