@@ -34,17 +34,26 @@ def reconstruct_pointwise(run: Run, s: ReconSettings, validate_model: bool = Tru
     if exc != BASE:
         spec = estimate_spectrum(lst.channels["force"], lst.dt)
         lines = count_lines(spec.freqs, 1.0 / (lst.t.size * lst.dt), spec.power)
-    lf = fit_linear(lin.y[0], lin.y[1], lin.y[2], lin.u[0], exc, lin.column_noise, s.linear_stage, lines)
+    lf = fit_linear(lin.y[0], lin.y[1], lin.y[2], lin.u[0], exc, lin.column_noise, s.linear_stage, lines,
+                    offset=s.input_offset is True)
     timings["linear"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
     nl = stage_signals(run.stage(s.nonlinear_stage), deriv=3, window=s.window, order=s.sg_order)
     y, dy, ddy, dddy = nl.y
     g = 1.0 if exc == BASE else lf.inv_m
-    Fn = g * nl.u[0] - ddy - lf.c_m * dy - lf.K_m * y
+    # a fitted input offset b (a constant force) comes off the input before the nonlinear step: the
+    # model is driven by g (u - b), and left in, the constant would take up the even terms
+    b_in = lf.offset if lf.offset is not None and np.isfinite(lf.offset) else None
+    u0 = nl.u[0] - b_in if b_in is not None else nl.u[0]
+    Fn = g * u0 - ddy - lf.c_m * dy - lf.K_m * y
     dFn = g * nl.u[1] - dddy - lf.c_m * ddy - lf.K_m * dy
-    h = cluster(y, dy)
-    lib = AgentLibrary(s.library_order, s.form, linear_correction=bool(s.linear_correction) and s.form == "joint")
+    # the quadrants of the loop are taken about its centre: a constant force moves the motion's
+    # centre off zero while z still swings about zero (on stress #425 the clusters about y = 0 put
+    # the offset's 5 % of the amplitude into the wrong quadrant and the regression found no y^2, y^3)
+    h = cluster(y - float(np.mean(y)) if b_in is not None else y, dy)
+    lib = AgentLibrary(s.library_order, s.form, linear_correction=bool(s.linear_correction) and s.form == "joint",
+                       offset=b_in is not None)
     theta, target = lib.build(y, dy, ddy, Fn, dFn, h)
     if theta.shape[0] < 4 * theta.shape[1]:
         raise UserFacingError(f"stage {s.nonlinear_stage!r}: only {theta.shape[0]} samples in the AB/CD clusters for "
@@ -62,16 +71,16 @@ def reconstruct_pointwise(run: Run, s: ReconSettings, validate_model: bool = Tru
         sig = h[mask].astype(float)
         if lib.form == "ab":
             sig = np.ones_like(sig)
-        hp, c_m, K_m, g = refit(hp, y[mask], dy[mask], ddy[mask], dddy[mask], nl.u[0][mask], nl.u[1][mask], sig,
+        hp, c_m, K_m, g = refit(hp, y[mask], dy[mask], ddy[mask], dddy[mask], u0[mask], nl.u[1][mask], sig,
                                 lf.c_m, lf.K_m, g, fit_g=exc != BASE, fit_linear=s.refit_linear)
-        Fn = g * nl.u[0] - ddy - c_m * dy - K_m * y
+        Fn = g * u0 - ddy - c_m * dy - K_m * y
         dFn = g * nl.u[1] - dddy - c_m * ddy - K_m * dy
     hp = estimate_delta(hp, y, dy, ddy, Fn, dFn, h)
     timings["nonlinear"] = time.perf_counter() - t1
 
     model = HystereticModel(
         excitation=exc, c_m=c_m, k_m=K_m - hp.alpha, alpha_m=hp.alpha, gamma=hp.gamma, delta=hp.delta,
-        fn_m=hp.fn, inv_m=None if exc == BASE else g,
+        fn_m=hp.fn, inv_m=None if exc == BASE else g, input_offset=b_in,
         provenance={"method": "agent-model sparse regression (shakerlab recon)", "software": f"shakerlab {__version__}",
                     "settings": s.to_dict(), "threshold": sp.threshold, "source": run.source,
                     "differentiation": {"linear": lin.choice, "nonlinear": nl.choice}},

@@ -64,7 +64,8 @@ class Column:
 
 
 class AgentLibrary:
-    def __init__(self, order: int = 5, form: str = "joint", linear_correction: bool = False):
+    def __init__(self, order: int = 5, form: str = "joint", linear_correction: bool = False,
+                 offset: bool = False):
         if order < 2:
             raise UserFacingError(f"library order must be >= 2, got {order}")
         if form not in FORMS:
@@ -72,6 +73,7 @@ class AgentLibrary:
         self.order = int(order)
         self.form = form
         self.linear_correction = bool(linear_correction)
+        self.offset = bool(offset) and form == "joint"
         self.terms = monomials.up_to(self.order)
         cols = []
         if form == "joint":
@@ -87,6 +89,10 @@ class AgentLibrary:
                 cols.append(Column("s*ddy", "lin", 0, 0))
                 cols.append(Column("s*dy", "lin", 0, 1))
                 cols.append(Column("dy^2", "lin", 0, 2))
+            if self.offset:
+                # a constant error d of Fn (the input offset as the linear stage saw it, where a
+                # hysteretic element held part of a constant force): -lambda y' Fn gains lambda d y'
+                cols.append(Column("dy", "const", 0, 0))
         else:
             for m in range(2, self.order + 1):
                 for i in range(m + 1):
@@ -104,7 +110,7 @@ class AgentLibrary:
         joint: y^p y'^r -> {s*d(phi), y'*phi}. ab: non-pure -> {psi, xi}; pure y^m ->
         {xi(y^m y'), xi(y^(m-1) y')} because d(y^m)/dt = m y^(m-1) y' merges into the
         lower column (for m = 2 that is the core column y y')."""
-        core = [k for k, c in enumerate(self.columns) if c.role in ("lam_alpha", "lam", "yy", "yFn", "lin")]
+        core = [k for k, c in enumerate(self.columns) if c.role in ("lam_alpha", "lam", "yy", "yFn", "lin", "const")]
         by_term = {}
         index = {(c.role, c.p, c.r): k for k, c in enumerate(self.columns)}
         for k, c in enumerate(self.columns):
@@ -141,6 +147,8 @@ class AgentLibrary:
                 theta[:, k] = y * dy
             elif c.role == "lin":
                 theta[:, k] = s * ddy if c.r == 0 else (s * dy if c.r == 1 else dy * dy)
+            elif c.role == "const":
+                theta[:, k] = dy
             else:
                 theta[:, k] = dy * Fn
         target = s * dFn if self.form == "joint" else dFn

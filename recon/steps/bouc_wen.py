@@ -94,6 +94,9 @@ def extract(lib: AgentLibrary, coef: np.ndarray, stderr: np.ndarray, support: np
             alpha = -(coef[kyy] - lam * coef[k_dy]) / lam
             info["linear_step_correction"] = {"dK_m": float(-coef[k_dy]),
                                               "dc_m": float(-coef[by_role["lin"][(0, 0)]])}
+        if "const" in by_role:
+            # Fn as built is off by a constant d: its coefficient is lambda d (AgentLibrary)
+            info["constant_error"] = float(coef[by_role["const"][(0, 0)]] / lam)
     else:
         for pr, ka in by_role["psi"].items():
             kb = by_role["xi"].get(pr)

@@ -29,6 +29,8 @@ class LinearFit:
     r2: float
     input_lines: int | None = None
     warnings: list = field(default_factory=list)    # plausibility: see :func:`plausibility_warnings`
+    # the constant b of the input, y'' = -c_m y' - K_m y + g (u - b), when fitted (``offset=True``)
+    offset: float | None = None
 
     def __post_init__(self):
         self.warnings = list(self.warnings) + [w for w in plausibility_warnings(self.c_m, self.K_m)
@@ -80,11 +82,15 @@ def count_lines(freqs: np.ndarray, df: float, power: np.ndarray | None = None) -
 
 
 def fit_linear(y, dy, ddy, u, excitation: str, column_noise: dict | None = None,
-               stage_name: str = "linear", input_lines: int | None = None) -> LinearFit:
-    """Least squares for (c_m, K_m[, inv_m]).
+               stage_name: str = "linear", input_lines: int | None = None, offset: bool = False) -> LinearFit:
+    """Least squares for (c_m, K_m[, inv_m][, offset]).
 
     ``column_noise`` maps 'y', 'dy', 'u' to the expected rms error of that
     column (from the differentiation choice) used for the rank decision.
+    ``offset``: fit the input's constant b as well (a constant force holds the stage off centre,
+    :mod:`recon.estimator.input_offset`). Without it the constant projects onto the mean of y and
+    biases K_m: on diagnosis stress record #425 (a constant force of 0.88 of the stress scale, the
+    linear stage's mean 1.84 times its rms motion) K_m came out at 2.3 times the truth.
     """
     if excitation == BASE:
         A = np.column_stack([-dy, -y])
@@ -94,6 +100,11 @@ def fit_linear(y, dy, ddy, u, excitation: str, column_noise: dict | None = None,
         A = np.column_stack([-dy, -y, u])
         b = ddy
         names = ["dy", "y", "u"]
+    if offset:
+        # the constant (-g b) is fitted by centring every column: the rank test and c, K then see
+        # the motion about its mean, not the mean itself (a DC 9 times the motion, stress #9)
+        A_mean, b_mean = A.mean(axis=0), float(b.mean())
+        A, b = A - A_mean, b - b_mean
     norms = np.sqrt(np.sum(A * A, axis=0))
     if np.any(norms == 0):
         raise UserFacingError(f"stage {stage_name!r}: the linear regression has an all-zero column (no motion?)")
@@ -129,6 +140,11 @@ def fit_linear(y, dy, ddy, u, excitation: str, column_noise: dict | None = None,
     x = x / norms
     res = b - A @ x
     r2 = 1.0 - float(res @ res) / float(np.sum((b - b.mean()) ** 2))
-    return LinearFit(c_m=float(x[0]), K_m=float(x[1]), inv_m=None if excitation == BASE else float(x[2]),
+    inv_m = None if excitation == BASE else float(x[2])
+    b_in = None
+    if offset:
+        g_b = float(A_mean @ x) - b_mean          # ddy - u = A x - g b about the means
+        b_in = g_b if inv_m is None else (g_b / inv_m if inv_m else float("nan"))
+    return LinearFit(c_m=float(x[0]), K_m=float(x[1]), inv_m=inv_m,
                      condition_number=cond, singular_values=[float(s) for s in sv],
-                     noise_floor=float(eps), r2=r2, input_lines=input_lines)
+                     noise_floor=float(eps), r2=r2, input_lines=input_lines, offset=b_in)
