@@ -127,3 +127,39 @@ def test_constant_force_on_an_independent_record_is_fitted_and_left_to_the_diagn
     base, kind = resolve_baseline(to_run(rec), "paper")
     assert kind == "paper" and base.baseline.input_offset is None
     assert base.baseline.provenance["input_offset_left_to_diagnosis"] == pytest.approx(res.model.input_offset)
+
+
+@pytest.mark.parametrize("excitation", ["base", "force"])
+def test_the_linear_step_fits_a_constant_force_about_the_stage_means(excitation):
+    """A stage held off centre by a constant force (y'' + c y' + K y = g (u - b), integrated here by
+    scipy's solve_ivp, no code of the estimator's): with ``offset=True`` the linear step returns c,
+    K and b; without it the constant projects onto the mean of y and K is biased (stress #425: 2.3
+    times the truth)."""
+    from scipy.integrate import solve_ivp
+
+    from recon.steps.linear import fit_linear
+    from shakerlab.run_data import BASE
+
+    c, K, g, b = 6.0, 6.0e4, (1.0 if excitation == "base" else 4.0), 5.0
+    fs, T = 2000.0, 4.0
+    t = np.arange(0.0, T, 1.0 / fs)
+    freqs = np.array([11.0, 23.0, 37.0, 52.0])
+
+    def u_of(tt):
+        return 0.5 * np.sum(np.sin(2 * np.pi * freqs[:, None] * np.atleast_1d(tt) + freqs[:, None]), axis=0)
+
+    y_s = -g * b / K             # start at the static equilibrium: the DC is 0.5-2 times the motion
+    sol = solve_ivp(lambda tt, s: [s[1], -c * s[1] - K * s[0] + g * (u_of(tt)[0] - b)], (0.0, T), [y_s, 0.0],
+                    t_eval=t, rtol=1e-10, atol=1e-13)
+    y, dy = sol.y
+    u = u_of(t)
+    ddy = -c * dy - K * y + g * (u - b)
+    assert abs(np.mean(y)) > 0.5 * np.std(y)
+    exc = BASE if excitation == "base" else "force"
+    fit = fit_linear(y, dy, ddy, u, exc, offset=True)
+    assert fit.c_m == pytest.approx(c, rel=1e-3) and fit.K_m == pytest.approx(K, rel=1e-4)
+    assert fit.offset == pytest.approx(b, rel=1e-3)
+    if excitation == "force":
+        assert fit.inv_m == pytest.approx(g, rel=1e-4)
+    plain = fit_linear(y, dy, ddy, u, exc)
+    assert plain.offset is None and abs(plain.K_m / K - 1) > 0.05
