@@ -87,9 +87,9 @@ NEAR_FLOOR_GAIN = 0.5
 FLOOR_EXPLAINED = 0.95
 FLOOR_GAIN = 0.25
 # fifth: a small term that beats its reference on at least CONSISTENT_BLOCKS of HELD_BLOCKS
-# consecutive pieces of the held-out samples, with STEADY_GAIN
+# consecutive pieces of the held-out samples, with STEADY_GAIN noise variances and a held-out NRMSE
+# lower by STEADY_REL_GAIN (in place of MIN_REL_GAIN)
 CONSISTENT_BLOCKS = 0.9
-# noise variances and a held-out NRMSE lower by STEADY_REL_GAIN (in place of MIN_REL_GAIN)
 STEADY_GAIN = 0.1
 STEADY_REL_GAIN = 0.04
 HELD_BLOCKS = 10

@@ -15,7 +15,9 @@ vector fits AB and CD together. Target s Fn'; columns
     y*y'            coefficient -lambda alpha
     y'*Fn           coefficient -lambda
 
-No columns merge (s separates d(y^m)/dt = m y^(m-1) y' from y' y^(m-1)).
+No columns merge (s separates d(y^m)/dt = m y^(m-1) y' from y' y^(m-1)). With ``offset`` (a
+fitted input offset, recon.estimator.input_offset) a core column y' takes lambda d for a constant
+error d of Fn.
 
 ``ab`` (the paper's form, AB samples only, s = +1): columns merge, so the
 pure-y coefficients must be recovered by back-substitution:
