@@ -172,6 +172,13 @@ def unexplained_mismatch(fr: rank.FitResult, noise_mse: float, named: list[str])
 # the baseline's parameters a candidate fit frees when it starts from the baseline as given
 GIVEN_FREE = ("c_m", "k_m")
 
+# A Bouc-Wen law with gamma + delta < 0 does not saturate: loaded one way its tangent stiffness
+# grows as alpha exp(|gamma + delta| y). Within a bounded motion that is a hardening loop, and a
+# published one: the Bouc-Wen benchmark (Noel & Schoukens 2016; beta gamma = 800, beta delta = -1100
+# per m) stiffens 4.4 times across its training record. A law that stiffens more than this many
+# times across the recorded displacement range is a stiffening spring in disguise, not a loop
+HARDENING_LIMIT = 10.0
+
 
 def _interval(v: float, se) -> list | None:
     if se is None or not math.isfinite(se):
@@ -229,8 +236,15 @@ def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data, interva
             why.append(f"stiffness drift of {m.get('drift') * t_end:+.0%} over the session")
     if cid == "amplitude_damping" and b.fn_m.get("y^2*dy", 0.0) < 0:
         why.append(f"negative amplitude-dependent damping {b.fn_m['y^2*dy']:.4g} (feeds energy in)")
-    if cid == "hysteresis" and not (b.alpha_m > 0 and b.gamma + b.delta > 0):
-        why.append(f"inadmissible Bouc-Wen (alpha_m {b.alpha_m:.4g}, gamma + delta {b.gamma + b.delta:.4g})")
+    if cid == "hysteresis":
+        lam = b.gamma + b.delta
+        span = max(float(np.max(d.y) - np.min(d.y)) for d in data)
+        if not b.alpha_m > 0:
+            why.append(f"inadmissible Bouc-Wen (alpha_m {b.alpha_m:.4g}, gamma + delta {lam:.4g})")
+        elif lam < 0 and -lam * span > math.log(HARDENING_LIMIT):
+            why.append(f"inadmissible Bouc-Wen (alpha_m {b.alpha_m:.4g}, gamma + delta {lam:.4g}): it stiffens "
+                       f"{math.exp(min(-lam * span, 700.0)):.3g} times across the recorded range {span:.4g} m "
+                       f"(at most {HARDENING_LIMIT:g})")
     cand = CATALOG[cid]
     k0 = cand.parameters[0]
     if intervals and k0 in fr.stderr:
