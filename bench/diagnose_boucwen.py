@@ -33,6 +33,7 @@ import boucwen  # noqa: E402
 
 from recon import diagnose  # noqa: E402
 from recon.model import HystereticModel  # noqa: E402
+from shakerlab.output_files import write_text  # noqa: E402
 from shakerlab.run_data import Run, Stage  # noqa: E402
 
 PERIOD = 8192
@@ -79,6 +80,8 @@ def main(argv=None) -> int:
     ap.add_argument("--data", help="benchmark data directory (default ../shared/data/boucwen)")
     ap.add_argument("--json", help="write the rows to this JSON file")
     args = ap.parse_args(argv)
+    if args.json and Path(args.json).exists():
+        raise SystemExit(f"{args.json}: file exists; name a new file (saved results are never overwritten)")
     rows = run_all(args.data)
     print("| baseline | expected | named | held-out NRMSE as given -> null -> after | right | s |")
     print("| --- | --- | --- | --- | --- | --- |")
@@ -94,10 +97,7 @@ def main(argv=None) -> int:
                   + ", ".join(f"{k} {h[k]:.5g} (true {truth[k]:.5g}, {100 * (h[k] / truth[k] - 1):+.1f} %)"
                               for k in truth if k in h))
     if args.json:
-        tmp = args.json + ".tmp"
-        with open(tmp, "x") as f:
-            json.dump(rows, f, indent=1)
-        os.replace(tmp, args.json)
+        write_text(args.json, json.dumps(rows, indent=1), overwrite=False)
     return 0
 
 

@@ -238,10 +238,10 @@ def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data, interva
         why.append(f"negative amplitude-dependent damping {b.fn_m['y^2*dy']:.4g} (feeds energy in)")
     if cid == "hysteresis":
         lam = b.gamma + b.delta
-        span = max(float(np.max(d.y) - np.min(d.y)) for d in data)
+        span = max(float(np.max(d.y) - np.min(d.y)) for d in data) if lam < 0 else 0.0
         if not b.alpha_m > 0:
             why.append(f"inadmissible Bouc-Wen (alpha_m {b.alpha_m:.4g}, gamma + delta {lam:.4g})")
-        elif lam < 0 and -lam * span > math.log(HARDENING_LIMIT):
+        elif -lam * span > math.log(HARDENING_LIMIT):
             why.append(f"inadmissible Bouc-Wen (alpha_m {b.alpha_m:.4g}, gamma + delta {lam:.4g}): it stiffens "
                        f"{math.exp(min(-lam * span, 700.0)):.3g} times across the recorded range {span:.4g} m "
                        f"(at most {HARDENING_LIMIT:g})")
