@@ -107,6 +107,8 @@ def _drift(base, ctx):
 # the range a second mode's damping ratio is fitted in; a fit that ends at its top is not a
 # resonance (see diagnose.implausible)
 ZETA2_RANGE = (0.001, 0.3)
+# a second mode nearer the fundamental than this share of its frequency is refused (diagnose.implausible)
+MODE_APART = 0.2
 
 
 def _higher_mode(base, ctx):
@@ -119,12 +121,28 @@ def _higher_mode(base, ctx):
     if above is not None and all(abs(above - f) > 0.1 * f for f, _, _ in starts):
         starts.append((above, 0.0, 0.0))
     starts += [(f, phi, 1.0) for f, phi in ctx.get("mode_starts_point", [])[:1]]
+    w1 = math.sqrt(max(base.K_m, 0.0))
     for f, phi, drive in starts:
         w = 2 * math.pi * f
         m = _am(base, {"w2": w, "zeta2": 0.02, "phi2": phi, **({"drive2": drive} if drive else {})}, "higher_mode")
         out.append((m, ["x:phi2", "x:w2", "x:zeta2"], {"x:phi2": 0.01, "x:w2": 0.02 * w, "x:zeta2": 0.01},
-                    {"x:w2": (0.5 * w, 2.0 * w), "x:zeta2": ZETA2_RANGE}))
+                    {"x:w2": _mode_range(w, w1), "x:zeta2": ZETA2_RANGE}))
     return out
+
+
+def _mode_range(w: float, w1: float) -> tuple[float, float]:
+    """The range a second mode started at ``w`` is fitted in: within a factor 2 of its start, and on
+    the start's side of the band MODE_APART around the fundamental ``w1``, where a fitted mode is
+    refused (diagnose.implausible). A fit that may cross into that band settles beside the
+    fundamental and takes up the baseline's error there instead of the mode it started at (stress
+    #460: a tip-driven mode at 63.5 Hz, fitted from 24.6 Hz and from 40.3 Hz, ended at 20.25 Hz
+    beside the 19.04 Hz fundamental and was refused). A start inside the band keeps the plain range."""
+    lo, hi = 0.5 * w, 2.0 * w
+    if w1 > 0 and w > (1 + MODE_APART) * w1:
+        lo = max(lo, (1 + MODE_APART) * w1)
+    elif w1 > 0 and w < (1 - MODE_APART) * w1:
+        hi = min(hi, (1 - MODE_APART) * w1)
+    return lo, hi
 
 
 def _exciter(base, ctx):
