@@ -124,7 +124,7 @@ def _higher_mode(base, ctx):
     w1 = math.sqrt(max(base.K_m, 0.0))
     for f, phi, drive in starts:
         w = 2 * math.pi * f
-        m = _am(base, {"w2": w, "zeta2": 0.02, "phi2": phi, **({"drive2": drive} if drive else {})}, "higher_mode")
+        m = _am(base, {"w2": w, "zeta2": 0.02, "phi2": phi, "drive2": drive}, "higher_mode")
         out.append((m, ["x:phi2", "x:w2", "x:zeta2"], {"x:phi2": 0.01, "x:w2": 0.02 * w, "x:zeta2": 0.01},
                     {"x:w2": _mode_range(w, w1), "x:zeta2": ZETA2_RANGE}))
     return out
@@ -225,7 +225,7 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
               "(a: the measured point's absolute acceleration beyond the input's)",
               "a second-order oscillator driven by the input (drive2 = 0, a structural mode) or by the measured "
               "point's motion (drive2 = 1, a resonance riding on it), added to the displacement output",
-              ("x:w2", "x:zeta2", "x:phi2"), _higher_mode, screen_keys=1),
+              ("x:w2", "x:zeta2", "x:phi2"), _higher_mode, screen_keys=1, fit_each="drive2"),
     Candidate("offset",
               "a constant force acts on the specimen (a preload, gravity on a tilted rig, a sensor or amplifier "
               "offset): the response sits off its centre by f0 / k",

@@ -621,7 +621,10 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                 err = exc
         if not got:
             raise err
-        return min(got, key=lambda g: g[0].cost_fit if math.isfinite(g[0].cost_fit) else math.inf)
+        # a fit inside the physical range first: the input-driven mode fits of stress #460 ended
+        # beside the fundamental (refused) at a lower fitting cost than the point-driven one
+        return min(got, key=lambda g: (bool(implausible(cid, g[0], src.model, data, intervals=False)),
+                                       g[0].cost_fit if math.isfinite(g[0].cost_fit) else math.inf))
 
     def fit_from(cid, cand, src, free, step_keys, make_starts):
         """:func:`fit_candidate` from the starts ``make_starts`` makes."""

@@ -165,13 +165,7 @@ def mode_response_to_motion(y, dt, w, zeta):
     return lfilter(np.ravel(num), den, y)
 
 
-# the mode scan's second pass: the best frequencies of the first, each scanned again on a finer grid
-REFINE_PEAKS = 2
-REFINE_POINTS = 9
-
-
-def scan_modes(data, residuals, gain, f_lo, f_hi, n=40, zeta=0.02, motions=None, base=True,
-               refine=REFINE_PEAKS):
+def scan_modes(data, residuals, gain, f_lo, f_hi, n=40, zeta=0.02, motions=None, base=True):
     """Frequencies at which an extra mode's response best explains the output residual
     (linear regression over the fitting samples): ``(input_scan, point_scan)``, each a list of
     (f, explained share, phi), best first.
@@ -180,52 +174,28 @@ def scan_modes(data, residuals, gain, f_lo, f_hi, n=40, zeta=0.02, motions=None,
     the model's displacement y per stage) is for a mode driven by the measured point's absolute
     acceleration (augmented.py, drive2 = 1): under base excitation by g u - y'', under force
     excitation by -y''. Both come from one pass: the input-driven response is computed once per
-    frequency and stage.
-
-    The ``n`` frequencies of the first pass are about 10 % apart over a decade and a half, wider
-    than a lightly damped resonance (2 zeta = 4 %): off its peak by half a step, the scanned
-    response is out of phase with the mode's and the start misleads the fit (stress #460, a
-    point-driven mode at 63.5 Hz scanned at 61.2 Hz: the fits from the starts ended beside the
-    fundamental). The ``refine`` best frequencies of each scan are scanned again on a grid of
-    REFINE_POINTS within one coarse step either side."""
-    def one_pass(freqs):
-        scans = ([], [] if motions is not None else None)
-        for f in freqs:
-            w = 2 * math.pi * f
-            acc = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]   # num, den, tot per scan
-            for i, (d, r) in enumerate(zip(data, residuals)):
-                if not d.fit.any() or not np.all(np.isfinite(r)):
-                    continue
-                q_in = mode_response(d.u, d.dt, w, zeta, gain)
-                rr = r[d.fit]
-                regressors = [(0, q_in)]
-                if motions is not None and np.all(np.isfinite(motions[i])):
-                    q = mode_response_to_motion(motions[i], d.dt, w, zeta)
-                    regressors.append((1, q + q_in if base else q))
-                for k, q in regressors:
-                    q = q[d.fit]
-                    acc[k][0] += float(q @ rr)
-                    acc[k][1] += float(q @ q)
-                    acc[k][2] += float(rr @ rr)
-            for out, (num, den, tot) in zip(scans, acc):
-                if out is not None and den > 0 and tot > 0:
-                    out.append((float(f), num * num / den / tot, num / den))
-        return scans
-
-    coarse = np.geomspace(f_lo, f_hi, n)
-    scans = one_pass(coarse)
-    if refine and n > 1:
-        step = (f_hi / f_lo) ** (1.0 / (n - 1))
-        fine = set()
-        for out in scans:
-            if out is not None:
-                for f, _, _ in sorted(out, key=lambda x: -x[1])[:refine]:
-                    fine.update(float(x) for x in np.geomspace(max(f / step, f_lo), min(f * step, f_hi),
-                                                               REFINE_POINTS))
-        fine -= {float(f) for f in coarse}
-        for out, more in zip(scans, one_pass(sorted(fine))):
-            if out is not None:
-                out.extend(more)
+    frequency and stage."""
+    scans = ([], [] if motions is not None else None)
+    for f in np.geomspace(f_lo, f_hi, n):
+        w = 2 * math.pi * f
+        acc = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]   # num, den, tot per scan
+        for i, (d, r) in enumerate(zip(data, residuals)):
+            if not d.fit.any() or not np.all(np.isfinite(r)):
+                continue
+            q_in = mode_response(d.u, d.dt, w, zeta, gain)
+            rr = r[d.fit]
+            regressors = [(0, q_in)]
+            if motions is not None and np.all(np.isfinite(motions[i])):
+                q = mode_response_to_motion(motions[i], d.dt, w, zeta)
+                regressors.append((1, q + q_in if base else q))
+            for k, q in regressors:
+                q = q[d.fit]
+                acc[k][0] += float(q @ rr)
+                acc[k][1] += float(q @ q)
+                acc[k][2] += float(rr @ rr)
+        for out, (num, den, tot) in zip(scans, acc):
+            if out is not None and den > 0 and tot > 0:
+                out.append((float(f), num * num / den / tot, num / den))
     for out in scans:
         if out is not None:
             out.sort(key=lambda x: -x[1])
