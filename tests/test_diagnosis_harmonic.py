@@ -89,6 +89,23 @@ def test_a_resonance_riding_on_the_tip_is_named_with_its_drive():
     assert out["fit_after"]["held_out_nrmse"] < 0.5 * out["fit_before"]["held_out_nrmse_as_given"]
 
 
+def test_a_tip_resonance_far_above_the_fundamental_is_not_fitted_beside_it():
+    # stress #460 (paper protocol, 6355 Hz, 57 dB): a mode riding on the tip at 63.5 Hz, 3.3 times the
+    # 19.1 Hz fundamental, against the paper baseline reconstructed from the record. The input-driven
+    # starts won the screening and their fit settled beside the fundamental (20.25 Hz, refused), so
+    # the point-driven start was never fitted and the sensor scale was named. Each drive is now
+    # fitted, a plausible fit kept before a cheaper refused one, and the mode's frequency is kept on
+    # its start's side of the refused band
+    from diagnose_stress import draw, recording
+    rec = recording(draw(460))
+    out = diagnose(to_run(rec), "paper", candidates=["higher_mode"]).to_dict()
+    assert [m["id"] for m in out["missing_physics"]] == ["higher_mode"], out["candidates_tested"]
+    e = rec["effect_parameters"]
+    assert out["augmented_model"]["extras"].get("drive2") == 1.0
+    assert out["missing_physics"][0]["parameters"]["w2"]["value"] == pytest.approx(e["w2"], rel=0.01)
+    assert out["missing_physics"][0]["parameters"]["zeta2"]["value"] == pytest.approx(e["zeta2"], rel=0.1)
+
+
 def test_quadratic_damping_a_baseline_took_up_as_a_hysteresis_loop_is_named_without_it():
     # stress #16: reconstructed from a record with quadratic damping and no hysteresis, the paper
     # baseline had a Bouc-Wen law (alpha 880, gamma 25.7) that dissipated in its place, and from there
