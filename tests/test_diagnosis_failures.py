@@ -141,3 +141,25 @@ def test_a_stiff_bouc_wen_law_integrates_z_along_the_measured_velocity():
     # y' = 0, a sample wide, keep the pointwise error there large)
     assert np.max(np.abs(z)) <= 1.01 * np.max(np.abs(ref)), (np.max(np.abs(z)), np.max(np.abs(ref)))
     assert np.sqrt(np.mean((z - ref) ** 2)) < 0.1 * np.sqrt(np.mean(ref ** 2))
+
+
+def test_a_mild_bouc_wen_law_along_the_measured_velocity_matches_an_accurate_solution():
+    # the RK2 branch of the (numba) z loop: a law with gamma |y'| dt about 0.05
+    from types import SimpleNamespace
+
+    from scipy.integrate import solve_ivp
+
+    from recon.diagnosis.locate import z_from_velocity
+
+    law = SimpleNamespace(alpha_m=400.0, gamma=900.0, delta=-300.0)
+    dt = 1.0 / 2000.0
+    t = np.arange(0.0, 1.0, dt)
+    v = 0.1 * np.sin(2 * np.pi * 5.0 * t) + 0.03 * np.sin(2 * np.pi * 17.0 * t)
+    z = z_from_velocity(law, v, dt)
+
+    def rhs(tt, zz):
+        vv = 0.1 * np.sin(2 * np.pi * 5.0 * tt) + 0.03 * np.sin(2 * np.pi * 17.0 * tt)
+        return law.alpha_m * vv - law.gamma * abs(vv) * zz - law.delta * vv * np.abs(zz)
+
+    ref = solve_ivp(rhs, (t[0], t[-1]), [0.0], method="DOP853", t_eval=t, rtol=1e-10, atol=1e-12).y[0]
+    assert np.sqrt(np.mean((z - ref) ** 2)) < 1e-3 * np.sqrt(np.mean(ref ** 2))
