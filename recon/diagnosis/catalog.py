@@ -104,9 +104,10 @@ def _drift(base, ctx):
     return [(m, ["x:drift"], {"x:drift": 0.01 / max(ctx["t_end"], 1e-9)}, {})]
 
 
-# the range a second mode's damping ratio is fitted in; a fit that ends at its top is not a
-# resonance (see diagnose.implausible)
+# the range a second mode's damping ratio is fitted in, and the most a mode may have: beyond
+# MODE_ZETA_MAX the fitted 'mode' has no resonance (see diagnose.implausible)
 ZETA2_RANGE = (0.001, 0.3)
+MODE_ZETA_MAX = 0.2
 # a second mode nearer the fundamental than this share of its frequency is refused (diagnose.implausible)
 MODE_APART = 0.2
 
