@@ -181,6 +181,9 @@ def test_implausible_fits_are_named_with_their_reasons():
     for zeta2 in (0.29996, 0.253):
         broad = fr({"w2": 5.0 * w1, "zeta2": zeta2, "phi2": 1e-4}, "higher_mode", {"x:phi2": 1e-6})
         assert any("no resonance" in w for w in implausible("higher_mode", broad, ref, data))
+    # and one held on the bottom of its range is an undamped line (stress #365, clean)
+    line = fr({"w2": 5.0 * w1, "zeta2": 0.001, "phi2": 1e-4}, "higher_mode", {"x:phi2": 1e-6})
+    assert any("undamped" in w for w in implausible("higher_mode", line, ref, data))
     mode = fr({"w2": 5.0 * w1, "zeta2": 0.03, "phi2": 1e-4}, "higher_mode", {"x:phi2": 1e-6})
     assert implausible("higher_mode", mode, ref, data) == []
 
