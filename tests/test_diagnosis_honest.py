@@ -151,6 +151,24 @@ def test_a_candidate_that_reaches_the_noise_floor_needs_a_smaller_gain():
     assert not rank.score(_fr(1.2), _fr(1.0, pieces=False), 1, 1.0)["significant"]
 
 
+
+
+def test_between_the_first_two_routes_the_gain_asked_falls_on_a_line():
+    # the line joins (RAMP_EXPLAINED, MIN_GAIN_NOISE) and (NEAR_FLOOR_EXPLAINED, NEAR_FLOOR_GAIN)
+    assert rank.gain_asked(rank.RAMP_EXPLAINED - 1e-9) == rank.MIN_GAIN_NOISE
+    assert rank.gain_asked(rank.RAMP_EXPLAINED) == pytest.approx(rank.MIN_GAIN_NOISE)
+    assert rank.gain_asked(rank.NEAR_FLOOR_EXPLAINED - 1e-9) == pytest.approx(rank.NEAR_FLOOR_GAIN, abs=1e-6)
+    assert rank.gain_asked(0.8) == pytest.approx(1.0)
+    assert rank.gain_asked(0.97) == rank.FLOOR_GAIN
+    # stress #433 (a channel delay on the paper protocol): 80 % of an excess of 1.43 noise variances,
+    # held-out NRMSE 27 % lower: named
+    delay = rank.score(_fr(2.43), _fr(1.276, pieces=False), 1, 1.0)
+    assert delay["explained"] == pytest.approx(0.807, abs=1e-3) and delay["gain_over_noise"] < rank.MIN_GAIN_NOISE
+    assert delay["relative_gain"] > rank.MIN_REL_GAIN and delay["significant"]
+    # the same share with a gain just under the line is not
+    below = rank.score(_fr(2.15), _fr(1.22, pieces=False), 1, 1.0)
+    assert below["explained"] == pytest.approx(0.8086, abs=1e-3)
+    assert below["gain_over_noise"] < rank.gain_asked(below["explained"]) and not below["significant"]
 # ----------------------------------------------------------------- plausibility
 def test_implausible_fits_are_named_with_their_reasons():
     run, _, _, baseline = concealed_run(None, seed=3, duration=1.0)
