@@ -74,6 +74,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from recon.diagnosis.augmented import AugmentedModel
+from recon.threads import fd_map
 from recon.diagnosis.locate import equation_residual
 from recon.differentiation import estimate_spectrum
 from recon.library import monomials
@@ -378,7 +379,8 @@ def _held_start(am: AugmentedModel, d: StageData) -> tuple:
     base = (initial, None) if base_state == tuple(float(v) for v in initial) else (base_state, None)
     try:
         with np.errstate(all="ignore"):
-            sol = least_squares(resid, np.zeros(free), method="trf", x_scale=1.0, max_nfev=START_FIT_NFEV)
+            sol = least_squares(resid, np.zeros(free), method="trf", x_scale=1.0, max_nfev=START_FIT_NFEV,
+                                workers=fd_map())
     except (ArithmeticError, ValueError, np.linalg.LinAlgError):
         return base
     r0 = resid(np.zeros(free))
@@ -512,7 +514,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
     p0 = np.clip(np.zeros(len(keys)), lo, hi)
     if keys:
         sol = least_squares(resid, p0, method="trf", bounds=(lo, hi), x_scale=1.0, diff_step=FD_STEP,
-                            max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
+                            max_nfev=max_nfev, xtol=1e-10, ftol=1e-10, workers=fd_map())
         p = sol.x
         cost = float(sol.fun @ sol.fun)
         stderr = {}

@@ -18,6 +18,7 @@ from scipy.optimize import least_squares
 
 from recon.model import HystereticModel
 from recon.output_error.problem import FD_STEP, OutputError
+from recon.threads import fd_map
 
 POLISH_FS = 2000.0   # Hz: the polish simulates at no less than this rate (faster stages are decimated)
 
@@ -55,7 +56,7 @@ def polish(model: HystereticModel, data: list, max_nfev: int = MAX_NFEV, masks=N
     p0 = np.zeros(len(prob.keys))
     r0 = prob.residual(p0)
     sol = least_squares(prob.residual, p0, method="trf", x_scale=1.0, diff_step=FD_STEP,
-                        max_nfev=max_nfev, xtol=1e-10, ftol=1e-12)
+                        max_nfev=max_nfev, xtol=1e-10, ftol=1e-12, workers=fd_map())
     new = prob.build(sol.x)
     cost0 = float(np.sqrt(r0 @ r0 / len(data)))
     cost1 = float(np.sqrt(sol.fun @ sol.fun / len(data)))

@@ -71,7 +71,7 @@ class NewmarkParameters:
                    delta=model.delta, b=1.0 if inv_m is None else inv_m, fn=fn)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _fn_and_grad(y, v, coef, pe, re):
     f = 0.0
     dfy = 0.0
@@ -89,12 +89,12 @@ def _fn_and_grad(y, v, coef, pe, re):
     return f, dfy, dfv
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _zdot(v, z, alpha, gamma, delta):
     return alpha * v - gamma * abs(v) * z - delta * v * abs(z)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _integrate(u, h, c, k, alpha, gamma, delta, b, coef, pe, re, y0, v0, z0,
                na, nb, nc, tol, max_iter):
     n = u.size

@@ -42,7 +42,7 @@ P_NAMES = ("g", "c", "k", "alpha", "gamma", "delta", "mu", "v0", "c2", "kc", "ga
            "drive2", "gu2")
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _rhs(y, v, z, q, vq, t, u, P, coef, p, r):
     fn = 0.0
     for j in range(coef.size):
@@ -70,7 +70,7 @@ def _rhs(y, v, z, q, vq, t, u, P, coef, p, r):
     return acc, dz, aq
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cubic_weights(n_sub):
     """Weights of u[i-1], u[i], u[i+1], u[i+2] at s = j / (2 n_sub), j = 0 .. 2 n_sub, of the
     interval [i, i+1]: the sub-steps' starts, mid-points and ends (4-point Lagrange)."""
@@ -84,7 +84,7 @@ def cubic_weights(n_sub):
     return W
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
     """States (y, y', z, q) as a (4, n) array; NaN from the first non-finite step on."""
     n = u.size
