@@ -74,7 +74,6 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from recon.diagnosis.augmented import AugmentedModel
-from recon.threads import fd_map
 from recon.diagnosis.locate import equation_residual
 from recon.differentiation import estimate_spectrum
 from recon.library import monomials
@@ -82,6 +81,7 @@ from recon.model import HystereticModel
 from recon.output_error.problem import (DIVERGED_RESIDUAL, FD_STEP, get_parameter,
                                         parameter_scales, set_parameter)
 from recon.regression.criteria import effective_samples
+from recon.threads import fd_map
 from shakerlab.run_data import BASE, Run, Stage
 
 BIC_MARGIN = 10.0
