@@ -18,6 +18,7 @@ import collections
 import json
 import math
 import multiprocessing as mp
+import os
 import time
 import traceback
 import warnings
@@ -366,6 +367,8 @@ def main(args) -> int:
             out = open(args.jsonl, "x")
         except FileExistsError:
             raise SystemExit(f"--jsonl: {args.jsonl} exists; name a new file (saved rows are never overwritten)")
+        if args.workers > 1:     # a process per core: the fits' finite differences on one thread each
+            os.environ.setdefault("SHAKERLAB_THREADS", "1")
         pool = mp.get_context("fork").Pool(max(1, min(args.workers, 2))) if args.workers > 1 else None
         done = []
         with out:
@@ -403,6 +406,8 @@ def main(args) -> int:
             raise SystemExit(f"--jsonl: {args.jsonl} exists; name a new file (saved rows are never overwritten)")
     rows = []
     t0 = time.perf_counter()
+    if workers > 1:     # a process per core: the fits' finite differences on one thread each
+        os.environ.setdefault("SHAKERLAB_THREADS", "1")
     pool = mp.get_context("fork").Pool(workers) if workers > 1 else None
     it = pool.imap_unordered(run_one, ids) if pool else map(run_one, ids)
     for k, r in enumerate(it, 1):

@@ -27,6 +27,7 @@ import glob
 import hashlib
 import importlib.util
 import json
+import os
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -41,6 +42,7 @@ from recon.constitutive.signals import component_signals
 from recon.output_error.uncertainty import (UncertaintySettings, parameter_intervals, reconstruct_capturing,
                                             term_inclusion)
 from recon.testing.truth import sdof_run
+from recon.threads import thread_count
 from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
@@ -279,8 +281,12 @@ def run_batch(paths: list[str], settings: BatchSettings | None = None, progress:
             except (OSError, TimeoutError, ValueError) as exc:
                 raise UserFacingError(f"--scheduler {s.scheduler}: cannot connect ({exc})") from None
         else:
+            # worker processes share the cores: each one's fits take its share of threads
+            # (recon/threads.py; a user's SHAKERLAB_THREADS is kept)
+            extra = ({"env": {"SHAKERLAB_THREADS": os.environ.get("SHAKERLAB_THREADS")
+                              or str(max(1, thread_count() // s.workers))}} if s.processes else {})
             cluster = LocalCluster(n_workers=s.workers, threads_per_worker=1, processes=s.processes,
-                                   dashboard_address=":0", host="127.0.0.1")
+                                   dashboard_address=":0", host="127.0.0.1", **extra)
             client = Client(cluster)
         with client:
             job = s.job()
