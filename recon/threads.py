@@ -20,6 +20,7 @@ MAX_THREADS = 8
 
 _pool: ThreadPoolExecutor | None = None
 _pool_pid: int | None = None
+_pool_size = 0
 
 
 def thread_count() -> int:
@@ -44,13 +45,14 @@ def fd_map():
     """The ``workers`` map for ``least_squares``: a thread pool's ordered map, or the built-in
     ``map`` (serial) with one thread. The threads keep the caller's floating-point error handling
     (``np.errstate`` is per thread): a fit run under ``errstate(all="ignore")`` stays quiet."""
-    global _pool, _pool_pid
+    global _pool, _pool_pid, _pool_size
     n = thread_count()
     if n == 1:
         return map
-    if _pool is None or _pool_pid != os.getpid() or _pool._max_workers != n:
+    if _pool is None or _pool_pid != os.getpid() or _pool_size != n:
         _pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="shakerlab-fd")
         _pool_pid = os.getpid()
+        _pool_size = n
     pool = _pool
 
     def ordered_map(fun, items):
