@@ -339,6 +339,16 @@ def held_start(am: AugmentedModel, d: StageData) -> tuple:
     return _held_start(am, d)[0]
 
 
+def z_reach(b, y) -> float:
+    """The largest |z| the law ``b`` reaches on the motion ``y``: alpha times half the peak-to-peak
+    motion (z's elastic rise from one turning point to the next), at most the law's saturation
+    alpha / (gamma + delta) when that is positive."""
+    z = abs(b.alpha_m) * 0.5 * float(np.ptp(y)) if y.size else 0.0
+    if b.gamma + b.delta > 0.0:
+        z = min(z, abs(b.alpha_m) / (b.gamma + b.delta))
+    return z if math.isfinite(z) else 0.0
+
+
 def _held_start(am: AugmentedModel, d: StageData) -> tuple:
     """(:func:`held_start`'s state, the whole stage simulated from it, or None when the state is
     the stage's own ``initial``)."""
@@ -360,9 +370,15 @@ def _held_start(am: AugmentedModel, d: StageData) -> tuple:
         # small (alpha near 0) cannot hold it: also start from z0 = 0 and keep the better start on
         # the first part (stress #6: a candidate fit with alpha 0.12 scored 1.38 on its validation
         # stage from z0 = 0.22 fitted to 0.40, 0.0033 from z0 = 0)
+        starts = [s0, np.array([s0[0], s0[1], 0.0])]
+        # and z0 across the range the law can hold: the start fit below moves z0 only locally
+        # (stress #617, the paper's protocol: the truth's validation stage starts at z0 = -0.21;
+        # from the edge's +0.048 and from 0 the fit reached -0.0023, and the truth scored 0.102
+        # on that stage from there against 0.0043 from its true state)
+        for zc in z_reach(b, d.y[first]) * np.array([-1.0, -0.5, -0.25, 0.25, 0.5, 1.0]):
+            starts.append(np.array([s0[0], s0[1], zc]))
         with np.errstate(all="ignore"):
-            tries = [(float(r @ r), i, st) for i, st in enumerate((s0, np.array([s0[0], s0[1], 0.0])))
-                     for r in [first_error(st)]]
+            tries = [(float(r @ r), i, st) for i, st in enumerate(starts) for r in [first_error(st)]]
         s0 = min(tries)[2]
     base_state = tuple(float(v) for v in s0)
     w = math.sqrt(max(b.K_m, 1e-12))
