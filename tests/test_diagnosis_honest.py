@@ -443,6 +443,33 @@ def test_a_held_out_stage_in_motion_starts_from_its_edge_even_when_the_baseline_
     assert fr.nrmse["validation"] < 2 * val.noise / val.rms, (fr.nrmse, val.noise / val.rms)
 
 
+def test_a_held_out_start_finds_a_hysteretic_state_far_from_the_edge_and_from_zero():
+    # stress #617 (the paper's protocol): the validation stage begins in motion with the true
+    # model's z at -0.209; the edge estimate puts it at +0.048, and a start fit from there or from 0
+    # stays near 0 (-0.0023), where the truth scores 0.10 on that stage against 0.0043 from its
+    # true state. The start scans z0 across the law's reach first.
+    from diagnose_stress import draw, recording
+    from independent_run import to_run, true_model
+
+    rec = recording(draw(617))
+    truth, _ = true_model(rec)
+    data = rank.prepare(to_run(rec), truth.baseline)
+    d = next(x for x in data if x.name == "validation")
+    assert any(d.initial) and not d.fit.any()
+    ts = rec["stages"]["validation"]["truth_states"]
+    true_start = (float(ts["y"][0]), float(ts["dy"][0]), float(ts["z"][0]) / rec["system"]["m"])
+    assert abs(d.initial[2] - true_start[2]) > 0.2 * rank.z_reach(truth.baseline, d.y)
+
+    def nrmse(state):
+        ys = truth.simulate(d.t, d.u, d.x_in, tuple(state))[0]
+        return float(np.sqrt(np.mean((ys - d.y) ** 2)) / d.rms)
+
+    start = rank.held_start(truth, d)
+    assert start[2] == pytest.approx(true_start[2], rel=0.1)
+    assert nrmse(start) < 1.2 * nrmse(true_start) < 2 * d.noise / d.rms
+    assert nrmse(d.initial) > 10 * nrmse(start)
+
+
 def test_an_equation_step_that_points_the_wrong_way_is_not_the_start():
     # stress #6 against its paper baseline: from the refit, the equation-error step put the drift at
     # +0.0016/s (truth -0.00074/s) and the output-error fit stayed in that valley (held-out 0.065,
