@@ -365,21 +365,55 @@ def _held_start(am: AugmentedModel, d: StageData) -> tuple:
         r = ys - d.y[first]
         return r if np.all(np.isfinite(r)) else np.full(r.size, DIVERGED_RESIDUAL * d.rms)
 
+    def sq(r):
+        return float(r @ r)
+
+    best = None
     if free == 3 and s0[2] != 0.0:
         # z0 from the force balance at the edge carries the edge's y'' noise, and a law whose z is
         # small (alpha near 0) cannot hold it: also start from z0 = 0 and keep the better start on
         # the first part (stress #6: a candidate fit with alpha 0.12 scored 1.38 on its validation
         # stage from z0 = 0.22 fitted to 0.40, 0.0033 from z0 = 0)
-        starts = [s0, np.array([s0[0], s0[1], 0.0])]
-        # and z0 across the range the law can hold: the start fit below moves z0 only locally
-        # (stress #617, the paper's protocol: the truth's validation stage starts at z0 = -0.21;
-        # from the edge's +0.048 and from 0 the fit reached -0.0023, and the truth scored 0.102
-        # on that stage from there against 0.0043 from its true state)
-        for zc in z_reach(b, d.y[first]) * np.array([-1.0, -0.5, -0.25, 0.25, 0.5, 1.0]):
-            starts.append(np.array([s0[0], s0[1], zc]))
         with np.errstate(all="ignore"):
-            tries = [(float(r @ r), i, st) for i, st in enumerate(starts) for r in [first_error(st)]]
-        s0 = min(tries)[2]
+            tries = [(sq(first_error(st)), i, st) for i, st in enumerate((s0, np.array([s0[0], s0[1], 0.0])))]
+        best, _, s0 = min(tries)
+    out = _start_fit(am, d, s0, initial, first_error, free)
+    if free == 3:
+        # z0 across the range the law can hold: the start fit moves z0 only locally (stress #617,
+        # the paper's protocol: the truth's validation stage starts at z0 = -0.21; from the edge's
+        # +0.048 and from 0 the fit reached -0.0023, where the truth scores 0.102 on that stage
+        # against 0.0043 from its true state). A start better on the first part is fitted too, and
+        # kept only if it also simulates the whole stage better: a model that lacks an effect could
+        # fit the first part from a z0 the rest of the stage refutes (a safeguard; no such row seen)
+        with np.errstate(all="ignore"):
+            best = sq(first_error(s0)) if best is None else best
+            scan = min((sq(first_error(st)), i, st) for i, st in enumerate(
+                np.array([s0[0], s0[1], zc]) for zc in
+                z_reach(b, d.y[first]) * np.array([-1.0, -0.5, -0.25, 0.25, 0.5, 1.0])))
+        if scan[0] < best:
+            other = _start_fit(am, d, scan[2], initial, first_error, free)
+            if _stage_error(am, d, other) < _stage_error(am, d, out):
+                out = other
+    return out
+
+
+def _stage_error(am: AugmentedModel, d: StageData, start: tuple) -> float:
+    """The squared error over the whole stage ``d`` of ``am`` simulated from ``start`` (a
+    :func:`_start_fit` answer: (state, the simulation or None)); inf where it does not simulate."""
+    state, ys = start
+    if ys is None:
+        with np.errstate(all="ignore"):
+            ys = am.simulate(d.t, d.u, d.x_in, tuple(state))[0]
+    with np.errstate(all="ignore"):
+        e = float(np.sum((ys - d.y) ** 2))
+    return e if math.isfinite(e) else math.inf
+
+
+def _start_fit(am: AugmentedModel, d: StageData, s0: np.ndarray, initial: tuple, first_error, free: int) -> tuple:
+    """The start state fitted from ``s0`` to the first part of the held-out stage ``d``
+    (``first_error``: the residual there of a state), with the whole stage simulated from it; or
+    (``s0``, None) where the fit does not improve on it or the state does not carry the stage."""
+    b = am.baseline
     base_state = tuple(float(v) for v in s0)
     w = math.sqrt(max(b.K_m, 1e-12))
     scale = np.maximum(np.abs(s0[:free]), 0.01 * d.rms * np.array([1.0, w, max(abs(b.alpha_m), 1e-12)])[:free])
@@ -422,6 +456,10 @@ def own_starts(am: AugmentedModel, data: list[StageData]) -> list[StageData]:
             continue
         tries = [dataclasses.replace(d, initial=(0.0, 0.0, 0.0), start_model=None),
                  dataclasses.replace(d, initial=d.edge, start_model=d.edge_model)]
+        if am.baseline.alpha_m != 0.0:
+            y0, v0, _ = initial_for(am, tries[1])
+            for zc in z_reach(am.baseline, d.y[d.fit]) * np.array([-1.0, -0.5, -0.25, 0.0, 0.25, 0.5, 1.0]):
+                tries.append(dataclasses.replace(d, initial=(y0, v0, float(zc)), start_model=None))
         err = []
         for x in tries:
             with np.errstate(all="ignore"):
