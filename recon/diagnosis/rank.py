@@ -335,11 +335,13 @@ def held_start(am: AugmentedModel, d: StageData) -> tuple:
     validation NRMSE at 0.139 for every model, the true one included, and 0.0068 with the start
     fitted. Each model's start (y0, y'0, and z0 when it has hysteresis) is therefore fitted to the
     first START_FIT_SHARE of the stage by output error: every model gets the same treatment, so a
-    candidate that changes the output (a delay, a scale error) fits its own start."""
+    candidate that changes the output (a delay, a scale error) fits its own start. With hysteresis
+    the fit also starts from the best of z0 across the law's reach (:func:`z_reach`) on that first
+    part, and that start is kept where it simulates the whole stage better."""
     return _held_start(am, d)[0]
 
 
-def z_reach(b, y) -> float:
+def z_reach(b: HystereticModel, y: np.ndarray) -> float:
     """The largest |z| the law ``b`` reaches on the motion ``y``: alpha times half the peak-to-peak
     motion (z's elastic rise from one turning point to the next), at most the law's saturation
     alpha / (gamma + delta) when that is positive."""
