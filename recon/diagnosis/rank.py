@@ -458,14 +458,6 @@ def own_starts(am: AugmentedModel, data: list[StageData]) -> list[StageData]:
             continue
         tries = [dataclasses.replace(d, initial=(0.0, 0.0, 0.0), start_model=None),
                  dataclasses.replace(d, initial=d.edge, start_model=d.edge_model)]
-        if am.baseline.alpha_m != 0.0:
-            # and z0 across the law's reach: the edge's force balance can put z0 far from the
-            # law's history (stress #542, a constant force beside a Bouc-Wen law: the linear stage
-            # starts at the force's static deflection with z = 0; from the balance's +0.047 the
-            # truth scored 0.48 on that stage, from z0 = 0 0.062, from its true state 0.060)
-            y0, v0, _ = initial_for(am, tries[1])
-            for zc in z_reach(am.baseline, d.y[d.fit]) * np.array([-1.0, -0.5, -0.25, 0.0, 0.25, 0.5, 1.0]):
-                tries.append(dataclasses.replace(d, initial=(y0, v0, float(zc)), start_model=None))
         err = []
         for x in tries:
             with np.errstate(all="ignore"):
