@@ -69,7 +69,10 @@ class SimLaserSensor:
                 raise _Err(cmd, E_COMMAND)
             return handler(args)
         except _Err as exc:
-            return f"ER,{exc.cmd},{exc.code}"
+            # the reply names the command only where it is printable as sent (a tab inside it is
+            # accepted on input as whitespace but would put a control byte in the reply)
+            name = exc.cmd if all(" " <= c <= "~" for c in exc.cmd) else "??"
+            return f"ER,{name},{exc.code}"
 
     def _cmd_ID(self, args):
         self._no_args("ID", args)
