@@ -692,22 +692,19 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                     # top of a y^2 fit: the stop's wrong side ranked first by equation residual,
                     # and from there the pair ended at held-out 0.00646; from the right side at
                     # 0.00518, the truth's figure)
+                    cost = {j: rank.fit_cost(stepped[j][0], data) for j in inside}
                     if len(starts[inside[0]][1]) > 1:
                         # the starts differ in a shape parameter fitted beside the stepped one (the
                         # contact's gap): a step alone ranks them by where they start, a short fit
                         # of the new terms by where they lead (stress #658, a contact at 0.65 mm:
                         # the stepped start at 1.11 mm had the lowest output error, the fit from it
                         # stayed at 1.15 mm, cost 1.35; from 0.52 or 0.81 mm it reached 0.65 mm, 0.87)
-                        cost = {}
                         for j in inside:
                             _, kj, scj, bj = starts[j]
                             short = rank.fit(stepped[j][0], kj, data, scj, max_nfev=SHAPE_SCREEN_NFEV, bounds=bj)
-                            cost[j] = rank.fit_cost(stepped[j][0], data)
                             if math.isfinite(short.cost_fit) and short.cost_fit < cost[j]:
                                 stepped[j], cost[j] = (short.model, stepped[j][1]), short.cost_fit
-                        i = min(inside, key=cost.get)
-                    else:
-                        i = min(inside, key=lambda j: rank.fit_cost(stepped[j][0], data))
+                    i = min(inside, key=cost.get)
                 else:
                     i = min(inside or range(len(stepped)), key=lambda j: stepped[j][1])
                 # the step is an equation-error estimate, and differentiation errors can point it the
