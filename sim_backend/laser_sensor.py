@@ -71,7 +71,7 @@ class SimLaserSensor:
         except _Err as exc:
             # the reply names the command only where it is printable as sent (a tab inside it is
             # accepted on input as whitespace but would put a control byte in the reply)
-            name = exc.cmd if all(" " <= c <= "~" for c in exc.cmd) else "??"
+            name = exc.cmd if is_printable_ascii(exc.cmd, tab=False) else "??"
             return f"ER,{name},{exc.code}"
 
     def _cmd_ID(self, args):

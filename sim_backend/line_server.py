@@ -34,9 +34,10 @@ class LineTooLong(Exception):
     """A request line exceeded MAX_LINE bytes."""
 
 
-def is_printable_ascii(text: str) -> bool:
-    """True when every character is printable ASCII (or a tab)."""
-    return all(" " <= c <= "~" or c == "\t" for c in text)
+def is_printable_ascii(text: str, tab: bool = True) -> bool:
+    """True when every character is printable ASCII (or a tab, unless ``tab`` is False: a request
+    may hold tabs as whitespace, a reply that echoes part of it may not)."""
+    return all(" " <= c <= "~" or (tab and c == "\t") for c in text)
 
 
 class LineServer:
