@@ -701,7 +701,11 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                         # stayed at 1.15 mm, cost 1.35; from 0.52 or 0.81 mm it reached 0.65 mm, 0.87)
                         for j in inside:
                             _, kj, scj, bj = starts[j]
-                            short = rank.fit(stepped[j][0], kj, data, scj, max_nfev=SHAPE_SCREEN_NFEV, bounds=bj)
+                            try:
+                                short = rank.fit(stepped[j][0], kj, data, scj, max_nfev=SHAPE_SCREEN_NFEV,
+                                                 bounds=bj)
+                            except CANDIDATE_FAILURES:
+                                continue    # that start is ranked by its step alone
                             if math.isfinite(short.cost_fit) and short.cost_fit < cost[j]:
                                 stepped[j], cost[j] = (short.model, stepped[j][1]), short.cost_fit
                     i = min(inside, key=cost.get)
