@@ -13,10 +13,9 @@ displacement's fundamental stays at the ceiling, and logs it.
 """
 from __future__ import annotations
 
-import numpy as np
 
 from rig import analysis
-from rig.decisions import next_level, nonlinearity_reached, settled_response
+from rig.decisions import next_level, nonlinearity_reached, resonance_found, search_grid, settled_response
 from rig.messages import BeginStage, Checkpoint, ControlSine, EndStage, Log, Rest, SetFrequency
 from shakerlab.errors import UserFacingError
 
@@ -68,31 +67,12 @@ def resonance_search(p: dict, settle_s: float, ctx):
             table.append(analysis.response(w.x_base, w.x_tip, w.fs, float(f)))
             controls.append(res)
 
-    coarse = np.geomspace(p["start_hz"], p["stop_hz"], p["steps"])
-    yield from measure(coarse)
-    i = int(np.argmax([r.transmissibility for r in table]))
-    if p["refine_steps"] > 0:
-        lo = coarse[max(i - 1, 0)]
-        hi = coarse[min(i + 1, coarse.size - 1)]
-        fine = np.geomspace(lo, hi, p["refine_steps"] + 2)[1:-1]
-        done = np.array([r.frequency_hz for r in table])
-        fine = [f for f in fine if np.min(np.abs(done / f - 1)) > 1e-6]
-        yield from measure(fine)
-    freqs = [r.frequency_hz for r in table]
-    trans = [r.transmissibility for r in table]
-    f_res = analysis.peak_frequency(freqs, trans)
-    at_edge = f_res <= min(freqs) * 1.0001 or f_res >= max(freqs) * 0.9999
+    yield from search_grid(p, table, measure)
+    f_res, log, summary = resonance_found(table, f" (base held at {target * 1e3:.4g} mm)")
     ctx.resonance_hz = f_res
-    peak = max(table, key=lambda r: r.transmissibility)
-    msg = (f"resonance search (base held at {target * 1e3:.4g} mm): first resonance at {f_res:.3f} Hz "
-           f"(tip/base amplitude ratio {peak.transmissibility:.2f}, phase {peak.phase_deg:.0f} deg)")
-    yield Log("warning" if at_edge else "info",
-              msg + (" AT THE EDGE OF THE SEARCHED RANGE: widen start_hz/stop_hz" if at_edge else ""))
+    yield log
     yield EndStage({
-        "resonance_hz": f_res, "at_edge": at_edge,
-        "frequencies_hz": freqs, "transmissibility": trans,
-        "phase_deg": [r.phase_deg for r in table],
-        "base_amplitude_m": [r.base_amplitude for r in table],
+        **summary,
         "drive_vpp": [c.vpp for c in controls],
         "control_error_db": [c.error_db for c in controls],
     })

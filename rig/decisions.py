@@ -3,6 +3,8 @@ nonlinear stage reached nonlinearity, and how far may a level be scaled within t
 (open and closed loop)."""
 from __future__ import annotations
 
+import numpy as np
+
 from rig import analysis
 from rig.messages import Acquire, Log
 
@@ -77,3 +79,42 @@ def settled_response(p: dict, f: float, r: analysis.Response, before: analysis.R
                              f"(gain change {change:.2%} between the last two windows, tolerance "
                              f"{p['settle_tolerance']:.2%}); judged as it is")
     return r, {"settled": settled, "settle_change": change, "settle_extra_s": waited}
+
+
+def search_grid(p: dict, table: list, measure):
+    """The resonance search's frequencies, as a plan: a geometric grid from start_hz to stop_hz,
+    then refine_steps frequencies between the neighbours of the largest transmissibility (none
+    measured twice). ``measure(freqs)`` is the plan that measures them, one response appended to
+    ``table`` per frequency (open or closed loop)."""
+    coarse = np.geomspace(p["start_hz"], p["stop_hz"], p["steps"])
+    yield from measure(coarse)
+    i = int(np.argmax([r.transmissibility for r in table]))
+    if p["refine_steps"] > 0:
+        lo = coarse[max(i - 1, 0)]
+        hi = coarse[min(i + 1, coarse.size - 1)]
+        fine = np.geomspace(lo, hi, p["refine_steps"] + 2)[1:-1]
+        done = np.array([r.frequency_hz for r in table])
+        fine = [f for f in fine if np.min(np.abs(done / f - 1)) > 1e-6]  # skip frequencies already measured
+        yield from measure(fine)
+
+
+def resonance_found(table: list, held: str = "") -> tuple[float, Log, dict]:
+    """The first resonance from the search's table: its frequency, the log line that reports it
+    (a warning where it sits at the edge of the searched range) and the stage's summary.
+    ``held``: what was held constant, for the log line."""
+    freqs = [r.frequency_hz for r in table]
+    trans = [r.transmissibility for r in table]
+    f_res = analysis.peak_frequency(freqs, trans)
+    at_edge = f_res <= min(freqs) * 1.0001 or f_res >= max(freqs) * 0.9999
+    peak = max(table, key=lambda r: r.transmissibility)
+    msg = (f"resonance search{held}: first resonance at {f_res:.3f} Hz (tip/base amplitude ratio "
+           f"{peak.transmissibility:.2f}, phase {peak.phase_deg:.0f} deg)")
+    log = Log("warning" if at_edge else "info",
+              msg + (" AT THE EDGE OF THE SEARCHED RANGE: widen start_hz/stop_hz" if at_edge else ""))
+    summary = {
+        "resonance_hz": f_res, "at_edge": at_edge,
+        "frequencies_hz": freqs, "transmissibility": trans,
+        "phase_deg": [r.phase_deg for r in table],
+        "base_amplitude_m": [r.base_amplitude for r in table],
+    }
+    return f_res, log, summary
