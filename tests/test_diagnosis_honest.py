@@ -595,6 +595,9 @@ def test_a_fitting_stage_at_rest_off_centre_starts_where_each_model_puts_it():
     assert dg.best.baseline.fn_m["y^0"] == pytest.approx(truth.baseline.fn_m["y^0"], rel=0.01)
 
 
+# about 150 s on one core of the 2-core machine; past the 300 s default when the suite's two workers
+# share it with other work (CI of 2026-11-29: a timeout, the diagnosis itself unchanged)
+@pytest.mark.timeout(900)
 def test_friction_is_found_where_the_paper_baseline_misses_the_response():
     # stress #171 (friction on sweeps, 67.4 dB) against its paper baseline: reconstruct's library has
     # no friction term; it put the friction of the small stage, which moves in pre-sliding (below
