@@ -259,6 +259,16 @@ def report(rows: list[dict]) -> list[str]:
             f"named cases with held-out NRMSE after < both the baseline as given and the null model: "
             f"{beats}/{len(named)} = {beats / max(len(named), 1):.1%}",
             f"diagnose raised / generator failed: {errs}/{n}"]
+    short = [r for r in eff if r["status"] == "ok" and r.get("baseline_lacks")]
+    if short:
+        # a record that lacks two things (the concealed effect, and a true term its reconstructed
+        # baseline missed): where the lacking term is named first and the effect after it, with no
+        # other name, every name is true; still a miss in the strict count above
+        after = [r for r in short if not r.get("right") and r["first"] in r["baseline_lacks"]
+                 and r["effect"] in r["named"] and set(r["named"]) <= set(r["baseline_lacks"]) | {r["effect"]}]
+        out.append(f"effect recordings whose baseline lacks a true term: {len(short)}, right first on "
+                   f"{sum(r.get('right', False) for r in short)}; the lacking term first and the effect after it "
+                   f"(every name true): {len(after)}" + (f" ({', '.join('#%d' % r['index'] for r in after)})" if after else ""))
     missed = [r for r in eff if r["status"] == "ok" and r["first"] == "none"]
     flagged = [r for r in missed if r.get("unexplained")]
     clean_flag = [r for r in clean if r["status"] == "ok" and r["first"] == "none" and r.get("unexplained")]

@@ -176,3 +176,24 @@ def test_the_truth_simulates_every_stage_of_a_noise_free_rig_recording():
     data = rank.prepare(to_run(rec), truth.baseline)
     fr = rank.fit(truth, [], data)
     assert max(fr.nrmse.values()) < 1e-3, fr.nrmse
+
+
+def test_stress_report_tells_a_lacking_term_named_before_the_effect_from_a_wrong_name():
+    # the strict count stays strict: a record whose baseline lacks y^2 and that holds quadratic damping
+    # is a miss when y^2 is named first, but the report says when every name is true (stress #757)
+    sys.path.insert(0, str(ROOT / "bench"))
+    from diagnose_stress import report
+
+    def row(i, named, lacks, effect="quadratic_damping"):
+        return {"index": i, "status": "ok", "protocol": "sweep", "effect": effect, "named": named,
+                "first": named[0] if named else "none", "right": bool(named) and named[0] == effect,
+                "baseline_lacks": lacks, "after_beats_both": True, "ambiguous": None}
+
+    rows = [row(1, ["quadratic_stiffness", "quadratic_damping"], ["quadratic_stiffness"]),
+            row(2, ["quadratic_stiffness", "coulomb_friction"], ["quadratic_stiffness"]),
+            row(3, ["quadratic_damping"], ["quadratic_stiffness"]),
+            row(4, ["quadratic_damping"], [])]
+    text = "\n".join(report(rows))
+    assert "right first (or in an ambiguous pair that holds it): 2/4" in text
+    assert ("effect recordings whose baseline lacks a true term: 3, right first on 1; the lacking term first "
+            "and the effect after it (every name true): 1 (#1)") in text
