@@ -1,4 +1,5 @@
-"""Decisions the stage plans take from measured responses: is a level's response steady, has the
+"""Decisions the stage plans take from measured responses: where the resonance search measures
+and where the resonance is, is a level's response steady, has the
 nonlinear stage reached nonlinearity, and how far may a level be scaled within the rig's limits
 (open and closed loop)."""
 from __future__ import annotations
