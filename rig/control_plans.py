@@ -13,7 +13,6 @@ displacement's fundamental stays at the ceiling, and logs it.
 """
 from __future__ import annotations
 
-
 from rig import analysis
 from rig.decisions import next_level, nonlinearity_reached, resonance_found, search_grid, settled_response
 from rig.messages import BeginStage, Checkpoint, ControlSine, EndStage, Log, Rest, SetFrequency

@@ -9,7 +9,6 @@ an instrument: the runner does, and supervises every block.
 """
 from __future__ import annotations
 
-
 from rig import analysis, control_plans
 from rig.decisions import next_level, nonlinearity_reached, resonance_found, search_grid, settled_response
 from rig.messages import Acquire, BeginStage, Checkpoint, CheckSetpoint, EndStage, Log, Ramp, Rest, SetFrequency

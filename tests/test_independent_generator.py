@@ -14,6 +14,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 GEN = ROOT / "recon" / "testing" / "independent.py"
 ALLOWED_TOP = {"__future__", "math", "numpy", "scipy"}
+sys.path.insert(0, str(ROOT / "bench"))   # the stress bench's run helpers and report
 
 
 def _load():
@@ -161,7 +162,6 @@ def test_the_truth_simulates_every_stage_of_a_noise_free_rig_recording():
     # simulated the resonance search from the recorded base at NRMSE 0.018 (stress #112); with a
     # velocity-continuous glide between the steps, at noise level. recon's own integrator and input
     # (Savitzky-Golay x_base'') against the generator's solve_ivp
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from independent_run import model_of, to_run
     from recon.diagnosis import rank
     from recon.diagnosis.augmented import AugmentedModel
@@ -181,7 +181,6 @@ def test_the_truth_simulates_every_stage_of_a_noise_free_rig_recording():
 def test_stress_report_tells_a_lacking_term_named_before_the_effect_from_a_wrong_name():
     # the strict count stays strict: a record whose baseline lacks y^2 and that holds quadratic damping
     # is a miss when y^2 is named first, but the report says when every name is true (stress #757)
-    sys.path.insert(0, str(ROOT / "bench"))
     from diagnose_stress import report
 
     def row(i, named, lacks, effect="quadratic_damping"):
