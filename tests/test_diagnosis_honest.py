@@ -255,6 +255,22 @@ def test_ambiguous_pair_rule():
                           10.0) is None
 
 
+def test_ambiguous_pair_when_model_error_dominates():
+    """A lead the BIC margin counts as clear (n_eff 5000: 5000 ln 1.05 = 244) is still ambiguous when
+    it is small beside the mismatch the first candidate leaves over the noise floor."""
+    from recon.diagnosis.ambiguity import MODEL_ERROR_SHARE, ambiguous_pair
+    ranked = [{"id": "parameter_drift", "n_eff": 5000.0}, {"id": "quadratic_damping", "n_eff": 5000.0}]
+    mse = {"parameter_drift": 1.0, "quadratic_damping": 1.05}
+    assert ambiguous_pair(ranked, set(), mse, 10.0) is None           # the BIC margin alone
+    # half the first one's held-out MSE is model error: a lead of 0.05 is 10 % of it
+    assert 0.05 < MODEL_ERROR_SHARE * 0.5
+    assert ambiguous_pair(ranked, set(), mse, 10.0, noise_mse=0.5) == ["parameter_drift", "quadratic_damping"]
+    # near the floor (0.1 of model error left) the same lead is 50 % of it: the first is better
+    assert ambiguous_pair(ranked, set(), mse, 10.0, noise_mse=0.9) is None
+    # a runner-up kept by the forward step is never a rival
+    assert ambiguous_pair(ranked, {"quadratic_damping"}, mse, 10.0, noise_mse=0.5) is None
+
+
 @pytest.mark.parametrize("pair,stages", [(["coulomb_friction", "quadratic_damping"], ["validation_amplitude"]),
                                          (["sensor_scale", "parameter_drift"], ["validation_frequency"]),
                                          (["sensor_scale", "cubic_stiffness"],

@@ -921,7 +921,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                 break
         sig = kept
     pair = ambiguous_pair(ranked, {t["id"] for t in sig[1:]}, {c: f[0].mse_held for c, f in fits.items()},
-                          rank.BIC_MARGIN)
+                          rank.BIC_MARGIN, noise_mse)
     ambiguity = separating_stage(pair) if pair else None
     missing = []
     for t in sig:
