@@ -36,6 +36,10 @@ class Candidate:
     # a dissipation a reconstructed Bouc-Wen law can take up (its |y'| z terms dissipate more at larger
     # amplitude): also fitted from the baseline without its hysteresis (diagnose.hysteresis_free_core)
     hysteresis_absorbs: bool = False
+    # a one-sided stiffness the reconstruction may have made even-powered stiffness terms of (y^2, y^4:
+    # the asymmetric part of the force): also fitted from the baseline without them
+    # (diagnose.even_stiffness_free_core)
+    even_stiffness_absorbs: bool = False
 
 
 def _am(base: HystereticModel, extras: dict, cid: str) -> AugmentedModel:
@@ -204,7 +208,8 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
               "term kc max(s*y - gap, 0) (s = +1 or -1) in the restoring force",
               "extra force kc (y - gap) when y is beyond the gap on side s", ("x:kc", "x:gap", "x:side"), _contact,
               screen_keys=1, column=lambda am, t, y, dy: (1.0 if am.get("side") >= 0 else -1.0)
-              * np.maximum((1.0 if am.get("side") >= 0 else -1.0) * y - am.get("gap"), 0.0), fit_each="side"),
+              * np.maximum((1.0 if am.get("side") >= 0 else -1.0) * y - am.get("gap"), 0.0), fit_each="side",
+              even_stiffness_absorbs=True),
     Candidate("channel_delay",
               "the two sensors are not sampled at the same instant: the displacement channel lags the input channel",
               "model change: output y_rec(t) = x_tip(t - d) - x_base(t) (force: y(t - d))",
