@@ -506,8 +506,14 @@ def linear_core(base: AugmentedModel, data, bkeys: list, max_nfev: int) -> rank.
     m = base.copy()
     for k in m.baseline.fn_m:
         m.baseline.fn_m[k] = 0.0
+    return core_fit(m, [k for k in bkeys if k in GIVEN_FREE + ("inv_m",)], data, max_nfev)
+
+
+def core_fit(m: AugmentedModel, free: list, data, max_nfev: int) -> rank.FitResult | None:
+    """``m`` with ``free`` refitted by output error; None when the fit fails or predicts no held-out
+    sample (the cores below: a null model and a place for candidate fits to start from)."""
     try:
-        fr = rank.fit(m, [k for k in bkeys if k in GIVEN_FREE + ("inv_m",)], data, max_nfev=max_nfev)
+        fr = rank.fit(m, free, data, max_nfev=max_nfev)
     except CANDIDATE_FAILURES:
         return None
     return fr if math.isfinite(fr.mse_held) and fr.n_held > 0 else None
@@ -533,11 +539,7 @@ def hysteresis_free_core(base: AugmentedModel, data, free: list, max_nfev: int) 
     b = m.baseline
     b.k_m += b.alpha_m
     b.alpha_m = b.gamma = b.delta = 0.0
-    try:
-        fr = rank.fit(m, free, data, max_nfev=max_nfev)
-    except CANDIDATE_FAILURES:
-        return None
-    return fr if math.isfinite(fr.mse_held) and fr.n_held > 0 else None
+    return core_fit(m, free, data, max_nfev)
 
 
 def even_stiffness_terms(base: AugmentedModel) -> list[str]:
@@ -551,23 +553,19 @@ def even_stiffness_terms(base: AugmentedModel) -> list[str]:
     return out
 
 
-def even_stiffness_free_core(base: AugmentedModel, data, free: list, max_nfev: int) -> rank.FitResult | None:
-    """The baseline without its even stiffness terms (even_stiffness_terms), ``free`` (keys without
-    theirs) refitted by output error. None for a baseline without them or when the fit fails.
+def even_stiffness_free_core(base: AugmentedModel, drop: tuple, data, free: list,
+                             max_nfev: int) -> rank.FitResult | None:
+    """The baseline without its even stiffness terms ``drop`` (even_stiffness_terms), ``free`` (keys
+    without theirs) refitted by output error. None for a baseline without them or when the fit fails.
 
     A reconstructed y^2 or y^4 can take up a one-sided contact (the even part of its force); a
     contact fitted on top of it then has nothing left to explain (stress #801, a contact at 0.23 mm
     on the paper protocol: the paper baseline's y^4 fitted the fitting stages better than the truth,
     cost 1.20 against 1.27, and predicted the held-out stage worse, 0.0155 against 0.0128; the
     contact fitted beside it stayed at kc 106 against the truth's 845)."""
-    drop = tuple(even_stiffness_terms(base))
     if not drop:
         return None
-    try:
-        fr = rank.fit(without_terms(base, drop), free, data, max_nfev=max_nfev)
-    except CANDIDATE_FAILURES:
-        return None
-    return fr if math.isfinite(fr.mse_held) and fr.n_held > 0 else None
+    return core_fit(without_terms(base, drop), free, data, max_nfev)
 
 
 def every_parameter(base: AugmentedModel) -> list[str]:
@@ -816,6 +814,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
         nulls.append(core)
     unlooped_origins = []
     evenless_origins = []
+    even_terms = tuple(even_stiffness_terms(base))
     if any(CATALOG[c].hysteresis_absorbs for c in ids if c in CATALOG):
         # dissipative candidates also start from the baseline without its Bouc-Wen law (a law the
         # reconstruction may have made of the missing dissipation); that core alone is a null
@@ -829,9 +828,9 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     if any(CATALOG[c].even_stiffness_absorbs for c in ids if c in CATALOG):
         # a one-sided stiffness also starts from the baseline without its even stiffness terms (which
         # the reconstruction may have made of it); that core alone is a null model too
-        even = {f"fn:{t}" for t in even_stiffness_terms(base)}
+        even = {f"fn:{t}" for t in even_terms}
         evenless_free = [k for k in full_free if k not in even]
-        evenless = even_stiffness_free_core(base, data, evenless_free, max_nfev)
+        evenless = even_stiffness_free_core(base, even_terms, data, evenless_free, max_nfev)
         if evenless is not None:
             nulls.append(evenless)
             evenless_origins = [(evenless, evenless_free, [k for k in bkeys if k not in even],
@@ -906,7 +905,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             entry["hysteresis_dropped"] = True
         if oname == "without_even_stiffness":
             entry["baseline_terms_dropped"] = sorted(set(entry.get("baseline_terms_dropped", []))
-                                                     | set(even_stiffness_terms(base)))
+                                                     | set(even_terms))
         why = implausible(cid, fr, ref.model, data)
         if why:
             entry["implausible"] = why
