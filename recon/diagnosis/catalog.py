@@ -33,8 +33,9 @@ class Candidate:
     screen_output: bool = False      # with a column and several starts: pick the start by a short output-error fit
     admissible_starts: Callable | None = None   # starts inside the physical range, tried when a fit ends implausible
     fit_each: str | None = None      # an extra the fit cannot move (discrete): fitted once per value, the best kept
-    # a dissipation a reconstructed Bouc-Wen law can take up (its |y'| z terms dissipate more at larger
-    # amplitude): also fitted from the baseline without its hysteresis (diagnose.hysteresis_free_core)
+    # an effect a reconstructed Bouc-Wen law can take up (a dissipation: its |y'| z terms dissipate more
+    # at larger amplitude; or a reading error: a law that needs not be there fits part of it): also
+    # fitted from the baseline without its hysteresis (diagnose.hysteresis_free_core)
     hysteresis_absorbs: bool = False
     # a one-sided stiffness the reconstruction may have made even-powered stiffness terms of (y^2, y^4:
     # the asymmetric part of the force): also fitted from the baseline without them
@@ -219,7 +220,13 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
               "(a base-sensor error of -e looks nearly the same)",
               "model change: y_rec = (1 + e) x_tip - x_base",
               "simulate, then scale the tip channel", ("x:tip_scale",), _scale,
-              lambda b, c: b.excitation == BASE),
+              lambda b, c: b.excitation == BASE,
+              # stress #813, a -0.92 % tip scale on the rig protocol, no loop in the truth: the paper
+              # baseline got alpha 820 and the resonance-search stage at NRMSE 0.115; the scale fitted
+              # from it (as given, refitted, or alone) ended at held-out 0.0073 or worse against 0.0035
+              # as given; from the baseline without the law it reached -0.916 %, held-out 0.00079
+              # (the truth's figure)
+              hysteresis_absorbs=True),
     Candidate("parameter_drift",
               "the stiffness changes slowly during the session (temperature, fatigue, settling)",
               "model change: k(t) = k (1 + drift t), t = recorded stage time",
