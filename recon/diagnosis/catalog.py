@@ -34,7 +34,7 @@ class Candidate:
     admissible_starts: Callable | None = None   # starts inside the physical range, tried when a fit ends implausible
     fit_each: str | None = None      # an extra the fit cannot move (discrete): fitted once per value, the best kept
     # an effect a reconstructed Bouc-Wen law can take up (a dissipation: its |y'| z terms dissipate more
-    # at larger amplitude; or a reading error: a law that needs not be there fits part of it): also
+    # at larger amplitude; or a reading error: a law the record does not hold fits part of it): also
     # fitted from the baseline without its hysteresis (diagnose.hysteresis_free_core)
     hysteresis_absorbs: bool = False
     # a one-sided stiffness the reconstruction may have made even-powered stiffness terms of (y^2, y^4:

@@ -816,8 +816,9 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     evenless_origins = []
     even_terms = tuple(even_stiffness_terms(base))
     if any(CATALOG[c].hysteresis_absorbs for c in ids if c in CATALOG):
-        # dissipative candidates also start from the baseline without its Bouc-Wen law (a law the
-        # reconstruction may have made of the missing dissipation); that core alone is a null
+        # the dissipative candidates and the sensor scale (catalog: hysteresis_absorbs) also start
+        # from the baseline without its Bouc-Wen law (a law the reconstruction may have made of the
+        # missing dissipation or of part of a reading error); that core alone is a null
         # model too, so a candidate gets no credit for dropping the law
         loopless_free = [k for k in full_free if k not in HYSTERESIS_KEYS]
         unlooped = hysteresis_free_core(base, data, loopless_free, max_nfev)
