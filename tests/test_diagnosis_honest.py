@@ -8,6 +8,7 @@ plausible effects with intervals.
 - implausible fits (negative delay, a gap outside the recorded range, an interval holding 0) are
   never reported, and every reported parameter has a 95 % interval.
 """
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -987,7 +988,7 @@ def test_a_fitting_stage_recorded_in_motion_leaves_its_start_transient_out_of_th
         if d.edge is None:
             assert np.array_equal(d.fit, d0.fit)
     # a model without hysteresis knows the whole state at the edge (y, y'): nothing is left out
-    linear = truth.baseline.__class__.from_dict(dict(truth.baseline.to_dict(), alpha_m=0.0, gamma=0.0, delta=0.0))
+    linear = dataclasses.replace(truth.baseline, alpha_m=0.0, gamma=0.0, delta=0.0)
     monkeypatch.undo()
     assert np.array_equal(rank.burn_in(search.t, search0.fit, truth.baseline), search.fit)
     assert np.array_equal(rank.burn_in(search.t, search0.fit, linear), search0.fit)
