@@ -784,11 +784,13 @@ def test_friction_found_with_every_parameter_where_c_and_k_alone_predict_a_littl
     assert c["held_out_nrmse"] < 1.05 * rank.fit(truth, [], rank.prepare(run, base)).nrmse_held
 
 
-def test_a_sensor_error_found_with_the_baseline_as_given_where_moving_c_and_k_hurts():
-    # stress #7 (a 0.77 % tip-sensor error on the rig protocol, 65.6 dB) against its paper baseline: the
-    # refit is 5.6 x worse on the held-out samples than the baseline as given; with c and k free beside
-    # the scale the fit traded the nonlinear stage for the resonance search (held-out 0.0121 against
-    # 0.0083 as given). The scale fitted alone, the baseline as given, is named
+def test_a_sensor_error_on_the_rig_protocol_is_found_with_its_size_once_the_start_transient_is_left_out():
+    # stress #7 (a 0.77 % tip-sensor error on the rig protocol, 65.6 dB) against its paper baseline.
+    # Before the burn-in (rank.burn_in, 2026-12-01b) the refit was 5.6 x worse on the held-out samples
+    # than the baseline as given: with c and k free the fits traded the nonlinear stage for the
+    # resonance search's start transient, and the scale was found only fitted alone, at 0.3-1.5 x its
+    # size. With that transient out of the fit the refit costs less than 2 x, and the scale is found
+    # with c and k free, its size within 2 %
     from diagnose_stress import draw, recording
     from independent_run import model_of, to_run, true_model
 
@@ -798,12 +800,11 @@ def test_a_sensor_error_found_with_the_baseline_as_given_where_moving_c_and_k_hu
                      "gamma": 2572.864908547995, "delta": 943.490532152942, "fn_m": {"y^3": 214760618.80700168}})
     dg = diagnose(run, baseline=base, candidates=["sensor_scale"])
     c = dg.candidates[0]
-    assert dg.fit_before["refit_held_out_nrmse"] > 4 * dg.fit_before["held_out_nrmse"]
-    assert c["significant"] and c["started_from"] == "term_alone", c
-    assert c["held_out_nrmse"] < 0.8 * dg.fit_before["held_out_nrmse"]
+    assert dg.fit_before["refit_held_out_nrmse"] < 2 * dg.fit_before["held_out_nrmse"]
+    assert c["significant"], c
+    assert c["held_out_nrmse"] < 0.2 * dg.fit_before["held_out_nrmse"]
     truth, _ = true_model(rec)
-    # the sign and the size's order of magnitude (the baseline's errors take a share of it)
-    assert 0.3 * truth.get("tip_scale") < dg.best.get("tip_scale") < 1.5 * truth.get("tip_scale")
+    assert dg.best.get("tip_scale") == pytest.approx(truth.get("tip_scale"), rel=0.02)
 
 
 def test_a_mode_above_the_input_band_is_found_from_a_start_above_it():
@@ -973,7 +974,7 @@ def test_a_fitting_stage_recorded_in_motion_leaves_its_start_transient_out_of_th
     rec = recording(draw(641))
     run = to_run(rec)
     truth, _ = true_model(rec)
-    monkeypatch.setattr(rank, "BURN_IN_DECAYS", 3.0)        # off by default (docs/diagnosis.md, 2026-12-01b)
+    assert rank.BURN_IN_DECAYS == 3.0                        # on by default (docs/diagnosis.md, 2026-12-01c)
     data = rank.prepare(run, truth.baseline)
     cut = rank.BURN_IN_DECAYS / (truth.baseline.c_m / 2.0)
     monkeypatch.setattr(rank, "BURN_IN_DECAYS", 0.0)
@@ -990,9 +991,10 @@ def test_a_fitting_stage_recorded_in_motion_leaves_its_start_transient_out_of_th
             assert np.array_equal(d.fit, d0.fit)
     # a model without hysteresis knows the whole state at the edge (y, y'): nothing is left out
     linear = dataclasses.replace(truth.baseline, alpha_m=0.0, gamma=0.0, delta=0.0)
-    monkeypatch.setattr(rank, "BURN_IN_DECAYS", 3.0)
-    assert np.array_equal(rank.burn_in(search.t, search0.fit, truth.baseline), search.fit)
-    assert np.array_equal(rank.burn_in(search.t, search0.fit, linear), search0.fit)
+    assert np.array_equal(rank.burn_in(search.t, search0.fit, truth.baseline, decays=3.0), search.fit)
+    assert np.array_equal(rank.burn_in(search.t, search0.fit, linear, decays=3.0, hysteresis_only=False),
+                          search.fit)
+    assert np.array_equal(rank.burn_in(search.t, search0.fit, linear, decays=3.0), search0.fit)
     with_cut, without = rank.fit(truth, [], data), rank.fit(truth, [], whole)
     assert with_cut.cost_fit < 0.1 * without.cost_fit, (with_cut.cost_fit, without.cost_fit)
     assert with_cut.nrmse_held == pytest.approx(without.nrmse_held, rel=1e-9)   # the truth's own start
