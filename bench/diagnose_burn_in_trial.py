@@ -1,5 +1,5 @@
-"""A trial of a change not built: the whole diagnosis of chosen stress rows with every fitting stage
-recorded in motion leaving its first D decay times out of the fit.
+"""A trial of the burn-in at other settings: the whole diagnosis of chosen stress rows with every
+fitting stage recorded in motion leaving its first D decay times out of the fit (main: D = 3).
 
     python bench/diagnose_burn_in_trial.py --rows 641 315 [--decays 3] [--jsonl out.jsonl]
 
