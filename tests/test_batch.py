@@ -43,6 +43,7 @@ def _paths(d):
     return [str(p) for p in sorted(d.glob("*.h5"))]
 
 
+@pytest.mark.slow
 def test_batch_on_local_cluster(batch_dir, capsys):
     d, truths = batch_dir
     paths = _paths(d)

@@ -239,6 +239,7 @@ def test_item9_report_into_an_existing_report_needs_force(run_copy, tmp_path, ca
     assert code == 2 and "not a directory" in err and (tmp_path / "afile").read_text() == "x"
 
 
+@pytest.mark.slow
 def test_item13_report_is_written_first_and_says_when_the_write_back_cannot_be_done(run_copy, tmp_path, capsys):
     rep = tmp_path / "rep"
     rep.mkdir()
@@ -377,6 +378,7 @@ def test_item15_random_npz_is_not_a_run_file(tmp_path, capsys):
 
 # ---- items 16 and 17: plausibility ----------------------------------------------------------------
 
+@pytest.mark.slow
 def test_item16_swapped_base_and_tip_warns_and_prints_folded_signs(run_copy, capsys):
     def swap(f):
         for name in f["entry/stages"]:
@@ -422,6 +424,7 @@ def test_item17_stage_in_other_units_warns(run_file, tmp_path):
         assert any(f"stage {stage!r}" in w for w in warnings)
 
 
+@pytest.mark.slow
 def test_item17_units_warning_reaches_the_cli(run_file, tmp_path, capsys):
     path = tmp_path / "mm.h5"
     path.write_bytes(run_file.read_bytes())

@@ -68,6 +68,7 @@ def test_clean_recording_reports_nothing(clean):
     assert fb["refit_held_out_nrmse"] < 5 * fb["noise_nrmse"]["validation"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("effect", EFFECTS)
 def test_concealed_effect_ranks_first_and_fit_improves(effect):
     run, truth, extras, baseline = concealed_run(effect, seed=list(EFFECTS).index(effect))
@@ -107,6 +108,7 @@ def test_billings_voon_white_residual_inside_bands_correlated_outside():
     assert bv["phi_u2_e"]["outside_95"] > 0
 
 
+@pytest.mark.slow
 def test_cli_json_contract_and_report(tmp_path, capsys):
     run, truth, _, baseline = concealed_run("quadratic_damping", seed=21, duration=3.0)
     path = tmp_path / "run.npz"
@@ -132,6 +134,7 @@ def test_cli_json_contract_and_report(tmp_path, capsys):
     assert "--baseline must be 'paper', 'linear' or a model JSON file" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_force_excited_record_from_another_lab(tmp_path, capsys):
     """Force excitation, 500 Hz, imported from CSV with `shakerlab import`; stiffness term concealed."""
     run, truth, _, baseline = concealed_run("cubic_stiffness", excitation=FORCE, fs=500.0, duration=4.0, seed=8)
@@ -206,6 +209,7 @@ def test_held_out_data_span_the_amplitudes_the_fit_saw(validation, held_in_nonli
         assert part is run
 
 
+@pytest.mark.slow
 def test_cli_default_baseline_is_the_paper_reconstruction(tmp_path, capsys):
     # `diagnose RUN` without --baseline reconstructs the run with the paper's method first
     # (the baseline then partly absorbs the concealed term, e.g. as y'^3) and still names it

@@ -8,6 +8,7 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 from scipy.integrate import solve_ivp
 from scipy.interpolate import CubicSpline
 
@@ -43,6 +44,7 @@ def _stage(name: str, rms: float, seed: int, seconds: float) -> Stage:
     return Stage(name, t, {"x": y, "force": us(t)}, excitation="force")
 
 
+@pytest.mark.slow
 def test_a_hardening_loop_is_named_hysteresis_with_its_parameters():
     run = Run({"linear": _stage("linear", 5.0, 1, 4.0), "nonlinear": _stage("nonlinear", 50.0, 2, 8.0),
                "validation": _stage("validation", 40.0, 3, 4.0)}, source="solve_ivp Bouc-Wen benchmark law")

@@ -35,6 +35,7 @@ def _recording(effect: str, seed: int):
     return to_run(rec), baseline, rec
 
 
+@pytest.mark.slow
 def test_a_clean_harmonic_recording_reports_nothing():
     run, baseline, _ = _recording("none", 0)
     out = diagnose(run, baseline).to_dict()
@@ -47,6 +48,7 @@ def test_a_clean_harmonic_recording_reports_nothing():
 # tone reaches only 34 % of it, so the diagnosis holds out the nonlinear stage's end too
 # (rank.uncovered_stages), where the stop is reached (checked below). Before that (to 2026-11-27)
 # this test took seed 4, whose validation tone reaches 135 %; seed 1 named nothing.
+@pytest.mark.slow
 @pytest.mark.parametrize("effect", [e for e in ind.EFFECTS if e != "none"])
 def test_each_effect_is_named_from_one_tone_per_stage(effect):
     run, baseline, rec = _recording(effect, 1)
@@ -73,6 +75,7 @@ def test_each_effect_is_named_from_one_tone_per_stage(effect):
     assert fa["held_out_nrmse"] < fb["refit_held_out_nrmse"]
 
 
+@pytest.mark.slow
 def test_a_resonance_riding_on_the_tip_is_named_with_its_drive():
     # the second mode driven by the tip's absolute acceleration (a sensor-mount resonance; the foreign
     # set's c05), not by the base: the input-driven scan and starts did not find it, and with each
@@ -89,6 +92,7 @@ def test_a_resonance_riding_on_the_tip_is_named_with_its_drive():
     assert out["fit_after"]["held_out_nrmse"] < 0.5 * out["fit_before"]["held_out_nrmse_as_given"]
 
 
+@pytest.mark.slow
 def test_a_tip_resonance_far_above_the_fundamental_is_not_fitted_beside_it():
     # stress #460 (paper protocol, 6355 Hz, 57 dB): a mode riding on the tip at 63.5 Hz, 3.3 times the
     # 19.1 Hz fundamental, against the paper baseline reconstructed from the record. The input-driven
@@ -106,6 +110,7 @@ def test_a_tip_resonance_far_above_the_fundamental_is_not_fitted_beside_it():
     assert out["missing_physics"][0]["parameters"]["zeta2"]["value"] == pytest.approx(e["zeta2"], rel=0.1)
 
 
+@pytest.mark.slow
 def test_quadratic_damping_a_baseline_took_up_as_a_hysteresis_loop_is_named_without_it():
     # stress #16: reconstructed from a record with quadratic damping and no hysteresis, the paper
     # baseline had a Bouc-Wen law (alpha 880, gamma 25.7) that dissipated in its place, and from there

@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))   # the i
 # ----------------------------------------------------------------- before / after
 @pytest.mark.parametrize("effect,seed,name,true", [("coulomb_friction", 0, "mu", 0.02),
                                                    ("sensor_scale", 4, "tip_scale", 0.02)])
+@pytest.mark.slow
 def test_after_beats_the_baseline_as_given_when_the_refit_is_worse(effect, seed, name, true):
     # the truth without the effect as baseline: refitting it absorbs the effect (friction as viscous
     # damping, a scale error as stiffness) and does worse on the validation stage than as given
@@ -488,6 +489,7 @@ def test_a_held_out_start_finds_a_hysteretic_state_far_from_the_edge_and_from_ze
     assert nrmse(d.initial) > 10 * nrmse(start)
 
 
+@pytest.mark.slow
 def test_an_equation_step_that_points_the_wrong_way_is_not_the_start():
     # stress #6 against its paper baseline: from the refit, the equation-error step put the drift at
     # +0.0016/s (truth -0.00074/s) and the output-error fit stayed in that valley (held-out 0.065,
@@ -527,6 +529,7 @@ def test_a_candidate_whose_term_does_nothing_gets_no_credit_for_where_its_fit_en
     assert not rank.score(nn, fr, 1, noise)["significant"]
 
 
+@pytest.mark.slow
 def test_friction_fits_its_smoothing_velocity_where_a_small_stage_moves_in_pre_sliding():
     # independent sweeps whose small stage moves at about the generator's v_eps: there the friction acts
     # as a viscous damper mu / v0, and a v0 held at one of the starts (1-20 % of that stage's rms
@@ -547,6 +550,7 @@ def test_friction_fits_its_smoothing_velocity_where_a_small_stage_moves_in_pre_s
     assert set(dg.missing[0]["parameters"]) == {"mu", "v0"}
 
 
+@pytest.mark.slow
 def test_a_contact_starts_on_the_side_whose_step_stiffens():
     # stress #60 (a one-sided stop on a multisine, 50.7 dB) against its paper baseline, which holds a
     # y^2 term where the stop's asymmetry went. The equation residuals of the six contact starts
@@ -569,6 +573,7 @@ def test_a_contact_starts_on_the_side_whose_step_stiffens():
     assert dg.best.get("kc") == pytest.approx(truth.get("kc"), rel=0.05)
 
 
+@pytest.mark.slow
 def test_a_contact_the_baseline_took_up_as_even_stiffness_is_fitted_without_it():
     # stress #801 (a one-sided stop at 0.23 mm on the paper protocol, 41 dB) against its paper
     # baseline, whose y^4 took up the stop's asymmetry: it fits the fitting stages better than the
@@ -600,6 +605,7 @@ def test_a_contact_the_baseline_took_up_as_even_stiffness_is_fitted_without_it()
     assert not s["significant"]
 
 
+@pytest.mark.slow
 def test_a_sensor_scale_the_baseline_took_up_as_hysteresis_is_fitted_without_it():
     # stress #813 (a -0.92 % tip-sensor scale on the rig protocol, 64 dB, no loop in the truth)
     # against its paper baseline, which got a Bouc-Wen law (alpha 820) the truth does not have.
@@ -626,6 +632,7 @@ def test_a_sensor_scale_the_baseline_took_up_as_hysteresis_is_fitted_without_it(
     assert c["held_out_nrmse"] < 0.5 * min(c["compared_with_held_out_nrmse"], out["fit_before"]["held_out_nrmse"])
 
 
+@pytest.mark.slow
 def test_hysteresis_is_fitted_inside_the_admissible_bouc_wen_range():
     # stress #194 (paper protocol, 60 dB), the truth without its Bouc-Wen law as the baseline: the
     # hysteresis fit started at alpha = 0 without a bound went to alpha = -414 beside a stiffer k
@@ -671,6 +678,7 @@ def test_a_fitting_stage_at_rest_off_centre_starts_where_each_model_puts_it():
 
 # about 150 s on one core of the 2-core machine; past the 300 s default when the suite's two workers
 # share it with other work (CI of 2026-11-29: a timeout, the diagnosis itself unchanged)
+@pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_friction_is_found_where_the_paper_baseline_misses_the_response():
     # stress #171 (friction on sweeps, 67.4 dB) against its paper baseline: reconstruct's library has
@@ -699,6 +707,7 @@ def test_friction_is_found_where_the_paper_baseline_misses_the_response():
     assert c["held_out_nrmse"] < 1.5 * rank.fit(truth, [], rank.prepare(run, base)).nrmse_held
 
 
+@pytest.mark.slow
 def test_two_effects_neither_enough_alone_are_named_together(monkeypatch):
     # stress #99 (a contact on sweeps, 45.9 dB) against its paper baseline, which lacks the truth's
     # y^2 and holds y^4, y^5 instead: held-out 0.00905, the contact alone 0.0070, y^2 alone 0.0075,
@@ -762,6 +771,7 @@ def test_a_pair_on_top_of_the_cheapest_fit_takes_only_members_plausible_alone():
     assert tried == ["coulomb_friction"]
 
 
+@pytest.mark.slow
 def test_friction_found_with_every_parameter_where_c_and_k_alone_predict_a_little_better():
     # stress #353 (friction on the paper protocol, 57.6 dB) against its paper baseline: the refit is
     # 3 x worse on the held-out stage than the baseline as given (0.0219 against 0.0067); friction
@@ -784,6 +794,7 @@ def test_friction_found_with_every_parameter_where_c_and_k_alone_predict_a_littl
     assert c["held_out_nrmse"] < 1.05 * rank.fit(truth, [], rank.prepare(run, base)).nrmse_held
 
 
+@pytest.mark.slow
 def test_a_sensor_error_on_the_rig_protocol_is_found_with_its_size_once_the_start_transient_is_left_out():
     # stress #7 (a 0.77 % tip-sensor error on the rig protocol, 65.6 dB) against its paper baseline.
     # Before the burn-in (rank.burn_in, 2026-12-01b) the refit was 5.6 x worse on the held-out samples
@@ -807,6 +818,7 @@ def test_a_sensor_error_on_the_rig_protocol_is_found_with_its_size_once_the_star
     assert dg.best.get("tip_scale") == pytest.approx(truth.get("tip_scale"), rel=0.02)
 
 
+@pytest.mark.slow
 def test_a_mode_above_the_input_band_is_found_from_a_start_above_it():
     # stress #213 (a 104.6 Hz second mode, sweeps that end at 42 Hz, 68.9 dB) against its paper baseline:
     # the mode answers the sweep quasi-statically, with no peak in the residual, and the scan's starts
@@ -831,6 +843,7 @@ def test_a_mode_above_the_input_band_is_found_from_a_start_above_it():
     assert c["held_out_nrmse"] < 0.25 * dg.fit_before["held_out_nrmse"]
 
 
+@pytest.mark.slow
 def test_friction_beside_a_stiffness_the_linear_baseline_lacks():
     # stress #80 (friction on sweeps, 72.6 dB): the reconstructed baseline is linear with c 223
     # (truth 8.0) and no y^3 (truth 4.87e9): friction alone ends at held-out 1.41 (k takes the
@@ -915,6 +928,7 @@ def test_a_small_term_that_helps_throughout_the_held_out_record_is_named():
     assert faint["gain_over_noise"] < rank.STEADY_GAIN and not faint["significant"]
 
 
+@pytest.mark.slow
 def test_a_fitting_stage_in_motion_may_start_with_the_law_at_rest():
     # stress #542 (sweeps): a constant force beside a Bouc-Wen law; the linear stage starts at the
     # force's static deflection with z = 0. prepare() takes the edge's z0 from the force balance of
@@ -940,6 +954,7 @@ def test_a_fitting_stage_in_motion_may_start_with_the_law_at_rest():
     assert nrmse(own) < 0.1 < 0.3 < nrmse(d)
 
 
+@pytest.mark.slow
 def test_starts_that_differ_in_the_contact_gap_are_ranked_by_where_a_short_fit_leads():
     # stress #658 (the paper's protocol): a weak one-sided contact (kc 7 % of k) at a gap of 0.65 mm,
     # against the paper baseline reconstructed from it (a y^5 term and a spurious Bouc-Wen law stand in

@@ -51,6 +51,7 @@ def rig_run(effects=None, seed=0, fs=1000.0, duration=4.0, decim=10):
     ({"tip_scale_error": 0.02}, "sensor_scale", "tip_scale", 0.02, 0.25),
     ({"contact_gap": 1.0e-3, "contact_stiffness": 1500.0}, "contact_stiffness", "gap", 1.0e-3, 0.1),
 ])
+@pytest.mark.slow
 def test_rig_physics_effect_found(effects, expected, key, true, tol):
     run, model = rig_run(effects, seed=3)
     d = diagnose(run, model).to_dict()

@@ -247,6 +247,7 @@ def read_line(read, terminator: bytes) -> bytes:
     return out
 
 
+@pytest.mark.slow
 @settings(max_examples=80, deadline=None, database=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(line=SCPI_LINES)
 @example(line=b"VOLT:OFFS? 10000000.0;*CLS;*IDN?;SOUR1:FREQ")   # an *IDN? in the line: two identity replies

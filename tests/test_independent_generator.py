@@ -141,6 +141,7 @@ def test_rig_protocol_settles_each_level_before_judging_it():
     assert (system["gamma"] + system["delta"]) * np.max(np.abs(y)) > 0.5
 
 
+@pytest.mark.slow
 def test_a_contact_on_the_rig_protocol_is_reached_in_its_nonlinear_stage():
     # the gap sits at 0.55-0.75 of the clean nonlinear stage's peak; on the rig protocol that peak
     # is where the raising stopped, not the top level's (placed from the top level, this draw's
@@ -156,6 +157,7 @@ def test_a_contact_on_the_rig_protocol_is_reached_in_its_nonlinear_stage():
     assert np.max(e["side"] * y) > 1.1 * e["gap"]
 
 
+@pytest.mark.slow
 def test_the_truth_simulates_every_stage_of_a_noise_free_rig_recording():
     # the recorded base must be the motion that drove the structure: a phase-continuous frequency
     # step made the base velocity jump (its x'' an impulse the structure never felt), and the truth

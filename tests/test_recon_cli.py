@@ -16,6 +16,7 @@ def run_file(tmp_path_factory):
     return path, truth
 
 
+@pytest.mark.slow
 def test_reconstruct_json(run_file, capsys, tmp_path):
     path, truth = run_file
     assert main(["reconstruct", str(path), "--json", "--plots", str(tmp_path / "png"),

@@ -79,6 +79,7 @@ def driven_run():
     return Run(stages, source="driven through an exciter"), true
 
 
+@pytest.mark.slow
 def test_reconstruct_drive_recovers_the_exciter_and_predicts_better(driven_run):
     run, true = driven_run
     with warnings.catch_warnings():
@@ -105,6 +106,7 @@ def test_drive_is_refused_under_base_excitation():
         ReconSettings(drive="yes")
 
 
+@pytest.mark.slow
 def test_diagnose_names_the_exciter_only_where_there_is_one(driven_run):
     from recon import diagnose
 
@@ -126,6 +128,7 @@ def test_diagnose_names_the_exciter_only_where_there_is_one(driven_run):
     assert none["missing_physics"] == []
 
 
+@pytest.mark.slow
 def test_the_exciter_refit_of_a_model_without_hysteresis_keeps_it_without(driven_run):
     # a simpler kind answered (alpha = 0): the refit leaves its Bouc-Wen parameters at 0 and is kept
     from recon.estimator.drive import fit_drive

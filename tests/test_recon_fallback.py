@@ -67,6 +67,7 @@ def test_record_with_offset(short_run):
         assert r.adequacy["admissible"]
 
 
+@pytest.mark.slow
 def test_stage_dominated_by_a_second_mode(short_run):
     run, _ = short_run
     st = run.stage("nonlinear")
@@ -75,6 +76,7 @@ def test_stage_dominated_by_a_second_mode(short_run):
     _check_answer(_replace_stage(run, "nonlinear", x_tip=st.channels["x_tip"] + mode))
 
 
+@pytest.mark.slow
 def test_simpler_models_are_admissible_and_ranked_by_held_out_error(short_run):
     run, truth = short_run
     bad = HystereticModel.from_dict(truth.to_dict())
@@ -151,6 +153,7 @@ def _worst_error(model, truth):
     return {k: abs(v / truth[k] - 1) for k, v in keys.items() if k in truth}
 
 
+@pytest.mark.slow
 def test_independent_draw_that_hung_the_polish_gets_the_right_answer(independent_seed0):
     """Issue 18: on this draw the equation-error estimate split k and alpha into +-9.7e10 (lambda 9
     against 1197) and polishing it ran for minutes. The polish is skipped from an inadmissible
@@ -272,6 +275,7 @@ def test_a_system_without_hysteresis_gets_the_elastic_simpler_model():
     assert fits["elastic"].held_out_nrmse < 0.5 * fits["equivalent_linear"].held_out_nrmse
 
 
+@pytest.mark.slow
 def test_an_inadequate_full_model_gives_way_to_a_simpler_one_that_predicts_better():
     """Diagnosis stress #26: a system without hysteresis got an admissible estimate with a Bouc-Wen
     law that validated at 0.18; the simpler models reached the noise floor. An inadequate full model

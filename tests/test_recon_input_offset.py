@@ -46,6 +46,7 @@ def test_the_offset_is_subtracted_from_the_input_and_serialised(force_runs):
     assert oe.build(np.zeros(len(oe.keys))).input_offset == b
 
 
+@pytest.mark.slow
 def test_reconstruct_fits_the_offset_only_when_asked(force_runs):
     _, off, truth, b = force_runs
     with warnings.catch_warnings():
@@ -97,6 +98,7 @@ def test_cli_says_when_the_offset_was_switched_on(tmp_path, capsys):
     assert "input offset fitted" in out and "a DC the base excitation cannot make" in out, out
 
 
+@pytest.mark.slow
 def test_constant_force_on_an_independent_record_is_fitted_and_left_to_the_diagnosis():
     """Diagnosis stress recording #9 (independent generator: multisine, 3193 Hz, 50.5 dB, a constant
     force). Without the offset reconstruct returned 15 terms with k at 7 % of the truth; with the

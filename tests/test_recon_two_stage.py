@@ -5,6 +5,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
@@ -23,6 +24,7 @@ def _record(seed: int, snr: float) -> tuple[dict, Run]:
     return rec, to_run(ind.add_noise(rec, snr, seed))
 
 
+@pytest.mark.slow
 def test_independent_recording_seed_26_at_40_db_is_within_5_percent_with_both_stages():
     # Stress seed 26 (paper protocol: one tone per stage) at 40 dB. Fitted on the nonlinear stage
     # alone, delta ends 14 % off; the linear stage, fitted with it at its own noise, brings it to 1.9 %.
@@ -40,6 +42,7 @@ def test_independent_recording_seed_26_at_40_db_is_within_5_percent_with_both_st
     assert both.model.provenance["output_error_polish"]["stages"] == ["linear", "nonlinear"]
 
 
+@pytest.mark.slow
 def test_a_linear_stage_that_disagrees_with_the_nonlinear_one_is_not_fitted_with_it():
     # The same record with the linear stage's tip sensor reading 30 % high (a calibration slip
     # between stages): no parameter set fits both stages to their noise, so the joint fit would
@@ -62,6 +65,7 @@ def test_a_linear_stage_that_disagrees_with_the_nonlinear_one_is_not_fitted_with
     assert np.isclose(kept.delta, single.delta) and np.isclose(kept.c_m, single.c_m)
 
 
+@pytest.mark.slow
 def test_a_spurious_term_is_dropped_on_the_evidence_of_both_stages():
     # Stress seed 34 (paper protocol) at 40 dB: every full pass was inadmissible and the simpler
     # Bouc-Wen model fitted on the nonlinear stage kept a y^2 that the truth does not have. Dropped,
@@ -76,6 +80,7 @@ def test_a_spurious_term_is_dropped_on_the_evidence_of_both_stages():
     assert sc["worst"] < 0.05, sc
 
 
+@pytest.mark.slow
 def test_a_fit_in_the_nonlinear_stages_own_basin_is_restarted():
     # Stress seed 38 (paper protocol) at 40 dB: the nonlinear stage's fit carried y*y'^2 and y'^3 and
     # delta 50 times the truth; its joint fit disagreed with the nonlinear stage. Restarted from the

@@ -66,6 +66,7 @@ def test_weak_form_through_recon_settings():
     assert res.model.lam > 0
 
 
+@pytest.mark.slow
 def test_weak_form_matches_the_pointwise_result_at_80db():
     # the weak regression finds the exact pattern; the output-error polish then lands on the
     # same optimum as the pointwise path (bench: identical errors, 0.04 % max)

@@ -20,6 +20,7 @@ def run_file(tmp_path_factory):
     return d / "run.h5", truth
 
 
+@pytest.mark.slow
 def test_report_files_json_and_write_back(run_file, tmp_path, capsys):
     path, truth = run_file
     out = tmp_path / "rep"

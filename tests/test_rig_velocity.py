@@ -200,6 +200,7 @@ KEYS = ("c_m", "k_m", "alpha_m", "gamma", "delta")
 @pytest.mark.slow
 # two acquisitions and two full reconstructs: each reconstruct takes ~140 s on a loaded 2-core machine
 # (the two-stage fit's restarts on the rig's records), past the suite's 300 s per test
+@pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_acquire_with_velocity_sensors_then_reconstruct_matches_displacement(tmp_path, capsys):
     runs = {}
