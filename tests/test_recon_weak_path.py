@@ -86,3 +86,23 @@ def test_a_stage_from_rest_starts_from_rest_at_40db():
     for seed in range(4):
         run, _ = sdof_run("base", snr_db=40.0, seed=seed)
         assert model.stage_start(run.stage("nonlinear")) == (0.0, 0.0, 0.0)
+
+
+def test_a_trial_whose_column_overflowed_raises_without_lapack_printing(capfd):
+    # stress #848: the weak path's (gamma, delta) search met a trial whose hysteresis column had
+    # overflowed; LAPACK printed "DLASCL parameter number 4 had an illegal value" on the terminal
+    # before numpy raised. The same error is now raised before LAPACK is called, so the fallbacks
+    # that catch it run as before and the terminal stays clean
+    from recon.regression.sparse import scaled_lstsq
+    A = np.column_stack([np.linspace(0.0, 1.0, 50), np.full(50, 1.0)])
+    b = A @ np.array([2.0, -1.0])
+    x, rss = scaled_lstsq(A, b)
+    assert x == pytest.approx([2.0, -1.0]) and rss < 1e-20
+    A[7, 0] = np.nan
+    with pytest.raises(np.linalg.LinAlgError, match="non-finite"):
+        scaled_lstsq(A, b)
+    A[7, 0] = np.inf
+    with pytest.raises(np.linalg.LinAlgError, match="non-finite"):
+        scaled_lstsq(A, b)
+    out, err = capfd.readouterr()
+    assert "DLASCL" not in out + err
