@@ -191,6 +191,11 @@ class StageData:
         return float(np.median(np.diff(self.t)))
 
 
+def stage_output(am: AugmentedModel, d: StageData, initial=None) -> np.ndarray:
+    """``am``'s recorded-output prediction of stage ``d`` from ``initial`` (None: from rest)."""
+    return am.simulate(d.t, d.u, d.x_in, initial, dt=d.dt)[0]
+
+
 def prepare(run: Run, model: HystereticModel) -> list[StageData]:
     """Per stage: input (computed once), recorded y, fit/held masks, noise level."""
     names = list(run.stages)
@@ -245,8 +250,8 @@ def prepare(run: Run, model: HystereticModel) -> list[StageData]:
             # it again with its own start model, own_starts)
             d.edge, d.edge_model = start, model
             am = AugmentedModel(model)
-            from_rest = am.simulate(d.t, d.u, d.x_in, dt=d.dt)[0]
-            from_start = am.simulate(d.t, d.u, d.x_in, start, dt=d.dt)[0]
+            from_rest = stage_output(am, d)
+            from_start = stage_output(am, d, start)
             if np.sum((from_start - y) ** 2) < np.sum((from_rest - y) ** 2):
                 d.initial, d.start_model = start, model
             d.fit = burn_in(d.t, d.fit, model)
@@ -443,7 +448,7 @@ def _stage_error(am: AugmentedModel, d: StageData, start: tuple) -> float:
     state, ys = start
     if ys is None:
         with np.errstate(all="ignore"):
-            ys = am.simulate(d.t, d.u, d.x_in, tuple(state), dt=d.dt)[0]
+            ys = stage_output(am, d, tuple(state))
     with np.errstate(all="ignore"):
         e = float(np.sum((ys - d.y) ** 2))
     return e if math.isfinite(e) else math.inf
@@ -478,7 +483,7 @@ def _start_fit(am: AugmentedModel, d: StageData, s0: np.ndarray, initial: tuple,
         return base
     # a state fitted on the first part must also carry the simulation through the whole stage
     with np.errstate(all="ignore"):
-        ys = am.simulate(d.t, d.u, d.x_in, state(sol.x), dt=d.dt)[0]
+        ys = stage_output(am, d, state(sol.x))
     return (state(sol.x), ys) if np.all(np.isfinite(ys)) else base
 
 
@@ -506,7 +511,7 @@ def own_starts(am: AugmentedModel, data: list[StageData]) -> list[StageData]:
         err = []
         for x in tries:
             with np.errstate(all="ignore"):
-                ys = am.simulate(x.t, x.u, x.x_in, initial_for(am, x), dt=x.dt)[0]
+                ys = stage_output(am, x, initial_for(am, x))
                 e = float(np.sum((ys[x.fit] - x.y[x.fit]) ** 2))
             err.append(e if math.isfinite(e) else math.inf)
         out.append(tries[int(np.argmin(err))] if math.isfinite(min(err)) else d)
@@ -517,7 +522,7 @@ def simulate_all(am: AugmentedModel, data: list[StageData]) -> list[np.ndarray]:
     out = []
     for d in data:
         start, ys = _held_start(am, d)
-        out.append(ys if ys is not None else am.simulate(d.t, d.u, d.x_in, start, dt=d.dt)[0])
+        out.append(ys if ys is not None else stage_output(am, d, start))
     return out
 
 
@@ -557,7 +562,7 @@ def fit_residual(am: AugmentedModel, data: list[StageData]) -> np.ndarray:
     for d in data:
         if not d.fit.any():
             continue
-        ys = am.simulate(d.t, d.u, d.x_in, initial_for(am, d), dt=d.dt)[0]
+        ys = stage_output(am, d, initial_for(am, d))
         if not np.all(np.isfinite(ys)):
             return np.full(sum(int(x.fit.sum()) for x in data), DIVERGED_RESIDUAL)
         out.append((ys[d.fit] - d.y[d.fit]) * (1.0 / (fit_scale(d) * math.sqrt(max(int(d.fit.sum()), 1)))))
