@@ -15,6 +15,7 @@ saved model (`--baseline MODEL.json`): a paper baseline would contain the term a
 from __future__ import annotations
 
 import collections
+import copy
 import json
 import math
 import multiprocessing as mp
@@ -138,6 +139,45 @@ def oracle(rec: dict, run, reference, baseline) -> dict | None:
                                     "blocks_improved")}}
 
 
+def effect_off(rec: dict, am):
+    """The recording's truth ``am`` (:func:`true_model`) without its concealed effect: the extras
+    dropped and the effect's own fn term (amplitude damping, offset) taken out, or, for a
+    structural effect, the generator's baseline (the truth without that term)."""
+    from recon.diagnosis.augmented import AugmentedModel
+
+    if "baseline" in rec:
+        return AugmentedModel(model_of(rec["baseline"], am.baseline.excitation))
+    off = AugmentedModel(copy.deepcopy(am.baseline))
+    for term in {"amplitude_damping": ("y^2*dy",), "offset": ("y^0",)}.get(rec["effect"], ()):
+        off.baseline.fn_m.pop(term, None)
+    return off
+
+
+def effect_signature(rec: dict, run, baseline) -> dict | None:
+    """Where the concealed effect acts: the RMS of (truth - truth without the effect), each stage
+    simulated from its recorded start, over the fitting and over the held-out samples of the
+    diagnosis's split (rank.prepare), each over the noise floor of those samples. A fitting signature
+    far below the held-out one says the fitting samples do not show the effect (stress #1061: a
+    contact the nonlinear stage reaches only in its held-out end), so no fit can find it there,
+    whatever the truth scores on the held-out samples. None for a clean recording."""
+    tm = true_model(rec) if rec["effect"] != "none" else None
+    if tm is None:
+        return None
+    on, off = tm[0], effect_off(rec, tm[0])
+    data = rank.prepare(run, baseline)
+    parts = {"fit": [0.0, 0.0, 0], "held": [0.0, 0.0, 0]}
+    for d in data:
+        a = rank.stage_output(on, d, d.initial)
+        b = rank.stage_output(off, d, d.initial)
+        for name, mask in (("fit", d.fit), ("held", d.held)):
+            if mask.any():
+                diff = np.nan_to_num(a[mask] - b[mask], nan=np.inf)
+                parts[name][0] += float(np.sum(diff ** 2))
+                parts[name][1] += float(mask.sum()) * d.noise ** 2
+                parts[name][2] += int(mask.sum())
+    return {f"{n}_over_noise": (math.sqrt(v[0] / v[1]) if v[1] > 0 else None) for n, v in parts.items()}
+
+
 def true_size(rec: dict, out: dict) -> dict | None:
     """The concealed effect's size in the unit of the diagnosis's detection limit for its candidate
     (``candidates_tested[].detection_limit``): {parameter, truth, limit}, or None (a clean recording,
@@ -155,6 +195,10 @@ def true_size(rec: dict, out: dict) -> dict | None:
         return None
     return {"parameter": name, "truth": v, "limit": float(lim["value"])}
 
+
+# an effect whose signature on the fitting samples is below this share of its held-out signature
+# (both over the noise) is one the fitting samples do not show (report; effect_signature)
+FIT_SIGNATURE_SHARE = 0.1
 
 # what each row keeps of every tested candidate (to study the decision rule offline)
 CANDIDATE_KEYS = ("id", "significant", "explained", "gain_over_noise", "relative_gain", "blocks_improved", "dbic", "held_out_nrmse",
@@ -218,6 +262,12 @@ def run_one(i: int) -> dict:
         row["oracle"] = oracle(rec, run, dg.reference, dg.baseline.baseline)
     except Exception as exc:  # noqa: BLE001 - the oracle is a bench figure, not the diagnosis
         row["oracle"] = {"failed": f"{type(exc).__name__}: {exc}"[:200]}
+    try:
+        sig = effect_signature(rec, run, dg.baseline.baseline)
+    except Exception as exc:  # noqa: BLE001 - a bench figure, not the diagnosis
+        sig = {"failed": f"{type(exc).__name__}: {exc}"[:200]}
+    if sig is not None:
+        row["effect_signature"] = sig
     h = row["held_out"]
     if ids:
         row["after_beats_both"] = bool(h["after"] is not None and h["null"] is not None and h["as_given"] is not None
@@ -300,6 +350,20 @@ def report(rows: list[dict]) -> list[str]:
                        + f"); {len(held)} where it lowers it more but fails the other margins ("
                        + ", ".join(f"#{r['index']} gain {r['oracle'].get('gain_over_noise', float('nan')):.2f} noise var, "
                                    f"dBIC {r['oracle'].get('dbic', float('nan')):.0f}" for r in held) + ")")
+        missed_shown = [r for r in shows if not r.get("right")]
+        if missed_shown:
+            # where the truth passes and the diagnosis missed: does the effect act on the fitting
+            # samples at all (effect_signature; a row without it was diagnosed before the figure)
+            def where(r):
+                sg = r.get("effect_signature") or {}
+                f, h = sg.get("fit_over_noise"), sg.get("held_over_noise")
+                return "no signature figure" if f is None or h is None else f"signature {f:.3g} x noise fitting, {h:.3g} held out"
+            unseen = [r for r in missed_shown if (r.get("effect_signature") or {}).get("fit_over_noise") is not None
+                      and r["effect_signature"]["fit_over_noise"] < FIT_SIGNATURE_SHARE * r["effect_signature"]["held_over_noise"]]
+            out.append(f"  missed where the truth passes: {len(missed_shown)} (" + "; ".join(
+                f"#{r['index']} {r['effect']} {r['protocol']}: {where(r)}" for r in missed_shown) + f"); of those {len(unseen)} "
+                f"whose effect acts on the fitting samples at under {FIT_SIGNATURE_SHARE:.0%} of its held-out size "
+                f"(no fit to those samples can find it)")
     sized = [r for r in eff if r["status"] == "ok" and r.get("truth_size")]
     if sized:
         # the diagnosis's own detection limit for the true candidate against the concealed effect's size
@@ -322,6 +386,11 @@ def report(rows: list[dict]) -> list[str]:
     for r in rows:
         by_p[r["protocol"]].append(r.get("right", False))
     out.append("right first by protocol: " + ", ".join(f"{p} {sum(v)}/{len(v)}" for p, v in sorted(by_p.items())))
+    bands = [(lo, lo + 5.0) for lo in range(40, 80, 5)]
+    snr = [(r.get("snr"), r.get("right", False)) for r in rows if r.get("snr") is not None]
+    by_snr = [[ok for v, ok in snr if lo <= v < hi or (hi == 80.0 and v == 80.0)] for lo, hi in bands]
+    out.append("right first by SNR: " + ", ".join(f"{lo:g}-{hi:g} dB {sum(v)}/{len(v)}"
+                                                 for (lo, hi), v in zip(bands, by_snr) if v))
     return out
 
 
@@ -361,10 +430,17 @@ def oracle_of_stored(row: dict) -> dict:
     h = row["held_out"]
     ref = min(v for v in (h["as_given"], h["null"]) if v is not None)
     tm = true_model(rec)
+    run = to_run(rec)
     try:
-        row["oracle"] = oracle(rec, to_run(rec), ref, tm[0].baseline if tm else None)
+        row["oracle"] = oracle(rec, run, ref, tm[0].baseline if tm else None)
     except Exception as exc:  # noqa: BLE001
         row["oracle"] = {"failed": f"{type(exc).__name__}: {exc}"[:200]}
+    try:
+        sig = effect_signature(rec, run, tm[0].baseline if tm else None)
+    except Exception as exc:  # noqa: BLE001
+        sig = {"failed": f"{type(exc).__name__}: {exc}"[:200]}
+    if sig is not None:
+        row["effect_signature"] = sig
     return row
 
 
