@@ -88,6 +88,7 @@ def test_a_stage_from_rest_starts_from_rest_at_40db():
         assert model.stage_start(run.stage("nonlinear")) == (0.0, 0.0, 0.0)
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")
 def test_a_trial_whose_column_overflowed_raises_without_lapack_printing(capfd):
     # stress #848: the weak path's (gamma, delta) search met a trial whose hysteresis column had
     # overflowed; LAPACK printed "DLASCL parameter number 4 had an illegal value" on the terminal

@@ -24,15 +24,16 @@ from scipy import linalg
 def scaled_lstsq(A, b):
     """Least squares of ``A x = b`` with the columns scaled to unit norm (zero columns left as
     they are); returns ``(x, rss)`` in the original column units."""
+    if not np.all(np.isfinite(A)):
+        # LAPACK would print "DLASCL parameter number 4 had an illegal value" on the terminal and
+        # then raise this same error (a trial whose hysteresis column overflowed: the weak path's
+        # (gamma, delta) search, stress #848); raised here, without the message, and before the
+        # scaling below would warn of an inf / inf
+        raise np.linalg.LinAlgError("least squares: the design matrix holds non-finite values "
+                                    "(a trial whose columns overflowed)")
     sc = np.sqrt(np.sum(A * A, axis=0))
     sc[sc == 0] = 1.0
     As = A / sc
-    if not np.all(np.isfinite(As)):
-        # LAPACK would print "DLASCL parameter number 4 had an illegal value" on the terminal and
-        # then raise this same error (a trial whose hysteresis column overflowed: the weak path's
-        # (gamma, delta) search, stress #848); raised here, without the message
-        raise np.linalg.LinAlgError("least squares: the design matrix holds non-finite values "
-                                    "(a trial whose columns overflowed)")
     x, *_ = np.linalg.lstsq(As, b, rcond=None)
     r = b - As @ x
     return x / sc, float(r @ r)
