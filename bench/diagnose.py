@@ -16,7 +16,10 @@ share, false alarms on clean recordings, held-out NRMSE after against the baseli
 and the null model (bench/diagnose_stress.py). Each effect row also puts the recording's own
 truth (its system with the effect, parameters as generated) to the rule a candidate must pass,
 against the diagnosis's reference: where even the truth does not pass, the record does not show
-the effect beyond what the baseline explains (the "oracle" line of the table).
+the effect beyond what the baseline explains (the "oracle" line of the table). And it measures
+where the effect acts ("effect_signature": the truth against the truth without the effect, over
+the noise, on the fitting and on the held-out samples): a miss whose effect the fitting samples
+do not show is one no fit could avoid.
 
 Each recording (recon.testing.concealed: base excitation, 1 kHz, 3 x 4 s stages, 70 dB)
 has one catalog effect concealed; the diagnosis runs blind against the truth's model without
@@ -57,7 +60,8 @@ def main(argv=None) -> int:
                          "recording index seen twice keeps its last row) instead of running")
     ap.add_argument("--oracle-of", nargs="+", default=None, metavar="JSONL",
                     help="--stress: put the truth of each saved row's recording (generated again) to the "
-                         "diagnosis's rule against that row's reference; rows to --jsonl")
+                         "diagnosis's rule against that row's reference (a row's own oracle, counted on its "
+                         "held-out pieces, is kept), and add the effect's signature; rows to --jsonl")
     ap.add_argument("--rows", nargs="+", type=int, default=None, metavar="I",
                     help="--stress: these recording indices (instead of --first/--n)")
     args = ap.parse_args(argv)
