@@ -360,11 +360,22 @@ def report(rows: list[dict]) -> list[str]:
                 return "no signature figure" if f is None or h is None else f"signature {f:.3g} x noise fitting, {h:.3g} held out"
             unseen = [r for r in missed_shown if (r.get("effect_signature") or {}).get("fit_over_noise") is not None
                       and r["effect_signature"]["fit_over_noise"] < FIT_SIGNATURE_SHARE * r["effect_signature"]["held_over_noise"]]
+            # the effect alone can cut the held-out NRMSE by the rule's smallest relative cut g only if its
+            # signature there is at least sqrt(1 / (1 - g)^2 - 1) of the noise (the reference's error
+            # being the noise and the effect at best); below it the truth passes on its baseline's terms
+            g = min(rank.MIN_REL_GAIN, rank.STEADY_REL_GAIN)
+            s_min = math.sqrt(1.0 / (1.0 - g) ** 2 - 1.0)
+            unheld = [r for r in missed_shown if (r.get("effect_signature") or {}).get("held_over_noise") is not None
+                      and r["effect_signature"]["held_over_noise"] < s_min]
             known = [r for r in missed_shown if (r.get("effect_signature") or {}).get("fit_over_noise") is not None]
             out.append(f"  missed where the truth passes: {len(missed_shown)}, {len(known)} with the effect's signature ("
                        + "; ".join(f"#{r['index']} {r['effect']} {r['protocol']}: {where(r)}" for r in known)
                        + f"); of those {len(unseen)} whose effect acts on the fitting samples at under "
-                       f"{FIT_SIGNATURE_SHARE:.0%} of its held-out size (no fit to those samples can find it)")
+                       f"{FIT_SIGNATURE_SHARE:.0%} of its held-out size (no fit to those samples can find it)"
+                       + (f" ({', '.join('#%d' % r['index'] for r in unseen)})" if unseen else "")
+                       + f", and {len(unheld)} whose effect acts on the held-out samples at under {s_min:.2f} x the "
+                       f"noise (too little to cut the held-out NRMSE by {g:.0%}: the truth passes there on its "
+                       f"baseline's terms)" + (f" ({', '.join('#%d' % r['index'] for r in unheld)})" if unheld else ""))
     sized = [r for r in eff if r["status"] == "ok" and r.get("truth_size")]
     if sized:
         # the diagnosis's own detection limit for the true candidate against the concealed effect's size

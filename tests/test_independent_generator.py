@@ -215,11 +215,14 @@ def test_stress_report_says_which_misses_the_fitting_samples_do_not_show():
 
     rows = [row(1, "none", {"fit_over_noise": 0.0, "held_over_noise": 500.0}, 75.2),
             row(2, "none", {"fit_over_noise": 30.0, "held_over_noise": 40.0}, 42.0),
-            row(3, "contact_stiffness", {"fit_over_noise": 30.0, "held_over_noise": 40.0}, 43.0)]
+            row(3, "contact_stiffness", {"fit_over_noise": 30.0, "held_over_noise": 40.0}, 43.0),
+            row(4, "none", {"fit_over_noise": 9.4, "held_over_noise": 0.2}, 43.0)]
     text = "\n".join(report(rows))
-    assert "missed where the truth passes: 2, 2 with the effect's signature (" in text
+    assert "missed where the truth passes: 3, 3 with the effect's signature (" in text
     assert "of those 1 whose effect acts on the fitting samples at under 10% of its held-out size" in text
-    assert "right first by SNR: 40-45 dB 1/2, 75-80 dB 0/1" in text
+    # 0.29 x the noise: the least signature that can cut the held-out NRMSE by 4 % (rank.STEADY_REL_GAIN)
+    assert "and 1 whose effect acts on the held-out samples at under 0.29 x the noise" in text and "(#4)" in text
+    assert "right first by SNR: 40-45 dB 1/3, 75-80 dB 0/1" in text
 
 
 @pytest.mark.slow
