@@ -155,6 +155,37 @@ def test_force_excited_record_from_another_lab(tmp_path, capsys):
     assert out["fit_after"]["nrmse"]["validation"] < out["fit_before"]["nrmse"]["validation"]
 
 
+def test_a_fallback_baseline_is_said_to_be_one(clean):
+    # reconstruct's simpler model as the baseline (its full model inadmissible): the diagnosis warns
+    # that a name may stand for a term that model lacks (stress #1072, a drift named quadratic damping
+    # against the linear fallback of a record with y^2, y^3 and a Bouc-Wen law)
+    from recon.diagnosis.diagnose import baseline_note
+
+    _, d = clean
+    assert d.to_dict()["baseline_note"] is None          # the truth's model as the baseline
+    m = d.baseline.baseline.__class__.from_dict(d.baseline.baseline.to_dict())
+    assert baseline_note(m) is None
+    m.provenance = {"simpler_model": "linear", "reconstruct_fallback": {"kind": "linear", "trigger": "inadmissible"}}
+    note = baseline_note(m)
+    assert "simpler linear model" in note and "was not admissible" in note
+    m.provenance = {"simpler_model": "bouc_wen", "reconstruct_fallback": {"trigger": "inadequate"}}
+    assert "predicted the held-out stages worse" in baseline_note(m)
+    m.provenance = {"simpler_model": True}              # fallback.py's own mark on a fit, not an answer
+    assert baseline_note(m) is None
+
+
+@pytest.mark.slow
+def test_cli_warns_when_the_baseline_is_a_fallback(tmp_path, capsys):
+    run, truth, _, baseline = concealed_run(None, seed=11, duration=2.0)
+    path = tmp_path / "run.npz"
+    save_npz(run, path)
+    baseline.provenance = {"simpler_model": "linear", "reconstruct_fallback": {"kind": "linear", "trigger": "inadmissible"}}
+    baseline.save(tmp_path / "fallback.json")
+    assert main(["diagnose", str(path), "--baseline", str(tmp_path / "fallback.json")]) == 0
+    assert "warning: the baseline is reconstruct's simpler linear model (its full model was not admissible)" \
+        in capsys.readouterr().out
+
+
 def test_linear_baseline_misses_hysteresis():
     run, _, _, _ = concealed_run("hysteresis", 3.0, seed=2)
     d = diagnose(run, "linear").to_dict()

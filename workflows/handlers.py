@@ -190,7 +190,7 @@ def diagnose_command(args) -> int:
         return 0
     print(f"{run.source}: baseline ({d.baseline_kind})")
     print(out["baseline"])
-    for w in out["warnings"]:
+    for w in out["warnings"] + ([out["baseline_note"]] if out.get("baseline_note") else []):
         print(f"warning: {w}")
     fb, fa = out["fit_before"]["nrmse"], out["fit_after"]["nrmse"]
     for stage in fb:

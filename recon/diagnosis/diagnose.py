@@ -86,7 +86,13 @@ def resolve_baseline(run: Run, baseline, whole: bool = False) -> tuple[Augmented
     if baseline in (None, "paper"):
         # reconstructed from the fitting samples only (rank.fitting_part: a stage the validation
         # stages do not cover has its end held out), so the baseline's held-out score is out of sample
-        model = reconstruct(run if whole else rank.fitting_part(run)).model
+        res = reconstruct(run if whole else rank.fitting_part(run))
+        model = res.model
+        fb = res.adequacy.get("fallback") or {}
+        if fb.get("used"):
+            # reconstruct answered with a simpler model: kept with the baseline, so the diagnosis can
+            # say that what it names may stand for a term that model lacks (baseline_note)
+            model.provenance["reconstruct_fallback"] = {k: fb.get(k) for k in ("kind", "trigger", "chosen_by")}
         if model.input_offset is not None and (model.provenance.get("input_offset_rule") or {}).get("on"):
             # the paper's model has no constant term: an offset reconstruct fitted on its own
             # (recon.estimator.input_offset) is taken out of the baseline, so that the catalog's
@@ -143,11 +149,28 @@ class Diagnosis:
             "ambiguous": list(self.ambiguity["ids"]) if self.ambiguity else [],
             "separating_stage": self.ambiguity,
             "unexplained_mismatch": self.unexplained,
+            "baseline_note": baseline_note(self.baseline.baseline),
             "seconds": self.seconds,
         }
 
 
 Z95 = 1.96
+
+
+def baseline_note(model: HystereticModel) -> str | None:
+    """A warning when the baseline is one of reconstruct's simpler models (recon.estimator.fallback:
+    the full model was inadmissible, or predicted the held-out stages worse), else None. Against
+    such a baseline a catalog name can stand for a term the baseline lacks as well as for the
+    effect (stress #1072: a drift on the rig protocol, whose full estimate was inadmissible; the
+    linear fallback lacked the truth's y^2, y^3 and Bouc-Wen law, and quadratic damping was named)."""
+    kind = model.provenance.get("simpler_model")
+    if not isinstance(kind, str):
+        return None
+    fb = model.provenance.get("reconstruct_fallback") or {}
+    why = {"inadmissible": "was not admissible",
+           "inadequate": "predicted the held-out stages worse"}.get(fb.get("trigger"), "was set aside")
+    return (f"the baseline is reconstruct's simpler {kind} model (its full model {why}): a name found "
+            f"against it may stand for a term the baseline lacks as well as for an effect the record holds")
 
 
 def unexplained_mismatch(fr: rank.FitResult, noise_mse: float, named: list[str]) -> dict | None:
