@@ -254,6 +254,7 @@ def run_one(i: int) -> dict:
                parameters={m["id"]: {k: v["value"] for k, v in m["parameters"].items()}
                            for m in out["missing_physics"]},
                result=out["result"], unexplained=bool(out.get("unexplained_mismatch")),
+               baseline_fallback=bool(out.get("baseline_note")),
                candidates=[{k: c[k] for k in CANDIDATE_KEYS if k in c} for c in out.get("candidates_tested", [])])
     size = true_size(rec, out)
     if size is not None:
@@ -319,6 +320,12 @@ def report(rows: list[dict]) -> list[str]:
         out.append(f"effect recordings whose baseline lacks a true term: {len(short)}, right first on "
                    f"{sum(r.get('right', False) for r in short)}; the lacking term first and the effect after it "
                    f"(every name true): {len(after)}" + (f" ({', '.join('#%d' % r['index'] for r in after)})" if after else ""))
+    fallback = [r for r in rows if r.get("status") == "ok" and r.get("baseline_fallback")]
+    if fallback:
+        # the paper baseline was one of reconstruct's simpler models (diagnose's baseline_note)
+        out.append(f"recordings whose paper baseline is a reconstruct fallback (a simpler model): {len(fallback)}, "
+                   f"right first on {sum(r.get('right', False) for r in fallback)} ("
+                   + ", ".join(f"#{r['index']} {r['effect']}: {r['first']}" for r in fallback) + ")")
     missed = [r for r in eff if r["status"] == "ok" and r["first"] == "none"]
     flagged = [r for r in missed if r.get("unexplained")]
     clean_flag = [r for r in clean if r["status"] == "ok" and r["first"] == "none" and r.get("unexplained")]

@@ -223,6 +223,10 @@ def test_stress_report_says_which_misses_the_fitting_samples_do_not_show():
     # 0.29 x the noise: the least signature that can cut the held-out NRMSE by 4 % (rank.STEADY_REL_GAIN)
     assert "and 1 whose effect acts on the held-out samples at under 0.29 x the noise" in text and "(#4)" in text
     assert "right first by SNR: 40-45 dB 1/3, 75-80 dB 0/1" in text
+    assert "paper baseline is a reconstruct fallback" not in text
+    rows[1]["baseline_fallback"] = True
+    assert ("recordings whose paper baseline is a reconstruct fallback (a simpler model): 1, right first on 0 "
+            "(#2 contact_stiffness: none)") in "\n".join(report(rows))
 
 
 @pytest.mark.slow
