@@ -109,7 +109,7 @@ def contact_reach(rec: dict) -> dict | None:
             for n, st in rec["stages"].items()}
 
 
-def oracle(rec: dict, run, reference, baseline) -> dict | None:
+def oracle(rec: dict, data, reference) -> dict | None:
     """The truth itself put to the diagnosis's own test: the recording's true model (its system
     with the concealed effect, parameters as generated, none fitted) scored on the held-out
     samples against the diagnosis's reference (the better of the baseline as given and the null
@@ -117,12 +117,12 @@ def oracle(rec: dict, run, reference, baseline) -> dict | None:
     record does not show the effect beyond what the baseline already explains, so no candidate
     fitted to it could be named by the rule either. ``reference`` is the diagnosis's reference
     FitResult, or its held-out NRMSE alone (a stored row; the effective sample count is then
-    taken from the truth's own held-out residual). None for a clean recording."""
+    taken from the truth's own held-out residual). ``data``: the run prepared as the diagnosis
+    prepares it (rank.prepare). None for a clean recording."""
     tm = true_model(rec) if rec["effect"] != "none" else None
     if tm is None:
         return None
     am, k = tm
-    data = rank.prepare(run, baseline)
     fr = rank.fit(am, [], data)
     if not isinstance(reference, rank.FitResult):
         yh = np.concatenate([d.y[d.held] - d.y[d.held].mean() for d in data if d.held.any()])
@@ -153,19 +153,19 @@ def effect_off(rec: dict, am):
     return off
 
 
-def effect_signature(rec: dict, run, baseline) -> dict | None:
+def effect_signature(rec: dict, data) -> dict | None:
     """Where the concealed effect acts: the RMS of (truth - truth without the effect), each stage
     simulated from its recorded start, over the fitting and over the held-out samples of the
     diagnosis's split (rank.prepare), each over the noise floor of those samples. A fitting signature
     far below the held-out one says the fitting samples do not show the effect (stress #1061: a
     contact the nonlinear stage reaches only in its held-out end), so no fit can find it there,
-    whatever the truth scores on the held-out samples. None for a clean recording."""
+    whatever the truth scores on the held-out samples. ``data`` as for :func:`oracle`. None for a
+    clean recording."""
     tm = true_model(rec) if rec["effect"] != "none" else None
     if tm is None:
         return None
     on, off = tm[0], effect_off(rec, tm[0])
-    data = rank.prepare(run, baseline)
-    parts = {"fit": [0.0, 0.0, 0], "held": [0.0, 0.0, 0]}
+    parts = {"fit": [0.0, 0.0], "held": [0.0, 0.0]}     # sum of squared signature, of noise variance
     for d in data:
         a = rank.stage_output(on, d, d.initial)
         b = rank.stage_output(off, d, d.initial)
@@ -174,8 +174,32 @@ def effect_signature(rec: dict, run, baseline) -> dict | None:
                 diff = np.nan_to_num(a[mask] - b[mask], nan=np.inf)
                 parts[name][0] += float(np.sum(diff ** 2))
                 parts[name][1] += float(mask.sum()) * d.noise ** 2
-                parts[name][2] += int(mask.sum())
     return {f"{n}_over_noise": (math.sqrt(v[0] / v[1]) if v[1] > 0 else None) for n, v in parts.items()}
+
+
+def _failed(exc: Exception) -> dict:
+    return {"failed": f"{type(exc).__name__}: {exc}"[:200]}
+
+
+def truth_figures(rec: dict, run, baseline, reference, kept_oracle: dict | None = None) -> dict:
+    """A row's figures of its recording's truth, {"oracle": ..., "effect_signature": ...} (see
+    :func:`oracle`, :func:`effect_signature`), the run prepared once for both with ``baseline``;
+    ``kept_oracle`` stands in place of a new oracle. A figure that raises is {"failed": reason}
+    (bench figures, not the diagnosis). {"oracle": None} for a clean recording."""
+    if rec["effect"] == "none" or true_model(rec) is None:
+        return {"oracle": kept_oracle}
+    try:
+        data = rank.prepare(run, baseline)
+    except Exception as exc:  # noqa: BLE001
+        return {"oracle": kept_oracle or _failed(exc), "effect_signature": _failed(exc)}
+    out = {}
+    for key, figure in (("oracle", lambda: kept_oracle or oracle(rec, data, reference)),
+                        ("effect_signature", lambda: effect_signature(rec, data))):
+        try:
+            out[key] = figure()
+        except Exception as exc:  # noqa: BLE001
+            out[key] = _failed(exc)
+    return out
 
 
 def true_size(rec: dict, out: dict) -> dict | None:
@@ -259,16 +283,7 @@ def run_one(i: int) -> dict:
     size = true_size(rec, out)
     if size is not None:
         row["truth_size"] = size
-    try:
-        row["oracle"] = oracle(rec, run, dg.reference, dg.baseline.baseline)
-    except Exception as exc:  # noqa: BLE001 - the oracle is a bench figure, not the diagnosis
-        row["oracle"] = {"failed": f"{type(exc).__name__}: {exc}"[:200]}
-    try:
-        sig = effect_signature(rec, run, dg.baseline.baseline)
-    except Exception as exc:  # noqa: BLE001 - a bench figure, not the diagnosis
-        sig = {"failed": f"{type(exc).__name__}: {exc}"[:200]}
-    if sig is not None:
-        row["effect_signature"] = sig
+    row.update(truth_figures(rec, run, dg.baseline.baseline, dg.reference))
     h = row["held_out"]
     if ids:
         row["after_beats_both"] = bool(h["after"] is not None and h["null"] is not None and h["as_given"] is not None
@@ -361,22 +376,22 @@ def report(rows: list[dict]) -> list[str]:
         if missed_shown:
             # where the truth passes and the diagnosis missed: does the effect act on the fitting
             # samples at all (effect_signature; a row without it was diagnosed before the figure)
-            def where(r):
+            def sig(r):
+                """(fitting, held-out) signature over the noise, or None without both figures."""
                 sg = r.get("effect_signature") or {}
                 f, h = sg.get("fit_over_noise"), sg.get("held_over_noise")
-                return "no signature figure" if f is None or h is None else f"signature {f:.3g} x noise fitting, {h:.3g} held out"
-            unseen = [r for r in missed_shown if (r.get("effect_signature") or {}).get("fit_over_noise") is not None
-                      and r["effect_signature"]["fit_over_noise"] < FIT_SIGNATURE_SHARE * r["effect_signature"]["held_over_noise"]]
+                return None if f is None or h is None else (f, h)
+            known = [r for r in missed_shown if sig(r)]
+            unseen = [r for r in known if sig(r)[0] < FIT_SIGNATURE_SHARE * sig(r)[1]]
             # the effect alone can cut the held-out NRMSE by the rule's smallest relative cut g only if its
             # signature there is at least sqrt(1 / (1 - g)^2 - 1) of the noise (the reference's error
             # being the noise and the effect at best); below it the truth passes on its baseline's terms
             g = min(rank.MIN_REL_GAIN, rank.STEADY_REL_GAIN)
             s_min = math.sqrt(1.0 / (1.0 - g) ** 2 - 1.0)
-            unheld = [r for r in missed_shown if (r.get("effect_signature") or {}).get("held_over_noise") is not None
-                      and r["effect_signature"]["held_over_noise"] < s_min]
-            known = [r for r in missed_shown if (r.get("effect_signature") or {}).get("fit_over_noise") is not None]
+            unheld = [r for r in known if sig(r)[1] < s_min]
             out.append(f"  missed where the truth passes: {len(missed_shown)}, {len(known)} with the effect's signature ("
-                       + "; ".join(f"#{r['index']} {r['effect']} {r['protocol']}: {where(r)}" for r in known)
+                       + "; ".join(f"#{r['index']} {r['effect']} {r['protocol']}: signature {sig(r)[0]:.3g} x noise "
+                                   f"fitting, {sig(r)[1]:.3g} held out" for r in known)
                        + f"); of those {len(unseen)} whose effect acts on the fitting samples at under "
                        f"{FIT_SIGNATURE_SHARE:.0%} of its held-out size (no fit to those samples can find it)"
                        + (f" ({', '.join('#%d' % r['index'] for r in unseen)})" if unseen else "")
@@ -449,21 +464,11 @@ def oracle_of_stored(row: dict) -> dict:
     h = row["held_out"]
     ref = min(v for v in (h["as_given"], h["null"]) if v is not None)
     tm = true_model(rec)
-    run = to_run(rec)
     kept = row.get("oracle")
-    if not (isinstance(kept, dict) and kept.get("blocks_improved") is not None):
-        # an oracle the row got when it was diagnosed (against the reference's own residual, so with
-        # its held-out pieces) is kept: one from the stored figures alone cannot count the pieces
-        try:
-            row["oracle"] = oracle(rec, run, ref, tm[0].baseline if tm else None)
-        except Exception as exc:  # noqa: BLE001
-            row["oracle"] = {"failed": f"{type(exc).__name__}: {exc}"[:200]}
-    try:
-        sig = effect_signature(rec, run, tm[0].baseline if tm else None)
-    except Exception as exc:  # noqa: BLE001
-        sig = {"failed": f"{type(exc).__name__}: {exc}"[:200]}
-    if sig is not None:
-        row["effect_signature"] = sig
+    # an oracle the row got when it was diagnosed (against the reference's own residual, so with
+    # its held-out pieces) is kept: one from the stored figures alone cannot count the pieces
+    kept = kept if isinstance(kept, dict) and kept.get("blocks_improved") is not None else None
+    row.update(truth_figures(rec, to_run(rec), tm[0].baseline if tm else None, ref, kept))
     return row
 
 

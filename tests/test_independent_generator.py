@@ -235,12 +235,13 @@ def test_effect_signature_sees_a_contact_the_fitting_samples_never_reach():
     # towards the stop, its held-out end 2.22 mm, the gap is 1.56 mm; #957 (a contact on the paper
     # protocol) is reached in both parts
     from independent_run import to_run, true_model
+    from recon.diagnosis import rank
 
     from diagnose_stress import draw, effect_signature, recording
 
     sig = {}
     for i in (957, 1061):
         rec = recording(draw(i))
-        sig[i] = effect_signature(rec, to_run(rec), true_model(rec)[0].baseline)
+        sig[i] = effect_signature(rec, rank.prepare(to_run(rec), true_model(rec)[0].baseline))
     assert sig[957]["fit_over_noise"] > 5 and sig[957]["held_over_noise"] > 5, sig
     assert sig[1061]["fit_over_noise"] < 0.1 and sig[1061]["held_over_noise"] > 100, sig
