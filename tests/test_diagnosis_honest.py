@@ -132,46 +132,31 @@ def test_a_tiny_noise_floor_does_not_make_a_small_gain_significant():
     assert big["significant"]
 
 
-def test_a_candidate_that_reaches_the_noise_floor_needs_a_smaller_gain():
-    # candidates without held-out residuals: the route through blocks_improved is closed here
-    # noise variance 1: the reference leaves 0.6 over the floor, the candidate all but 0.05 of it
-    near = rank.score(_fr(1.6), _fr(1.05, pieces=False), 1, 1.0)
-    assert near["explained"] >= rank.NEAR_FLOOR_EXPLAINED and near["gain_over_noise"] < rank.MIN_GAIN_NOISE
-    assert near["significant"]
-    # clean stress #65's false candidate: 70 % of an excess of 2 noise variances (gain 1.4) is not enough
+def test_a_gain_below_the_noise_needs_the_steady_route():
+    # without held-out residuals (the route through blocks_improved closed) a candidate that leaves
+    # the floor all but 5 % of an excess of 0.3 noise variances is not named: the floor tiers that
+    # admitted it were removed on 2026-12-02 (clean stress #1002)
+    floor = rank.score(_fr(1.3), _fr(1.005, pieces=False), 1, 1.0)
+    assert floor["explained"] >= 0.95 and floor["gain_over_noise"] < rank.MIN_GAIN_NOISE
+    assert floor["relative_gain"] >= rank.MIN_REL_GAIN and not floor["significant"]
+    # clean stress #65's false candidate: 70 % of an excess of 2 noise variances (gain 1.4)
     part = rank.score(_fr(3.0), _fr(1.6, pieces=False), 1, 1.0)
     assert part["explained"] == pytest.approx(0.7) and part["gain_over_noise"] == pytest.approx(1.4)
     assert not part["significant"]
-    # and reaching the floor of a tiny excess is not either (93 % of it, gain 0.28 noise variances)
-    assert not rank.score(_fr(1.3), _fr(1.02, pieces=False), 1, 1.0)["significant"]
-    # unless the candidate leaves at most 5 % of it (98 %, gain 0.295: stress #159, #211, #226)
-    floor = rank.score(_fr(1.3), _fr(1.005, pieces=False), 1, 1.0)
-    assert floor["explained"] >= rank.FLOOR_EXPLAINED and floor["gain_over_noise"] < rank.NEAR_FLOOR_GAIN
-    assert floor["significant"]
-    # clean stress #365's candidate: 84.5 % of the excess at a gain of 0.34 stays below these tiers
-    assert not rank.score(_fr(1.4047), _fr(1.0625, pieces=False), 1, 1.0)["significant"]
-    # nor does a gain under FLOOR_GAIN count, however complete
-    assert not rank.score(_fr(1.2), _fr(1.0, pieces=False), 1, 1.0)["significant"]
+    # the same gain, better on every held-out piece: the steady route names it
+    r = np.random.default_rng(7).normal(0, 1, 8000)
+    r /= np.sqrt(np.mean(r ** 2))
+    steady = rank.score(_fr(1.3, math.sqrt(1.3) * r), _fr(1.005, math.sqrt(1.005) * r), 1, 1.0)
+    assert steady["blocks_improved"] == 1.0 and steady["significant"]
+    # clean #1002's figures: 95 % of an excess of 0.29 noise variances, 11 % lower NRMSE, better
+    # on 8 of the 10 pieces: not named (the old floor tier named it, a false alarm)
+    assert not rank.passes(-20.0, 0.95, 0.278, 0.114, 0.8)
+    assert rank.passes(-20.0, 0.95, 0.278, 0.114, 0.9)
+    # from MIN_GAIN_NOISE on, the pieces do not matter
+    big = rank.score(_fr(3.0), _fr(1.4, pieces=False), 1, 1.0)
+    assert big["gain_over_noise"] >= rank.MIN_GAIN_NOISE and big["significant"]
 
 
-
-
-def test_between_the_first_two_routes_the_gain_asked_falls_on_a_line():
-    # the line joins (RAMP_EXPLAINED, MIN_GAIN_NOISE) and (NEAR_FLOOR_EXPLAINED, NEAR_FLOOR_GAIN)
-    assert rank.gain_asked(rank.RAMP_EXPLAINED - 1e-9) == rank.MIN_GAIN_NOISE
-    assert rank.gain_asked(rank.RAMP_EXPLAINED) == pytest.approx(rank.MIN_GAIN_NOISE)
-    assert rank.gain_asked(rank.NEAR_FLOOR_EXPLAINED - 1e-9) == pytest.approx(rank.NEAR_FLOOR_GAIN, abs=1e-6)
-    assert rank.gain_asked(0.8) == pytest.approx(1.0)
-    assert rank.gain_asked(0.97) == rank.FLOOR_GAIN
-    # stress #433 (a channel delay on the paper protocol): 80 % of an excess of 1.43 noise variances,
-    # held-out NRMSE 27 % lower: named
-    delay = rank.score(_fr(2.43), _fr(1.276, pieces=False), 1, 1.0)
-    assert delay["explained"] == pytest.approx(0.807, abs=1e-3) and delay["gain_over_noise"] < rank.MIN_GAIN_NOISE
-    assert delay["relative_gain"] > rank.MIN_REL_GAIN and delay["significant"]
-    # the same share with a gain just under the line is not
-    below = rank.score(_fr(2.15), _fr(1.22, pieces=False), 1, 1.0)
-    assert below["explained"] == pytest.approx(0.8086, abs=1e-3)
-    assert below["gain_over_noise"] < rank.gain_asked(below["explained"]) and not below["significant"]
 # ----------------------------------------------------------------- plausibility
 def test_implausible_fits_are_named_with_their_reasons():
     run, _, _, baseline = concealed_run(None, seed=3, duration=1.0)
@@ -711,11 +696,11 @@ def test_friction_is_found_where_the_paper_baseline_misses_the_response():
 def test_two_effects_neither_enough_alone_are_named_together(monkeypatch):
     # stress #99 (a contact on sweeps, 45.9 dB) against its paper baseline, which lacks the truth's
     # y^2 and holds y^4, y^5 instead: held-out 0.00905, the contact alone 0.0070, y^2 alone 0.0075,
-    # neither significant before the rule's fifth route (2026-11-28b), which passes the contact alone
-    # (it helps on every held-out piece); with that route closed, as when neither passed alone,
-    # fitted together (the contact on top of the y^2 fit, each side of the stop fitted) they reach
-    # the truth's figure
-    monkeypatch.setattr(rank, "STEADY_GAIN", math.inf)
+    # neither significant before the rule's steady route (2026-11-28b), which passes the contact alone
+    # (it helps on 9 of 10 held-out pieces, 22 % lower NRMSE); with that route asking 25 %, as when
+    # neither passed alone, fitted together (the contact on top of the y^2 fit, each side of the stop
+    # fitted) they reach the truth's figure (the pair over y^2 alone: 31 % lower, 9 of 10 pieces)
+    monkeypatch.setattr(rank, "STEADY_REL_GAIN", 0.25)
     from diagnose_stress import draw, recording
     from independent_run import model_of, to_run, true_model
 
@@ -882,7 +867,7 @@ def test_a_candidate_that_helps_throughout_the_held_out_record_needs_less_of_the
     r /= np.sqrt(np.mean(r ** 2))
     ref = _fr(1.4047, math.sqrt(1.4047) * r)
     steady = rank.score(ref, _fr(1.0625, math.sqrt(1.0625) * r), 1, 1.0)
-    assert steady["explained"] < rank.NEAR_FLOOR_EXPLAINED and steady["blocks_improved"] == 1.0
+    assert steady["explained"] < 0.9 and steady["blocks_improved"] == 1.0
     assert steady["significant"]
     # the same mean-square errors, but better on the first half of the held-out samples and worse on
     # the second (#365 itself: 5 of 10 pieces): not significant
@@ -910,7 +895,7 @@ def test_a_small_term_that_helps_throughout_the_held_out_record_is_named():
     r /= np.sqrt(np.mean(r ** 2))
     ref = _fr(1.22, math.sqrt(1.22) * r)
     steady = rank.score(ref, _fr(1.11, math.sqrt(1.11) * r), 1, 1.0)
-    assert steady["relative_gain"] < rank.MIN_REL_GAIN and steady["gain_over_noise"] < rank.FLOOR_GAIN
+    assert steady["relative_gain"] < rank.MIN_REL_GAIN and steady["gain_over_noise"] < 0.25
     assert steady["relative_gain"] >= rank.STEADY_REL_GAIN and steady["blocks_improved"] == 1.0
     assert steady["significant"]
     # the same mean squares, better on the first half and worse on the second (clean #326's
