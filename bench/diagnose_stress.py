@@ -227,7 +227,7 @@ FIT_SIGNATURE_SHARE = 0.1
 # what each row keeps of every tested candidate (to study the decision rule offline)
 CANDIDATE_KEYS = ("id", "significant", "explained", "gain_over_noise", "relative_gain", "blocks_improved", "dbic", "held_out_nrmse",
                   "compared_with_held_out_nrmse", "baseline_terms_dropped", "implausible", "failed",
-                  "detection_limit")
+                  "detection_limit", "started_from", "compared_with_nested_null", "before_nested_null", "jointly_with", "alone")
 
 
 def run_one(i: int) -> dict:

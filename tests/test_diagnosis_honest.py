@@ -514,6 +514,36 @@ def test_a_candidate_whose_term_does_nothing_gets_no_credit_for_where_its_fit_en
     assert not rank.score(nn, fr, 1, noise)["significant"]
 
 
+def test_a_candidate_keeps_its_score_from_before_its_nested_null(monkeypatch):
+    # the score that made a nested null be fitted decides whether that null exists (and so what every
+    # candidate is scored against again): kept in the entry, so a change of the rule can be judged on
+    # stored rows. A real offset, with a nested null that is the truth itself (better than the
+    # reference): the candidate is significant before and not after
+    from independent_run import model_of, to_run, true_model
+    from recon.diagnosis import diagnose as D
+    from recon.testing import independent as ind
+
+    system = ind.random_system(np.random.default_rng(3), hysteresis=False, quadratic=False, cubic=False)
+    rec = ind.add_noise(ind.simulate(system, "paper", 2000.0, "offset", 1.0, seed=3), 60.0, 3)
+    run = to_run(rec)
+    truth, _ = true_model(rec)
+    asked = []
+
+    def truth_as_nested_null(fr, keys, free, cid, ref_model, data, max_nfev):
+        asked.append(cid)
+        return rank.fit(truth, [], data)
+
+    monkeypatch.setattr(D, "nested_null", truth_as_nested_null)
+    dg = D.diagnose(run, baseline=model_of(ind.truth_per_unit_mass(system)), candidates=["offset"])
+    c = dg.candidates[0]
+    assert asked == ["offset"]
+    assert c["compared_with_nested_null"] and not c["significant"]
+    first = c["before_nested_null"]
+    assert first["significant"] and first["explained"] > 0.99 and first["blocks_improved"] == 1.0
+    assert set(first) == set(D.SCORE_KEYS)
+    assert "before_nested_null" in dg.to_dict()["candidates_tested"][0]
+
+
 @pytest.mark.slow
 def test_friction_fits_its_smoothing_velocity_where_a_small_stage_moves_in_pre_sliding():
     # independent sweeps whose small stage moves at about the generator's v_eps: there the friction acts

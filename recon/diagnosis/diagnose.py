@@ -381,6 +381,10 @@ def prune_absorbed(fr: rank.FitResult, keys: list, sc: dict, b: dict, free: list
     return best, best_free, best_drop, against
 
 
+# the figures of rank.score a candidate's entry keeps from its score before a nested null replaced
+# its reference (entry "before_nested_null")
+SCORE_KEYS = ("significant", "explained", "gain_over_noise", "relative_gain", "blocks_improved", "dbic")
+
 # numerical failures of one candidate's fit or simulation: recorded, never raised
 CANDIDATE_FAILURES = (ArithmeticError, ValueError, np.linalg.LinAlgError)
 
@@ -904,11 +908,15 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             else:
                 fr, free, drop, against = prune_absorbed(fr, keys, sc, b, free, ref, data, max_nfev, pruned_refs)
             sc_ = rank.score(against, fr, len(keys), noise_mse)
+            before_nested = None
             if sc_["significant"]:
                 nn = nested_null(fr, keys, free, cid, ref.model, data, max_nfev)
                 if nn is not None:
                     nulls.append(nn)
                     if nn.mse_held < against.mse_held:
+                        # the score that made the nested null be fitted, kept so that a change of the
+                        # rule can be judged on stored rows (it decides whether this null exists)
+                        before_nested = {k: sc_[k] for k in SCORE_KEYS if k in sc_}
                         against = nn
                         sc_ = rank.score(against, fr, len(keys), noise_mse)
         except CANDIDATE_FAILURES as exc:
@@ -922,6 +930,8 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
         entry["compared_with_held_out_nrmse"] = against.nrmse_held
         if any(against is n for n in nulls):
             entry["compared_with_nested_null"] = True
+        if before_nested is not None:
+            entry["before_nested_null"] = before_nested
         references[cid] = (against, len(keys))
         if drop:
             entry["baseline_terms_dropped"] = list(drop)
