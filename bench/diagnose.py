@@ -62,6 +62,9 @@ def main(argv=None) -> int:
                     help="--stress: put the truth of each saved row's recording (generated again) to the "
                          "diagnosis's rule against that row's reference (a row's own oracle, counted on its "
                          "held-out pieces, is kept), and add the effect's signature; rows to --jsonl")
+    ap.add_argument("--rescore", nargs="+", default=None, metavar="JSONL",
+                    help="--stress: put the diagnosis's current rule to the stored candidate figures of these "
+                         "rows and list the verdicts that change and the rows to run again (no diagnosis run)")
     ap.add_argument("--rows", nargs="+", type=int, default=None, metavar="I",
                     help="--stress: these recording indices (instead of --first/--n)")
     args = ap.parse_args(argv)

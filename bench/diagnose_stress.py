@@ -447,6 +447,48 @@ def load_rows(paths: list[str]) -> list[dict]:
     return [rows[i] for i in sorted(rows)]
 
 
+def rescore(rows: list[dict]) -> list[str]:
+    """The diagnosis's current rule (rank.passes) put to the stored figures of every candidate of
+    ``rows``: the verdicts that change, and the rows that must be run again to know their new answer.
+    A candidate refused as implausible stays refused. A row with a changed verdict may answer
+    differently beyond that verdict: a significant candidate gets a nested null, and a pair is tried
+    only when none is significant alone. A candidate whose score from before its nested null is
+    stored (``before_nested_null``, since 2026-12-02) is judged on that too; rows from before then
+    cannot show such a change."""
+    changed, rerun, judged, unknown = [], [], 0, 0
+    for r in rows:
+        if r.get("status") != "ok":
+            continue
+        flips = []
+        for c in r.get("candidates", []):
+            if "dbic" not in c:
+                continue
+            judged += 1
+            for label, fig in (("", c), (" before its nested null", c.get("before_nested_null"))):
+                if not fig:
+                    continue
+                now = (rank.passes(fig["dbic"], fig["explained"], fig["gain_over_noise"], fig["relative_gain"],
+                                   fig.get("blocks_improved")) and not c.get("implausible"))
+                if now != bool(fig["significant"]) and not (label == "" and c.get("implausible")):
+                    flips.append(f"{c['id']}{label} {'now significant' if now else 'no longer significant'} "
+                                 f"(explained {fig['explained']:.3f}, gain {fig['gain_over_noise']:.3g} noise "
+                                 f"variances, {fig['relative_gain']:.1%}, pieces {fig.get('blocks_improved')})")
+            if c.get("compared_with_nested_null") and not c.get("before_nested_null"):
+                unknown += 1
+        if flips:
+            rerun.append(r["index"])
+            changed += [f"  #{r['index']} {r['effect']} ({r['protocol']}, first {r.get('first')}): {f}" for f in flips]
+    out = [f"the current rule on {judged} stored candidates of {len(rows)} rows: "
+           f"{len(changed)} verdict(s) change, on {len(rerun)} row(s)"]
+    out += changed
+    if rerun:
+        out.append("run again (--rows): " + " ".join(str(i) for i in rerun))
+    if unknown:
+        out.append(f"{unknown} candidate(s) scored against a nested null without their earlier score stored "
+                   "(rows from before 2026-12-02): a change there shows only in a rerun")
+    return out
+
+
 def oracle_of_stored(row: dict) -> dict:
     """``row`` (a stored row) with its oracle, the recording generated again from its index. A row
     whose recording no longer comes out the same (another sample count: the generator's protocol
@@ -498,6 +540,12 @@ def main(args) -> int:
         if pool:
             pool.close()
         print("\n".join(report(done)))
+        return 0
+    if getattr(args, "rescore", None):
+        rows = load_rows(args.rescore)
+        if not rows:
+            raise SystemExit(f"--rescore: no rows in {', '.join(args.rescore)}")
+        print("\n".join(rescore(rows)))
         return 0
     if getattr(args, "from_jsonl", None):
         rows = load_rows(args.from_jsonl)

@@ -229,6 +229,42 @@ def test_stress_report_says_which_misses_the_fitting_samples_do_not_show():
             "(#2 contact_stiffness: none)") in "\n".join(report(rows))
 
 
+def test_rescore_lists_the_verdicts_the_current_rule_changes_and_the_rows_to_run_again(tmp_path):
+    # clean stress #1002's higher mode passed by a floor tier (95 % of a small excess, 0.28 noise
+    # variances, 8 of 10 pieces) removed on 2026-12-02; a steady candidate and an implausible one keep
+    # their verdicts; a score from before a nested null is judged too
+    import json
+
+    from diagnose_stress import rescore
+
+    def cand(cid, sig, explained, gain, rel, blocks, **kw):
+        return {"id": cid, "significant": sig, "explained": explained, "gain_over_noise": gain,
+                "relative_gain": rel, "blocks_improved": blocks, "dbic": -20.0, **kw}
+
+    rows = [{"index": 1002, "status": "ok", "effect": "none", "protocol": "rig", "first": "higher_mode",
+             "candidates": [cand("higher_mode", True, 0.95, 0.278, 0.114, 0.8),
+                            cand("quadratic_damping", True, 0.5, 0.2, 0.05, 1.0),
+                            cand("offset", False, 0.99, 5.0, 0.5, 1.0, implausible=["interval holds 0"])]},
+            {"index": 7, "status": "ok", "effect": "offset", "protocol": "paper", "first": "offset",
+             "candidates": [cand("offset", False, 0.9, 0.5, 0.2, 0.8, compared_with_nested_null=True,
+                                 before_nested_null={"significant": True, "explained": 0.95, "gain_over_noise": 0.3,
+                                                     "relative_gain": 0.12, "blocks_improved": 0.7,
+                                                     "dbic": -30.0})]},
+            {"index": 8, "status": "failed", "effect": "none"}]
+    path = tmp_path / "rows.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    text = "\n".join(rescore(rows))
+    assert text.startswith("the current rule on 4 stored candidates of 3 rows: 2 verdict(s) change, on 2 row(s)")
+    assert "#1002 none (rig, first higher_mode): higher_mode no longer significant (explained 0.950" in text
+    assert "#7 offset (paper, first offset): offset before its nested null no longer significant" in text
+    assert "quadratic_damping" not in text and "run again (--rows): 1002 7" in text
+    # through the command line, from the file
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "diagnose.py"), "--stress", "--rescore", str(path)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "run again (--rows): 7 1002" in out.stdout
+
+
 @pytest.mark.slow
 def test_effect_signature_sees_a_contact_the_fitting_samples_never_reach():
     # stress #1061 (a contact on the rig protocol): the nonlinear stage's fitting part reaches 1.48 mm
