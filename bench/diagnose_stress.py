@@ -467,9 +467,11 @@ def rescore(rows: list[dict]) -> list[str]:
             for label, fig in (("", c), (" before its nested null", c.get("before_nested_null"))):
                 if not fig:
                     continue
+                # an implausible candidate is refused after its score (its nested null, fitted on
+                # the score alone, is judged without that)
                 now = (rank.passes(fig["dbic"], fig["explained"], fig["gain_over_noise"], fig["relative_gain"],
-                                   fig.get("blocks_improved")) and not c.get("implausible"))
-                if now != bool(fig["significant"]) and not (label == "" and c.get("implausible")):
+                                   fig.get("blocks_improved")) and (bool(label) or not c.get("implausible")))
+                if now != bool(fig["significant"]):
                     flips.append(f"{c['id']}{label} {'now significant' if now else 'no longer significant'} "
                                  f"(explained {fig['explained']:.3f}, gain {fig['gain_over_noise']:.3g} noise "
                                  f"variances, {fig['relative_gain']:.1%}, pieces {fig.get('blocks_improved')})")

@@ -250,11 +250,18 @@ def test_rescore_lists_the_verdicts_the_current_rule_changes_and_the_rows_to_run
                                  before_nested_null={"significant": True, "explained": 0.95, "gain_over_noise": 0.3,
                                                      "relative_gain": 0.12, "blocks_improved": 0.7,
                                                      "dbic": -30.0})]},
+            {"index": 9, "status": "ok", "effect": "none", "protocol": "sweep", "first": "none",
+             "candidates": [cand("offset", False, 0.99, 5.0, 0.5, 1.0, implausible=["interval holds 0"],
+                                 compared_with_nested_null=True,
+                                 before_nested_null={"significant": True, "explained": 0.99, "gain_over_noise": 5.0,
+                                                     "relative_gain": 0.5, "blocks_improved": 1.0,
+                                                     "dbic": -30.0})]},
             {"index": 8, "status": "failed", "effect": "none"}]
     path = tmp_path / "rows.jsonl"
     path.write_text("".join(json.dumps(r) + "\n" for r in rows))
     text = "\n".join(rescore(rows))
-    assert text.startswith("the current rule on 4 stored candidates of 3 rows: 2 verdict(s) change, on 2 row(s)")
+    # (#9: a score before a nested null is judged without the candidate's later refusal)
+    assert text.startswith("the current rule on 5 stored candidates of 4 rows: 2 verdict(s) change, on 2 row(s)")
     assert "#1002 none (rig, first higher_mode): higher_mode no longer significant (explained 0.950" in text
     assert "#7 offset (paper, first offset): offset before its nested null no longer significant" in text
     assert "quadratic_damping" not in text and "run again (--rows): 1002 7" in text
