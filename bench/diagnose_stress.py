@@ -355,7 +355,7 @@ def report(rows: list[dict]) -> list[str]:
     if judged:
         # the rule applied now to the oracle's stored figures, so that rows diagnosed under an older
         # rule are judged by the current one (the figures themselves do not depend on the rule)
-        shows = [r for r in judged if _oracle_passes(r["oracle"])]
+        shows = [r for r in judged if _passes_now(r["oracle"])]
         hidden = [r for r in judged if r not in shows]
         out.append(f"the truth itself put to the rule (oracle), on {len(judged)} effect recordings: it passes on "
                    f"{len(shows)}; right first on those {sum(r.get('right', False) for r in shows)}/{len(shows)}"
@@ -428,8 +428,9 @@ def report(rows: list[dict]) -> list[str]:
     return out
 
 
-def _oracle_passes(o: dict) -> bool:
-    """The current significance rule on an oracle's stored held-out figures."""
+def _passes_now(o: dict) -> bool:
+    """The current significance rule on stored held-out figures (an oracle's, a candidate's); the
+    stored verdict where a figure is missing."""
     if not all(k in o for k in ("dbic", "explained", "gain_over_noise", "relative_gain")):
         return bool(o.get("significant"))
     return rank.passes(o["dbic"], o["explained"], o["gain_over_noise"], o["relative_gain"], o.get("blocks_improved"))
@@ -469,8 +470,7 @@ def rescore(rows: list[dict]) -> list[str]:
                     continue
                 # an implausible candidate is refused after its score (its nested null, fitted on
                 # the score alone, is judged without that)
-                now = (rank.passes(fig["dbic"], fig["explained"], fig["gain_over_noise"], fig["relative_gain"],
-                                   fig.get("blocks_improved")) and (bool(label) or not c.get("implausible")))
+                now = _passes_now(fig) and (bool(label) or not c.get("implausible"))
                 if now != bool(fig["significant"]):
                     flips.append(f"{c['id']}{label} {'now significant' if now else 'no longer significant'} "
                                  f"(explained {fig['explained']:.3f}, gain {fig['gain_over_noise']:.3g} noise "
