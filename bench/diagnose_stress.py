@@ -440,11 +440,16 @@ def load_rows(paths: list[str]) -> list[dict]:
     """Rows saved by --jsonl, joined by recording index (a later file's row replaces an earlier one)."""
     rows = {}
     for p in paths:
-        with open(p) as f:
-            for line in f:
-                if line.strip():
-                    r = json.loads(line)
-                    rows[r["index"]] = r
+        try:
+            with open(p) as f:
+                for n, line in enumerate(f, 1):
+                    if line.strip():
+                        r = json.loads(line)
+                        rows[r["index"]] = r
+        except OSError as exc:
+            raise SystemExit(f"{p}: cannot read it ({exc.strerror})")
+        except (json.JSONDecodeError, KeyError, TypeError) as exc:
+            raise SystemExit(f"{p}, line {n}: not a row saved by --jsonl ({type(exc).__name__}: {exc})")
     return [rows[i] for i in sorted(rows)]
 
 

@@ -270,6 +270,13 @@ def test_rescore_lists_the_verdicts_the_current_rule_changes_and_the_rows_to_run
                          capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "run again (--rows): 7 1002" in out.stdout
+    # a file that is not saved rows, or is not there: an error that names it, no traceback
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text(path.read_text() + "{not json\n")
+    for arg, said in ((bad, f"{bad}, line 5: not a row saved by --jsonl"), (tmp_path / "none.jsonl", "cannot read it")):
+        out = subprocess.run([sys.executable, str(ROOT / "bench" / "diagnose.py"), "--stress", "--rescore", str(arg)],
+                             capture_output=True, text=True, cwd=ROOT, timeout=120)
+        assert out.returncode == 1 and said in out.stderr and "Traceback" not in out.stderr, out.stderr
 
 
 @pytest.mark.slow
