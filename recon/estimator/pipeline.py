@@ -25,8 +25,9 @@ from recon.estimator.result import ReconResult, ReconSettings
 from recon.estimator.weak_form import reconstruct_weak
 from recon.model import HystereticModel
 from recon.output_error.polish import polish
+from recon.output_error.problem import parameter_keys
 from recon.output_error.term_selection import select_terms, stage_data
-from recon.steps.bouc_wen import NEGLIGIBLE, term_contributions
+from recon.steps.bouc_wen import NEGLIGIBLE, hysteretic_share, term_contributions
 from recon.steps.linear import LinearFit
 from shakerlab.errors import EstimateRefused, UserFacingError
 from shakerlab.run_data import FORCE, Run
@@ -289,6 +290,8 @@ def _revise_model_terms(result: ReconResult, run: Run, s: ReconSettings, validat
         if info["applied"]:
             model, pinfo = polish(model, [data], max_nfev=30)
             info["final_polish"] = pinfo
+            if not admissible(model):
+                model = _without_vanished_hysteresis(model, data, info)
             model.provenance = dict(result.model.provenance)
             model.provenance["term_selection"] = info
             if admissible(model):
@@ -317,6 +320,34 @@ def _revise_model_terms(result: ReconResult, run: Run, s: ReconSettings, validat
             result.validation = validate(result.model, run)
         result.timings["validation"] = time.perf_counter() - t2
     return result
+
+
+def _without_vanished_hysteresis(model: HystereticModel, data: tuple, info: dict) -> HystereticModel:
+    """``model`` without its Bouc-Wen law, polished on ``data``, when the law's force has vanished
+    (rms z below NEGLIGIBLE of the elastic force on the stage) and only it made ``model``
+    inadmissible; else ``model`` as it is. ``info`` (the term selection's) gets the figures.
+
+    A law the equation-error step put in for a term it missed can fall to nothing once the term
+    selection adds that term, with an alpha of either sign: stress #1092 (a clean rig record of a
+    system with y^2 and no hysteresis) went from alpha 82446 beside a y'^2 to y^2 -3.679e6 (the
+    truth's -3.676e6), k 111953 (111784) and alpha -168, a z of 0.15 % of the elastic force. That
+    model was inadmissible for its alpha alone, so the revision was thrown away and the diagnosis
+    later named the y^2 the baseline lacked."""
+    share = hysteretic_share(model, data[0], data[1])
+    record = {"hysteretic_share": share, "threshold": NEGLIGIBLE, "applied": False}
+    info["vanished_hysteresis"] = record
+    if not share < NEGLIGIBLE:
+        return model
+    trial = HystereticModel.from_dict(model.to_dict())
+    trial.k_m = model.K_m
+    trial.alpha_m = trial.gamma = trial.delta = 0.0
+    free = [k for k in parameter_keys(trial) if k not in ("alpha_m", "gamma", "delta")]
+    trial, pinfo = polish(trial, [data], max_nfev=30, free=free)
+    record["polish"] = pinfo
+    if not admissible(trial):
+        return model
+    record["applied"] = True
+    return trial
 
 
 def _reconstruct(run: Run, s: ReconSettings, validate_model: bool = True) -> ReconResult:

@@ -18,6 +18,7 @@
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -202,6 +203,17 @@ def term_contributions(fn: dict, K: float, y, dy) -> dict:
         p, r = monomials.parse(name)
         out[name] = float(np.sqrt(np.mean((a * phi(y, dy, p, r)) ** 2))) / ref
     return out
+
+
+def hysteretic_share(model, t, u) -> float:
+    """rms of ``model``'s hysteretic force z over the rms of its elastic force K y, simulated from
+    rest on the input ``u`` (0 for a model without hysteresis; inf when the simulation is not finite)."""
+    if model.alpha_m == 0.0 and model.gamma == 0.0 and model.delta == 0.0:
+        return 0.0
+    y, _, z = model.simulate(t, u)
+    ref = float(np.sqrt(np.mean((model.K_m * y) ** 2)))
+    share = float(np.sqrt(np.mean(z ** 2))) / ref if ref > 0 else math.inf
+    return share if math.isfinite(share) else math.inf
 
 
 def fn_values(fn: dict, y, dy):
