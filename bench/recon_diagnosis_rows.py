@@ -2,7 +2,7 @@
 diagnosis-stress recordings I (bench/diagnose_stress.py draws them from the index alone), as
 `shakerlab diagnose` reconstructs its paper baseline; one JSON row per recording (verdict, validation
 NRMSE, noise floor, the fallback used, the fitted input offset and, for an offset record, the true
-one), then a table. Run it on two checkouts to compare reconstruct versions on the same records
+one, and whether the term revision dropped a vanished Bouc-Wen law), then a table. Run it on two checkouts to compare reconstruct versions on the same records
 (docs/diagnosis.md, 2026-11-28c: the offset rows)."""
 from __future__ import annotations
 
@@ -36,6 +36,8 @@ def row(i: int) -> dict:
     return {**out, "verdict": res.adequacy["verdict"], "validation_nrmse": res.adequacy["validation_nrmse"],
             "noise_floor_nrmse": res.adequacy.get("noise_floor_nrmse"),
             "simpler_model": m.provenance.get("simpler_model"), "input_offset": m.input_offset,
+            # reconstruct's term revision dropped a Bouc-Wen law that had vanished (2026-12-03)
+            "vanished_hysteresis": (m.provenance.get("term_selection") or {}).get("vanished_hysteresis"),
             "equation": m.equation()}
 
 
@@ -64,6 +66,9 @@ def main(argv: list[str]) -> int:
               f"{str(r['simpler_model'] or '-'):>22} {f(r['input_offset']):>9} {f(r.get('b_true')):>9}")
     ok = sum(r.get("verdict") == "adequate" for r in rows)
     print(f"adequate: {ok} of {len(rows)}")
+    dropped = [r["index"] for r in rows if (r.get("vanished_hysteresis") or {}).get("applied")]
+    print(f"a vanished Bouc-Wen law dropped by the term revision: {len(dropped)} of {len(rows)}"
+          + (f" (#{', #'.join(map(str, dropped))})" if dropped else ""))
     return 0
 
 
