@@ -75,10 +75,14 @@ class SimplerFit:
     held_out_nrmse: float
     fitted_nrmse: float
     failed: str | None = None
+    # the simulation's NRMSE on the nonlinear stage alone, where a caller compares it with a full model's
+    nonlinear_stage_nrmse: float | None = None
 
     def to_dict(self) -> dict:
         d = {"kind": self.kind, "held_out_nrmse": self.held_out_nrmse, "fitted_nrmse": self.fitted_nrmse,
              "admissible": bool(self.model is not None and admissible(self.model))}
+        if self.nonlinear_stage_nrmse is not None:
+            d["nonlinear_stage_nrmse"] = self.nonlinear_stage_nrmse
         if self.model is not None:
             d["equation"] = self.model.equation()
         if self.failed:

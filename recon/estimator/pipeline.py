@@ -143,6 +143,12 @@ def _conclude(result: ReconResult, run: Run, s: ReconSettings, validate_model: b
 # an admissible full model that is inadequate gives way to a simpler model whose held-out NRMSE is
 # at most this share of its own
 SIMPLER_GAIN = 0.5
+# ... and that fits the nonlinear stage at most this many times worse than the full model does: a
+# validation stage at a small amplitude does not judge the terms that act at the nonlinear stage's
+# (stress #1018, rig protocol, validation 0.37 mm against the nonlinear stage's 1.8 mm: an elastic
+# model with a softening y^3 predicted the validation at 0.009 against the full model's 0.039, fitted
+# the nonlinear stage at 0.070 against 0.008, and on the stage's held-out end left the record, 1.47)
+SIMPLER_FIT_SLACK = 2.0
 
 
 def _prefer_simpler(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool,
@@ -153,7 +159,11 @@ def _prefer_simpler(result: ReconResult, run: Run, s: ReconSettings, validate_mo
     estimator's structure can be wrong without being inadmissible: on an independent record of a
     system without hysteresis (diagnosis stress #26: y^2, y^3, a sweep through resonance) the
     estimate carried a Bouc-Wen law and validated at 0.18, while the simpler models' output-error
-    fit reached 0.0036, the noise floor. Needs a validation stage (the held-out data decide)."""
+    fit reached 0.0036, the noise floor. Needs a validation stage (the held-out data decide).
+
+    Only simpler models that fit the nonlinear stage within SIMPLER_FIT_SLACK of the full model's
+    error take part: a validation stage at a fraction of the nonlinear stage's amplitude (the rig
+    protocol's) does not judge the terms that act at the larger one."""
     names, held = held_out_stages(run, (s.linear_stage, s.nonlinear_stage))
     first = _finish(result, run, failures)
     if not (validate_model and held and first.adequacy["verdict"] != "adequate"):
@@ -167,9 +177,16 @@ def _prefer_simpler(result: ReconResult, run: Run, s: ReconSettings, validate_mo
     except NUMERICAL_ERRORS as e:
         first.hysteresis_info["simpler_models_failed"] = f"{type(e).__name__}: {e}"
         return first
-    good = [f for f in fits if f.model is not None and np.isfinite(f.held_out_nrmse)]
+    nonlinear = [s.nonlinear_stage] if s.nonlinear_stage in run.stages else []
+    full_nl = score(result.model, run, nonlinear) if nonlinear else float("nan")
+    for f in fits:
+        if f.model is not None and nonlinear:
+            f.nonlinear_stage_nrmse = score(f.model, run, nonlinear)
+    good = [f for f in fits if f.model is not None and np.isfinite(f.held_out_nrmse)
+            and (not math.isfinite(full_nl) or f.nonlinear_stage_nrmse <= SIMPLER_FIT_SLACK * full_nl)]
     best = min(good, key=lambda f: f.held_out_nrmse) if good else None
     compared = {"full_model_held_out_nrmse": full, "gain_needed": SIMPLER_GAIN,
+                "full_model_nonlinear_stage_nrmse": full_nl, "fit_slack": SIMPLER_FIT_SLACK,
                 "candidates": [f.to_dict() for f in fits]}
     if best is None or not best.held_out_nrmse < SIMPLER_GAIN * full:
         first.adequacy["simpler_models_compared"] = compared
@@ -178,6 +195,7 @@ def _prefer_simpler(result: ReconResult, run: Run, s: ReconSettings, validate_mo
                 "chosen_by": "held-out NRMSE on " + ", ".join(names)
                 + f": {best.held_out_nrmse:.3g} against {full:.3g} for the inadequate full model",
                 "candidates": compared["candidates"], "full_model_held_out_nrmse": full,
+                "full_model_nonlinear_stage_nrmse": full_nl,
                 "replaced_estimate": result.model.to_dict()["parameters"],
                 "inadmissible_estimate": None, "failed_passes": dict(failures)}
     result.hysteresis_info["replaced_estimate"] = fallback["replaced_estimate"]
