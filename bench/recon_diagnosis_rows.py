@@ -6,7 +6,6 @@ one, and whether the term revision dropped a vanished Bouc-Wen law), then a tabl
 (docs/diagnosis.md, 2026-11-28c: the offset rows)."""
 from __future__ import annotations
 
-import json
 import sys
 import warnings
 from pathlib import Path
@@ -14,6 +13,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from diagnose_stress import draw, recording  # noqa: E402
+from row_scan import scan_rows  # noqa: E402
 from independent_run import to_run  # noqa: E402
 
 from recon import reconstruct  # noqa: E402
@@ -42,20 +42,7 @@ def row(i: int) -> dict:
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) < 2:
-        raise SystemExit(__doc__)
-    path = Path(argv[0])
-    try:
-        out = path.open("x")
-    except FileExistsError:
-        raise SystemExit(f"{path} exists; name a new file (saved rows are never overwritten)")
-    rows = []
-    with out:
-        for i in (int(a) for a in argv[1:]):
-            r = row(i)
-            rows.append(r)
-            out.write(json.dumps(r, default=float) + "\n")
-            out.flush()
+    rows = scan_rows(argv, __doc__, row)
     print(f"{'#':>5} {'verdict':>11} {'val NRMSE':>10} {'floor':>8} {'fallback':>22} {'b':>9} {'b true':>9}")
     for r in rows:
         if "error" in r:

@@ -12,7 +12,6 @@ rule takes no simpler model is unchanged. Rows whose baseline is the truth witho
 reconstructed (skipped)."""
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
@@ -25,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from diagnose_stress import draw, recording  # noqa: E402
 from independent_run import to_run  # noqa: E402
+from row_scan import scan_rows  # noqa: E402
 
 from recon.diagnosis import rank  # noqa: E402
 from recon.estimator.fallback import score  # noqa: E402
@@ -76,26 +76,16 @@ def row(i: int) -> dict:
     return out
 
 
+def describe(r: dict) -> str:
+    fp = r.get("fitting_part") or {}
+    whole = r.get("whole_run")
+    return (r.get("error") or r.get("skipped")
+            or f"{fp.get('trigger')}: taken {fp.get('taken')}, held-out alone {fp.get('held_out_alone')}"
+            + (f" (whole run: {whole['taken']} / {whole['held_out_alone']})" if whole else ""))
+
+
 def main(argv: list[str]) -> int:
-    if len(argv) < 2:
-        raise SystemExit(__doc__)
-    path = Path(argv[0])
-    try:
-        f = path.open("x")
-    except FileExistsError:
-        raise SystemExit(f"{path} exists; name a new file (saved rows are never overwritten)")
-    rows = []
-    with f:
-        for i in (int(a) for a in argv[1:]):
-            r = row(i)
-            rows.append(r)
-            f.write(json.dumps(r, default=float) + "\n")
-            f.flush()
-            fp = r.get("fitting_part") or {}
-            print(f"#{i}: " + (r.get("error") or r.get("skipped")
-                               or f"{fp.get('trigger')}: taken {fp.get('taken')}, held-out alone "
-                                  f"{fp.get('held_out_alone')}" + (" (whole run: {taken} / {held_out_alone})".format(
-                                      **r["whole_run"]) if "whole_run" in r else "")), flush=True)
+    rows = scan_rows(argv, __doc__, row, describe)
     changed = [r["index"] for r in rows if r.get("changed")]
     print(f"the choice differs from the held-out rule alone on {len(changed)} of {len(rows)} rows"
           + (f" (#{', #'.join(map(str, changed))})" if changed else ""))

@@ -10,7 +10,6 @@ fallback replaces the model's provenance, which bench/recon_diagnosis_rows.py re
 baseline is the truth without a term are not reconstructed (skipped)."""
 from __future__ import annotations
 
-import json
 import sys
 import time
 import warnings
@@ -21,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import recon.estimator.pipeline as pipeline  # noqa: E402
 from diagnose_stress import draw, recording  # noqa: E402
 from independent_run import to_run  # noqa: E402
+from row_scan import scan_rows  # noqa: E402
 from recon.diagnosis import rank  # noqa: E402
 
 
@@ -57,22 +57,8 @@ def row(i: int) -> dict:
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) < 2:
-        raise SystemExit(__doc__)
-    path = Path(argv[0])
-    try:
-        f = path.open("x")
-    except FileExistsError:
-        raise SystemExit(f"{path} exists; name a new file (saved rows are never overwritten)")
-    rows = []
-    with f:
-        for i in (int(a) for a in argv[1:]):
-            r = row(i)
-            rows.append(r)
-            f.write(json.dumps(r, default=float) + "\n")
-            f.flush()
-            print(f"#{i}: " + (r.get("error") or r.get("skipped")
-                               or f"step reached {len(r['calls'])}x, applied {r['applied']}"), flush=True)
+    rows = scan_rows(argv, __doc__, row, lambda r: r.get("error") or r.get("skipped")
+                     or f"step reached {len(r['calls'])}x, applied {r['applied']}")
     applied = [r["index"] for r in rows if r.get("applied")]
     reached = [r["index"] for r in rows if r.get("calls")]
     print(f"step reached on {len(reached)} of {len(rows)} rows, applied on {len(applied)}"
