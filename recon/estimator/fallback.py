@@ -75,7 +75,7 @@ class SimplerFit:
     held_out_nrmse: float
     fitted_nrmse: float
     failed: str | None = None
-    # the simulation's NRMSE on the nonlinear stage alone, where a caller compares it with a full model's
+    # the simulation's NRMSE on the nonlinear stage alone (None when it was not fitted)
     nonlinear_stage_nrmse: float | None = None
 
     def to_dict(self) -> dict:
@@ -212,9 +212,13 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
             if not admissible(m):
                 tried.append(SimplerFit(kind, m, float("inf"), float("inf"), "the fitted model is not admissible"))
                 continue
-            fit_err = score(m, run, list(fitted))
+            # each fitted stage simulated once: their mean is the fit's figure, the nonlinear stage's
+            # own is what an inadequate full model is compared on (pipeline._prefer_simpler)
+            per_stage = {n: score(m, run, [n]) for n in fitted}
+            fit_err = float(np.mean(list(per_stage.values()))) if per_stage else float("inf")
             tried.append(SimplerFit(kind, m, score(m, run, names), fit_err,
-                                    None if math.isfinite(fit_err) else "its simulation diverges"))
+                                    None if math.isfinite(fit_err) else "its simulation diverges",
+                                    per_stage.get(settings.nonlinear_stage)))
         # of several starts, the one that fits the fitted stages best (the held-out stages choose the kind)
         out.append(min(tried, key=lambda f: (f.failed is not None, f.fitted_nrmse)))
     return out

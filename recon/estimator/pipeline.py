@@ -177,11 +177,8 @@ def _prefer_simpler(result: ReconResult, run: Run, s: ReconSettings, validate_mo
     except NUMERICAL_ERRORS as e:
         first.hysteresis_info["simpler_models_failed"] = f"{type(e).__name__}: {e}"
         return first
-    nonlinear = [s.nonlinear_stage] if s.nonlinear_stage in run.stages else []
-    full_nl = score(result.model, run, nonlinear) if nonlinear else float("nan")
-    for f in fits:
-        if f.model is not None and nonlinear:
-            f.nonlinear_stage_nrmse = score(f.model, run, nonlinear)
+    # each simpler fit carries its own nonlinear-stage figure (fallback.simpler_models)
+    full_nl = score(result.model, run, [s.nonlinear_stage]) if s.nonlinear_stage in run.stages else float("nan")
     good = [f for f in fits if f.model is not None and np.isfinite(f.held_out_nrmse)
             and (not math.isfinite(full_nl) or f.nonlinear_stage_nrmse <= SIMPLER_FIT_SLACK * full_nl)]
     best = min(good, key=lambda f: f.held_out_nrmse) if good else None
