@@ -285,7 +285,6 @@ def test_an_inadequate_full_model_gives_way_to_a_simpler_one_that_predicts_bette
     from recon.estimator.finish import validate
     from recon.estimator.pipeline import _prefer_simpler
     from recon.estimator.result import ReconResult
-    from recon.steps.linear import LinearFit
 
     run, truth = _no_hysteresis_record()
     # admissible, but with a spurious hysteresis in place of the stiffness terms
@@ -293,10 +292,7 @@ def test_an_inadequate_full_model_gives_way_to_a_simpler_one_that_predicts_bette
                             gamma=300.0, delta=200.0)
     assert admissible(wrong)
     s = ReconSettings()
-    result = ReconResult(model=wrong, linear=LinearFit(wrong.c_m, wrong.K_m, None, float("nan"), [], float("nan"),
-                                                       float("nan")),
-                         sparse={"threshold": None, "n_terms": 0}, library_names=[], library_coef=[],
-                         hysteresis_info={}, differentiation={}, validation=validate(wrong, run), settings=s)
+    result = ReconResult.of_model(wrong, validate(wrong, run), s)
     before = result.validation["nrmse"]
     out = _prefer_simpler(result, run, s, True, {})
     fb = out.adequacy["fallback"]

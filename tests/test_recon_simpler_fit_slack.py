@@ -23,7 +23,6 @@ from recon.estimator.finish import validate
 from recon.estimator.pipeline import SIMPLER_FIT_SLACK, SIMPLER_GAIN, _prefer_simpler
 from recon.estimator.result import ReconResult
 from recon.model import HystereticModel
-from recon.steps.linear import LinearFit
 from recon.testing import independent as ind
 from shakerlab.run_data import Run, Stage
 
@@ -67,10 +66,7 @@ def test_a_simpler_model_that_misses_the_nonlinear_stage_does_not_replace_the_fu
     full = HystereticModel("base", **FULL)
     assert admissible(full)
     s = ReconSettings()
-    result = ReconResult(model=full, linear=LinearFit(full.c_m, full.K_m, None, float("nan"), [], float("nan"),
-                                                      float("nan")),
-                         sparse={"threshold": None, "n_terms": 0}, library_names=[], library_coef=[],
-                         hysteresis_info={}, differentiation={}, validation=validate(full, run), settings=s)
+    result = ReconResult.of_model(full, validate(full, run), s)
     out = _prefer_simpler(result, run, s, True, {})
     assert out.adequacy["verdict"] == "inadequate"          # the delay: the full model is not adequate
     assert not (out.adequacy.get("fallback") or {}).get("used")

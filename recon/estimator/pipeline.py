@@ -28,7 +28,6 @@ from recon.output_error.polish import polish
 from recon.output_error.problem import parameter_keys
 from recon.output_error.term_selection import select_terms, stage_data
 from recon.steps.bouc_wen import NEGLIGIBLE, hysteretic_share, term_contributions
-from recon.steps.linear import LinearFit
 from shakerlab.errors import EstimateRefused, UserFacingError
 from shakerlab.run_data import FORCE, Run
 
@@ -237,10 +236,7 @@ def _adopt(result: ReconResult | None, best, fallback: dict, run: Run, s: ReconS
             best.model = two_stage_polish(best.model, run, s)
     val = validate(best.model, run) if validate_model else {"nrmse": float("nan"), "stage": None}
     if result is None:
-        result = ReconResult(model=best.model, linear=LinearFit(best.model.c_m, best.model.K_m, best.model.inv_m,
-                                                                float("nan"), [], float("nan"), float("nan")),
-                             sparse={"threshold": None, "n_terms": 0}, library_names=[], library_coef=[],
-                             hysteresis_info={}, differentiation={}, validation=val, settings=s)
+        result = ReconResult.of_model(best.model, val, s)
     result.model = best.model
     result.validation = val
     result.settings = s

@@ -82,6 +82,15 @@ class ReconResult:
     # the verdict on the model (recon.estimator.adequacy.assess): admissible, adequate, and why
     adequacy: dict = field(default_factory=dict)
 
+    @classmethod
+    def of_model(cls, model: HystereticModel, validation: dict, settings: ReconSettings) -> "ReconResult":
+        """A result that holds ``model`` alone, with no estimation steps behind it (a simpler model
+        fitted by output error): its linear part is the model's c and k, nothing was selected."""
+        nan = float("nan")
+        return cls(model=model, linear=LinearFit(model.c_m, model.K_m, model.inv_m, nan, [], nan, nan),
+                   sparse={"threshold": None, "n_terms": 0}, library_names=[], library_coef=[],
+                   hysteresis_info={}, differentiation={}, validation=validation, settings=settings)
+
     def to_dict(self) -> dict:
         params = self.model.to_dict()["parameters"]
         return {
