@@ -12,8 +12,9 @@ model; on the stage's held-out end it then left the record (NRMSE 1.47).
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
-import numpy as np
 import pytest
 
 from recon import ReconSettings
@@ -23,29 +24,21 @@ from recon.estimator.finish import validate
 from recon.estimator.pipeline import SIMPLER_FIT_SLACK, SIMPLER_GAIN, _prefer_simpler
 from recon.estimator.result import ReconResult
 from recon.model import HystereticModel
-from recon.testing import independent as ind
-from shakerlab.run_data import Run, Stage
+from shakerlab.run_data import Run
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))   # the independent generator's run helpers
 
 ROW = 1018
 
 
 def _stress_record(i: int) -> tuple[Run, dict]:
-    """Stress recording ``i`` (bench/diagnose_stress.draw and recording, restated) as a run."""
-    rng = np.random.default_rng([i, 13])
-    system = ind.random_system(rng, hysteresis=None)
-    protocol = str(rng.choice(ind.PROTOCOLS))
-    fs = float(np.round(math.exp(rng.uniform(math.log(1000.0), math.log(10000.0)))))
-    snr = float(np.round(rng.uniform(40.0, 80.0), 1))
-    quantisation = float(rng.uniform(0.2, 1.0)) if rng.random() < 0.5 else None
-    strength = float(rng.uniform(0.3, 1.5))
-    rec = ind.add_noise(ind.simulate(system, protocol, fs, "channel_delay", strength, seed=i), snr, i,
-                        quantisation)
-    stages = {}
-    for name, st in rec["stages"].items():
-        t = np.asarray(st["t"], float)
-        stages[name] = Stage(name, t - t[0], {c: np.asarray(st[c], float) for c in ("x_base", "x_tip")}, "base",
-                             settings={"source_t0": float(t[0]), "sampling_jitter": 0.0})
-    return Run(stages, source=f"independent:stress={i}"), {"protocol": protocol, "snr": snr, **rec}
+    """Stress recording ``i`` as the bench draws it (bench/diagnose_stress.py), as a run."""
+    from diagnose_stress import draw, recording
+    from independent_run import to_run
+
+    d = draw(i)
+    assert d["effect"] == "channel_delay"
+    return to_run(recording(d)), d
 
 
 @pytest.fixture(scope="module")
