@@ -11,9 +11,10 @@ model of the simplest kinds below that predicts the held-out stages best:
    at the nonlinear stage's amplitude);
 2. ``bouc_wen``: the Bouc-Wen law without fn terms, from the same starts;
 3. ``elastic``: no hysteresis; the TMP law's stiffness terms alone (c y' + k y + a2 y^2 +
-   a3 y^3, from the estimate's y^2, y^3 when plausible): a system without hysteresis whose
-   estimate was inadmissible (independent generator, diagnosis stress #39: y^2 only, answered
-   by the Bouc-Wen law with lambda Y = 0.006, a z that only adds stiffness);
+   a3 y^3, from the estimate's y^2, y^3 when plausible, and from zero; the better fit is kept):
+   a system without hysteresis whose estimate was inadmissible (independent generator, diagnosis
+   stress #39: y^2 only, answered by the Bouc-Wen law with lambda Y = 0.006, a z that only adds
+   stiffness);
 4. ``equivalent_linear``: no hysteresis; stiffness and damping that change with amplitude
    (c y' + k y + k3 y^3 + c3 y^2 y');
 5. ``linear``: c y' + k y.
@@ -77,6 +78,9 @@ class SimplerFit:
     failed: str | None = None
     # the simulation's NRMSE on the nonlinear stage alone (None when it was not fitted)
     nonlinear_stage_nrmse: float | None = None
+    # which of a kind's starts the fit came from, where it has more than one of a kind named
+    # (the elastic kind: "estimate", its y^2 and y^3 from the inadmissible estimate, or "zero")
+    start: str | None = None
 
     def to_dict(self) -> dict:
         d = {"kind": self.kind, "held_out_nrmse": self.held_out_nrmse, "fitted_nrmse": self.fitted_nrmse,
@@ -87,6 +91,8 @@ class SimplerFit:
             d["equation"] = self.model.equation()
         if self.failed:
             d["failed"] = self.failed
+        if self.start is not None:
+            d["start"] = self.start
         return d
 
 
@@ -188,7 +194,18 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
                     and abs(v) * amp ** sum(monomials.parse(k)) < 10 * k0 * amp})
     starts["bouc_wen"] = (bw_starts, keys_h)
     fn_keys = [f"fn:{k}" for k in few]
-    starts["elastic"] = (HystereticModel(**dict(base, fn_m=dict(few))), ["c_m", "k_m"] + extra + fn_keys)
+    # the elastic kind also starts from y^2 = y^3 = 0 when the estimate gave them a value: an
+    # estimate that is inadmissible has its terms biased by what it failed on, and from there the
+    # fit can stop in a local minimum (diagnosis stress #1175, y^2 and y^3 under sweeps with a
+    # second mode at 2.8 f_n: from the estimate's y^2 -2.5e7 and y^3 8.2e10 the fit ended at
+    # -4.6e7 and 9.8e10, fitted NRMSE 0.35; from zero at -2.1e7 and 5.1e10, 0.032, against the
+    # truth's -2.3e7 and 5.8e10)
+    elastic = [HystereticModel(**dict(base, fn_m=dict(few)))]
+    elastic_starts = ["estimate" if any(v != 0.0 for v in few.values()) else "zero"]
+    if elastic_starts[0] == "estimate":
+        elastic.append(HystereticModel(**dict(base, fn_m={k: 0.0 for k in few})))
+        elastic_starts.append("zero")
+    starts["elastic"] = (elastic, ["c_m", "k_m"] + extra + fn_keys)
     with_terms = []
     for m in bw_starts:
         mt = HystereticModel.from_dict(m.to_dict())
@@ -201,16 +218,19 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
             continue
         first, free = starts[kind]
         tried = []
-        for start in (first if isinstance(first, list) else [first]):
+        start_names = elastic_starts if kind == "elastic" else None
+        for j, start in enumerate(first if isinstance(first, list) else [first]):
             try:
                 data = [decimate(start.fit_item(run.stage(n)))[0] for n in fitted]
                 # fn terms that start at 0 take the scale of 1 % of the elastic force
                 m = _fit(with_term_scales(start, data), data, free, max_nfev)
             except NUMERICAL_ERRORS as e:
-                tried.append(SimplerFit(kind, None, float("inf"), float("inf"), f"{type(e).__name__}: {e}"))
+                tried.append(SimplerFit(kind, None, float("inf"), float("inf"), f"{type(e).__name__}: {e}",
+                                        start=start_names[j] if start_names else None))
                 continue
             if not admissible(m):
-                tried.append(SimplerFit(kind, m, float("inf"), float("inf"), "the fitted model is not admissible"))
+                tried.append(SimplerFit(kind, m, float("inf"), float("inf"), "the fitted model is not admissible",
+                                        start=start_names[j] if start_names else None))
                 continue
             # each fitted stage simulated once: their mean is the fit's figure, the nonlinear stage's
             # own is what an inadequate full model is compared on (pipeline._prefer_simpler)
@@ -218,7 +238,8 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
             fit_err = float(np.mean(list(per_stage.values()))) if per_stage else float("inf")
             tried.append(SimplerFit(kind, m, score(m, run, names), fit_err,
                                     None if math.isfinite(fit_err) else "its simulation diverges",
-                                    per_stage.get(settings.nonlinear_stage)))
+                                    per_stage.get(settings.nonlinear_stage),
+                                    start_names[j] if start_names else None))
         # of several starts, the one that fits the fitted stages best (the held-out stages choose the kind)
         out.append(min(tried, key=lambda f: (f.failed is not None, f.fitted_nrmse)))
     return out
