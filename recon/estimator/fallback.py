@@ -78,8 +78,8 @@ class SimplerFit:
     failed: str | None = None
     # the simulation's NRMSE on the nonlinear stage alone (None when it was not fitted)
     nonlinear_stage_nrmse: float | None = None
-    # which of a kind's starts the fit came from, where it has more than one of a kind named
-    # (the elastic kind: "estimate", its y^2 and y^3 from the inadmissible estimate, or "zero")
+    # which of its starts the fit came from, where a kind had several named starts (the elastic
+    # kind: "estimate", y^2 and y^3 from the inadmissible estimate, or "zero"); None: one start
     start: str | None = None
 
     def to_dict(self) -> dict:
@@ -200,11 +200,10 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
     # second mode at 2.8 f_n: from the estimate's y^2 -2.5e7 and y^3 8.2e10 the fit ended at
     # -4.6e7 and 9.8e10, fitted NRMSE 0.35; from zero at -2.1e7 and 5.1e10, 0.032, against the
     # truth's -2.3e7 and 5.8e10)
-    elastic = [HystereticModel(**dict(base, fn_m=dict(few)))]
-    elastic_starts = ["estimate" if any(v != 0.0 for v in few.values()) else "zero"]
-    if elastic_starts[0] == "estimate":
+    elastic, elastic_starts = [HystereticModel(**dict(base, fn_m=dict(few)))], None
+    if any(v != 0.0 for v in few.values()):
         elastic.append(HystereticModel(**dict(base, fn_m={k: 0.0 for k in few})))
-        elastic_starts.append("zero")
+        elastic_starts = ["estimate", "zero"]
     starts["elastic"] = (elastic, ["c_m", "k_m"] + extra + fn_keys)
     with_terms = []
     for m in bw_starts:
