@@ -33,18 +33,18 @@ from recon.estimator.pipeline import reconstruct  # noqa: E402
 
 def elastic_fit(res) -> dict:
     """How reconstruct's result ``res`` used the simpler kinds: ``trigger`` (None: the full model was
-    adequate and no simpler kind was fitted), the kind ``taken`` (None: the full model), and the
-    elastic fit's ``start`` and figures."""
+    adequate and no simpler kind was fitted), the kind ``taken`` (None: the full model), the
+    elastic fit's ``start`` and figures, and the answer's ``equation``."""
     a = res.adequacy
     fb = a.get("fallback") or {}
     cmp_ = fb if fb.get("used") else a.get("simpler_models_compared")
     if not cmp_:
-        return {"trigger": None, "taken": None, "elastic_start": None}
+        return {"trigger": None, "taken": None, "elastic_start": None, "equation": res.model.equation()}
     el = next((c for c in cmp_.get("candidates", []) if c["kind"] == "elastic"), {})
     return {"trigger": fb.get("trigger") if fb.get("used") else "compared",
             "taken": fb.get("kind") if fb.get("used") else None,
             "elastic_start": el.get("start"), "elastic_fitted_nrmse": el.get("fitted_nrmse"),
-            "elastic_held_out_nrmse": el.get("held_out_nrmse")}
+            "elastic_held_out_nrmse": el.get("held_out_nrmse"), "equation": res.model.equation()}
 
 
 def row(i: int) -> dict:
