@@ -14,21 +14,14 @@ from __future__ import annotations
 
 import math
 import sys
-import time
-import warnings
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from diagnose_stress import draw, recording  # noqa: E402
-from independent_run import to_run  # noqa: E402
-from row_scan import scan_rows  # noqa: E402
+from row_scan import baseline_row, scan_rows  # noqa: E402
 
-from recon.diagnosis import rank  # noqa: E402
-from recon.estimator.fallback import score  # noqa: E402
-from recon.estimator.pipeline import SIMPLER_GAIN, reconstruct  # noqa: E402
+from recon.estimator.pipeline import SIMPLER_GAIN  # noqa: E402
 
 
 def choices(res) -> dict:
@@ -52,27 +45,10 @@ def choices(res) -> dict:
 
 
 def row(i: int) -> dict:
-    d = draw(i)
-    out = {"index": i, "effect": d["effect"], "protocol": d["protocol"]}
-    t0 = time.perf_counter()
-    try:
-        rec = recording(d)
-        if "baseline" in rec:
-            out["skipped"] = "baseline is the truth without a term (no reconstruct)"
-        else:
-            whole = to_run(rec)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                res = reconstruct(rank.fitting_part(whole))
-                out["fitting_part"] = choices(res)
-                if rank.uncovered_stages(whole) and not all(np.isfinite(score(res.model, whole, [n]))
-                                                            for n in whole.stages):
-                    out["whole_run"] = choices(reconstruct(whole))
-            out["changed"] = any(out[k]["taken"] != out[k]["held_out_alone"]
-                                 for k in ("fitting_part", "whole_run") if k in out)
-    except Exception as exc:  # noqa: BLE001 - a failed reconstruct is a row
-        out["error"] = f"{type(exc).__name__}: {exc}"[:300]
-    out["seconds"] = time.perf_counter() - t0
+    out = baseline_row(i, choices)
+    if "error" not in out and "skipped" not in out:
+        out["changed"] = any(out[k]["taken"] != out[k]["held_out_alone"]
+                             for k in ("fitting_part", "whole_run") if k in out)
     return out
 
 

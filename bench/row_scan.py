@@ -30,3 +30,42 @@ def scan_rows(argv: list[str], usage: str, row: Callable[[int], dict],
             if describe is not None:
                 print(f"#{i}: " + describe(r), flush=True)
     return rows
+
+
+def baseline_row(i: int, summarise: Callable) -> dict:
+    """Stress recording ``i`` reconstructed as `shakerlab diagnose` builds its paper baseline: from its
+    fitting part (``fitting_part``: ``summarise(result)``), and, where that model does not simulate a
+    stage of the whole run (diagnose then reconstructs from the whole run), from the whole run too
+    (``whole_run``). Rows whose baseline is the truth without a term are ``skipped``; a failure is the
+    row's ``error``."""
+    import time
+    import warnings
+
+    import numpy as np
+    from diagnose_stress import draw, recording
+    from independent_run import to_run
+
+    from recon.diagnosis import rank
+    from recon.estimator.fallback import score
+    from recon.estimator.pipeline import reconstruct
+
+    d = draw(i)
+    out = {"index": i, "effect": d["effect"], "protocol": d["protocol"]}
+    t0 = time.perf_counter()
+    try:
+        rec = recording(d)
+        if "baseline" in rec:
+            out["skipped"] = "baseline is the truth without a term (no reconstruct)"
+        else:
+            whole = to_run(rec)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                res = reconstruct(rank.fitting_part(whole))
+                out["fitting_part"] = summarise(res)
+                if rank.uncovered_stages(whole) and not all(np.isfinite(score(res.model, whole, [n]))
+                                                            for n in whole.stages):
+                    out["whole_run"] = summarise(reconstruct(whole))
+    except Exception as exc:  # noqa: BLE001 - a failed reconstruct is a row
+        out["error"] = f"{type(exc).__name__}: {exc}"[:300]
+    out["seconds"] = time.perf_counter() - t0
+    return out
