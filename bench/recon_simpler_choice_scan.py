@@ -16,7 +16,6 @@ import math
 import sys
 from pathlib import Path
 
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from row_scan import baseline_row, scan_rows  # noqa: E402
