@@ -943,6 +943,36 @@ def test_a_small_term_that_helps_throughout_the_held_out_record_is_named():
     assert faint["gain_over_noise"] < rank.STEADY_GAIN and not faint["significant"]
 
 
+def test_a_term_that_brings_the_model_near_the_floor_on_every_piece_is_named():
+    # the figures of stress #1095 (quadratic damping at 1.45 of the scale, rig protocol, 54 dB, a
+    # y^2 + y^3 specimen): reference 1.085 noise variances, candidate 1.015: 83 % of the excess, a
+    # gain of 0.07 noise variances, a 3.3 % lower held-out NRMSE, better on 10 of 10 pieces
+    r = np.random.default_rng(7).normal(0, 1, 8000)
+    r /= np.sqrt(np.mean(r ** 2))
+    ref = _fr(1.085, math.sqrt(1.085) * r)
+    near = rank.score(ref, _fr(1.015, math.sqrt(1.015) * r), 1, 1.0)
+    assert near["relative_gain"] < rank.STEADY_REL_GAIN and near["gain_over_noise"] < rank.STEADY_GAIN
+    assert near["explained"] >= rank.COMPLETE_EXPLAINED and near["blocks_improved"] == 1.0
+    assert near["significant"]
+    # the same figures on 9 of 10 pieces: the steady route's pieces, but not every one: not named
+    nine = math.sqrt(1.015) * r.copy()
+    k = r.size // 10
+    nine[-k:] *= math.sqrt(1.2)
+    nine *= math.sqrt(1.015 / np.mean(nine ** 2))
+    split = rank.score(ref, _fr(1.015, nine), 1, 1.0)
+    assert split["blocks_improved"] == pytest.approx(0.9) and not split["significant"]
+    # clean #1041's channel delay (rig, 41 dB): 82 % of an excess of 0.032 noise variances, 1.25 %,
+    # every piece better: under COMPLETE_REL_GAIN and COMPLETE_GAIN, not named
+    clean = rank.score(_fr(1.032, math.sqrt(1.032) * r), _fr(1.006, math.sqrt(1.006) * r), 1, 1.0)
+    assert clean["explained"] >= rank.COMPLETE_EXPLAINED and clean["blocks_improved"] == 1.0
+    assert clean["relative_gain"] < rank.COMPLETE_REL_GAIN and not clean["significant"]
+    # a candidate below the noise floor (the floor overestimated; clean #781's delay explained 1.67
+    # of its excess) has no near-floor route: the steady route's figures decide
+    below = rank.score(_fr(1.05, math.sqrt(1.05) * r), _fr(0.99, math.sqrt(0.99) * r), 1, 1.0)
+    assert below["explained"] > 1.0 and below["relative_gain"] < rank.STEADY_REL_GAIN
+    assert not below["significant"]
+
+
 @pytest.mark.slow
 def test_a_fitting_stage_in_motion_may_start_with_the_law_at_rest():
     # stress #542 (sweeps): a constant force beside a Bouc-Wen law; the linear stage starts at the

@@ -220,8 +220,8 @@ def test_stress_report_says_which_misses_the_fitting_samples_do_not_show():
     text = "\n".join(report(rows))
     assert "missed where the truth passes: 3, 3 with the effect's signature (" in text
     assert "of those 1 whose effect acts on the fitting samples at under 10% of its held-out size" in text
-    # 0.29 x the noise: the least signature that can cut the held-out NRMSE by 4 % (rank.STEADY_REL_GAIN)
-    assert "and 1 whose effect acts on the held-out samples at under 0.29 x the noise" in text and "(#4)" in text
+    # 0.20 x the noise: the least signature that can cut the held-out NRMSE by 2 % (rank.COMPLETE_REL_GAIN)
+    assert "and 1 whose effect acts on the held-out samples at under 0.20 x the noise" in text and "(#4)" in text
     assert "right first by SNR: 40-45 dB 1/3, 75-80 dB 0/1" in text
     assert "paper baseline is a reconstruct fallback" not in text
     rows[1]["baseline_fallback"] = True

@@ -79,6 +79,14 @@ MIN_REL_GAIN = 0.1          # the held-out NRMSE must fall by at least 10 % of t
 CONSISTENT_BLOCKS = 0.9
 STEADY_GAIN = 0.1
 STEADY_REL_GAIN = 0.04
+# the near-floor route: a candidate that beats its reference on every held-out piece
+# (COMPLETE_BLOCKS) and leaves at most a fifth of its excess over the noise (COMPLETE_EXPLAINED),
+# without going below the noise floor (there the floor is overestimated and the excess unknown),
+# needs COMPLETE_GAIN noise variances and a held-out NRMSE lower by COMPLETE_REL_GAIN
+COMPLETE_BLOCKS = 1.0
+COMPLETE_EXPLAINED = 0.8
+COMPLETE_GAIN = 0.04
+COMPLETE_REL_GAIN = 0.02
 HELD_BLOCKS = 10
 HOLD_FRACTION = 0.3
 COVER_SHARE = 0.4     # a validation stage below 0.4 of a fitting stage's peak leaves that stage's top untested
@@ -656,12 +664,17 @@ def passes(dbic: float, explained: float, gain: float, rel: float, blocks: float
     """The significance rule on a candidate's held-out figures (see the module docstring): the BIC
     margin and the share of the excess explained, then either MIN_GAIN_NOISE with the relative NRMSE
     cut MIN_REL_GAIN, or, for a candidate that helps on all but one of the held-out pieces
-    (``blocks``, :func:`blocks_improved`; None closes this route), STEADY_GAIN with STEADY_REL_GAIN."""
+    (``blocks``, :func:`blocks_improved`; None closes this route), STEADY_GAIN with STEADY_REL_GAIN,
+    or, for one that helps on every piece and leaves at most a fifth of the excess without going
+    below the noise floor, COMPLETE_GAIN with COMPLETE_REL_GAIN."""
     if not (dbic < -BIC_MARGIN and explained >= MIN_EXPLAINED):
         return False
     steady = blocks is not None and blocks >= CONSISTENT_BLOCKS
+    complete = (blocks is not None and blocks >= COMPLETE_BLOCKS
+                and COMPLETE_EXPLAINED <= explained <= 1.0)
     return bool((rel >= MIN_REL_GAIN and gain >= MIN_GAIN_NOISE)
-                or (steady and gain >= STEADY_GAIN and rel >= STEADY_REL_GAIN))
+                or (steady and gain >= STEADY_GAIN and rel >= STEADY_REL_GAIN)
+                or (complete and gain >= COMPLETE_GAIN and rel >= COMPLETE_REL_GAIN))
 
 
 def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> dict:
