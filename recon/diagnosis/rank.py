@@ -46,6 +46,17 @@ term from a fit of a passing error. Run again on 894d496, the true candidate sto
 on 12 of the 25 stress records whose truth failed the rule and on #95 (10 of 10 pieces on 11 of
 the 13, 9 on #71 and #110); on the clean rows the nearest were #105's sensor scale (10 of 10 pieces, but 2.1 % and 0.05 noise
 variances) and #326's friction (6.6 %, 0.18, but 5 of 10 pieces).
+
+The near-floor route (2026-12-04c): a term that brings the model to its noise floor. A candidate
+that beats its reference on every held-out piece (COMPLETE_BLOCKS) and removes at least
+COMPLETE_EXPLAINED (0.8) of the excess over the noise, without going below the floor, passes with
+COMPLETE_GAIN (0.04) noise variances and a 2 % lower held-out NRMSE (COMPLETE_REL_GAIN). Where the
+reconstructed baseline has taken up most of an effect (quadratic damping beside a refitted c and
+y'^3), what is left is small beside the noise, but a term that removes nearly all of it on every
+piece is the one that is missing. On the stored candidates of 1101 stress rows (0-1209) the route
+changes four verdicts, all the true quadratic damping (#471, #653, #1095, #1173); the nearest clean
+candidates are #1041's and #702's channel delay (82 % and 76 % of the excess, 1.25 % and 0.84 %),
+#781's (1.67 of the excess: below the floor) and #105's sensor scale (2.1 %, but 15 % of the excess).
 """
 from __future__ import annotations
 
