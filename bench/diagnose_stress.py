@@ -386,7 +386,7 @@ def report(rows: list[dict]) -> list[str]:
             # the effect alone can cut the held-out NRMSE by the rule's smallest relative cut g only if its
             # signature there is at least sqrt(1 / (1 - g)^2 - 1) of the noise (the reference's error
             # being the noise and the effect at best); below it the truth passes on its baseline's terms
-            g = min(rank.MIN_REL_GAIN, rank.STEADY_REL_GAIN, rank.COMPLETE_REL_GAIN)
+            g = rank.smallest_relative_cut()
             s_min = math.sqrt(1.0 / (1.0 - g) ** 2 - 1.0)
             unheld = [r for r in known if sig(r)[1] < s_min]
             out.append(f"  missed where the truth passes: {len(missed_shown)}, {len(known)} with the effect's signature ("

@@ -1,6 +1,8 @@
 """The loop the per-row stress scans share (recon_diagnosis_rows.py, recon_vanished_hysteresis_scan.py,
-recon_simpler_choice_scan.py): `SCRIPT OUT.jsonl I [I ...]`, one JSON row per stress recording I,
-written to a new file as each row is done."""
+recon_simpler_choice_scan.py, recon_elastic_start_scan.py): `SCRIPT OUT.jsonl I [I ...]`, one JSON row
+per stress recording I, written to a new file as each row is done; and the paper-baseline
+reconstruct the last two scan (:func:`baseline_row`, its imports there: the other scans do not need
+them)."""
 from __future__ import annotations
 
 import json

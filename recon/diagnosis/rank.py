@@ -688,6 +688,11 @@ def passes(dbic: float, explained: float, gain: float, rel: float, blocks: float
                 or (complete and gain >= COMPLETE_GAIN and rel >= COMPLETE_REL_GAIN))
 
 
+def smallest_relative_cut() -> float:
+    """The smallest relative cut of the held-out NRMSE that any route of :func:`passes` accepts."""
+    return min(MIN_REL_GAIN, STEADY_REL_GAIN, COMPLETE_REL_GAIN)
+
+
 def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> dict:
     """Held-out comparison of a candidate with the null model (see the module docstring)."""
     n_eff = effective_samples(null.resid_held)
