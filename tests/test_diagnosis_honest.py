@@ -973,6 +973,23 @@ def test_a_term_that_brings_the_model_near_the_floor_on_every_piece_is_named():
     assert not below["significant"]
 
 
+def test_a_term_that_helps_on_every_piece_with_part_of_the_excess_is_named():
+    # the unanimous route's share (COMPLETE_EXPLAINED 0.4): stress #1097 (a higher mode on the rig
+    # protocol, 40 dB): reference 1.173 noise variances, candidate 1.0986: 43 % of the excess, a gain
+    # of 0.074 noise variances, 3.2 % lower, better on every piece
+    r = np.random.default_rng(11).normal(0, 1, 8000)
+    r /= np.sqrt(np.mean(r ** 2))
+    ref = _fr(1.173, math.sqrt(1.173) * r)
+    part = rank.score(ref, _fr(1.0986, math.sqrt(1.0986) * r), 1, 1.0)
+    assert part["blocks_improved"] == 1.0 and 0.4 <= part["explained"] < 0.8
+    assert part["gain_over_noise"] < rank.STEADY_GAIN and part["relative_gain"] < rank.STEADY_REL_GAIN
+    assert part["significant"]
+    # clean #105's sensor scale (paper, 63 dB): 22 % of the excess, 2.1 %, every piece: not named
+    clean = rank.score(_fr(1.236, math.sqrt(1.236) * r), _fr(1.184, math.sqrt(1.184) * r), 1, 1.0)
+    assert clean["blocks_improved"] == 1.0 and clean["relative_gain"] >= rank.COMPLETE_REL_GAIN
+    assert clean["explained"] < rank.COMPLETE_EXPLAINED and not clean["significant"]
+
+
 @pytest.mark.slow
 def test_a_fitting_stage_in_motion_may_start_with_the_law_at_rest():
     # stress #542 (sweeps): a constant force beside a Bouc-Wen law; the linear stage starts at the
