@@ -15,7 +15,7 @@ from scipy.interpolate import CubicSpline
 from recon import diagnose
 from recon.diagnosis import rank
 from recon.diagnosis.augmented import AugmentedModel
-from recon.diagnosis.diagnose import HARDENING_LIMIT, implausible
+from recon.diagnosis.diagnose import HARDENING_LIMIT, LOOP_MIN_OPENING, implausible
 from recon.model import HystereticModel
 from shakerlab.run_data import Run, Stage
 
@@ -74,3 +74,17 @@ def test_a_loop_that_stiffens_beyond_the_limit_across_the_record_is_refused():
     assert why and "stiffens" in why[0], why
     neg = HystereticModel("force", 5.0, 2.5e4, -10.0, 800.0, 100.0, inv_m=0.5)
     assert implausible("hysteresis", _fit_of(neg), ref, data, intervals=False)
+
+
+def test_a_law_whose_loop_does_not_open_over_the_record_is_refused():
+    # stress #958: alpha at 99 % of K, gamma -0.21 and delta 0.29 per m over a 0.66 mm range: a
+    # linear spring whose per-stage start z0 is a constant force
+    ref = AugmentedModel(HystereticModel("base", 10.5, 1.15e5, 0.0, 0.0, 0.0))
+    data = [SimpleNamespace(y=np.array([-0.00033, 0.00033]))]
+    flat = HystereticModel("base", 10.5, 880.0, 1.142e5, -0.21, 0.29)
+    why = implausible("hysteresis", _fit_of(flat), ref, data, intervals=False)
+    assert why and "does not open" in why[0], why
+    # the same law with a loop that opens by 2 % over the range is kept
+    lam = 2 * LOOP_MIN_OPENING / 0.00033
+    opened = HystereticModel("base", 10.5, 880.0, 1.142e5, 0.6 * lam, 0.4 * lam)
+    assert implausible("hysteresis", _fit_of(opened), ref, data, intervals=False) == []
