@@ -277,8 +277,9 @@ def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data, interva
         why.append(f"negative amplitude-dependent damping {b.fn_m['y^2*dy']:.4g} (feeds energy in)")
     if cid == "hysteresis":
         lam = b.gamma + b.delta
-        span = max(float(np.max(d.y) - np.min(d.y)) for d in data) if lam < 0 else 0.0
-        opening = (abs(b.gamma) + abs(b.delta)) * 0.5 * max((float(np.ptp(d.y)) for d in data), default=0.0)
+        recorded = max((float(np.ptp(d.y)) for d in data), default=0.0)     # the recorded displacement range
+        span = recorded if lam < 0 else 0.0
+        opening = (abs(b.gamma) + abs(b.delta)) * 0.5 * recorded
         if not b.alpha_m > 0:
             why.append(f"inadmissible Bouc-Wen (alpha_m {b.alpha_m:.4g}, gamma + delta {lam:.4g})")
         elif opening < LOOP_MIN_OPENING:
