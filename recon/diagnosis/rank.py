@@ -7,7 +7,10 @@ The held-out data are the validation stage(s); without one, the last 30 % of
 every stage (the simulation runs through the whole stage, only the score is split).
 A fitting stage whose response the validation stages do not reach (below COVER_SHARE
 of its peak: the rig protocol's nonlinear stage) has its last 30 % held out as well,
-so that the held-out data span the amplitudes the fit saw (:func:`uncovered_stages`).
+so that the held-out data span the amplitudes the fit saw (:func:`uncovered_stages`); where
+that stage reaches its top level only inside those 30 %, the fit keeps the level's first
+half and the second half is held out (:func:`hold_cut`), so that the fit also sees the
+amplitudes it is judged at.
 
 Every candidate is compared with the *null* model: the baseline refitted the same
 way on the same data, so a candidate only gets credit for what its extra terms add.
@@ -352,8 +355,8 @@ def uncovered_stages(run: Run) -> set[str]:
 
 
 def fitting_part(run: Run) -> Run:
-    """``run`` with each of its :func:`uncovered_stages` cut to its fitting samples (the first
-    1 - HOLD_FRACTION): all a baseline reconstructed for the diagnosis may see, so that its
+    """``run`` with each of its :func:`uncovered_stages` cut to its fitting samples (before
+    :func:`hold_cut`): all a baseline reconstructed for the diagnosis may see, so that its
     held-out score stays out of sample. ``run`` itself when no stage is cut."""
     cut_stages = uncovered_stages(run)
     if not cut_stages:
