@@ -212,6 +212,34 @@ def _tone_stages(tip_amplitudes: dict) -> "Run":
                 for n, a in tip_amplitudes.items()})
 
 
+@pytest.mark.parametrize("top_from", [0.5, 0.8])
+def test_a_top_level_that_begins_in_the_held_out_end_is_half_fitted(top_from):
+    # the rig protocol steps its nonlinear level up: where the top level begins inside the stage's
+    # held-out end, the fit keeps that level's first half, and the second half is held out
+    from recon.diagnosis import rank
+    from recon.model import HystereticModel
+    from shakerlab.run_data import Run, Stage
+    t = np.arange(0.0, 4.0, 1e-3)
+    xb = 1e-3 * np.sin(2 * np.pi * 5.0 * t)
+    level = np.where(t < top_from * 4.0, 0.5e-3, 1e-3)
+    tip = {"linear": 0.05e-3 * np.ones_like(t), "nonlinear": level, "validation": 0.3e-3 * np.ones_like(t)}
+    run = Run({n: Stage(n, t, {"x_base": xb, "x_tip": xb + a * np.sin(2 * np.pi * 5.0 * t + 0.3)})
+               for n, a in tip.items()})
+    assert rank.uncovered_stages(run) == {"nonlinear"}
+    nl = {d.name: d for d in rank.prepare(run, HystereticModel("base", 2.0, 4e3, 0.0, 0.0, 0.0, {}))}["nonlinear"]
+    n = nl.y.size
+    onset = int(np.argmax(level > 0.6e-3))
+    cut = rank.hold_cut(nl.y)
+    if top_from < 1 - rank.HOLD_FRACTION:
+        assert cut == rank.fit_cut(n)
+    else:       # half the top level, from within a period (200 samples) of its start
+        assert 0 <= cut - (onset + n) // 2 <= 100
+    assert nl.fit[:cut].all() and not nl.fit[cut:].any() and nl.held[cut:].all() and not nl.held[:cut].any()
+    # the fit reaches the stage's top; a baseline reconstructed for the diagnosis sees the same samples
+    assert rank.response_peak(nl.y[nl.fit]) > 0.95 * rank.response_peak(nl.y)
+    assert np.array_equal(rank.fitting_part(run).stages["nonlinear"].y, nl.y[:cut])
+
+
 @pytest.mark.parametrize("validation, held_in_nonlinear", [(0.3e-3, True), (0.5e-3, False)])
 def test_held_out_data_span_the_amplitudes_the_fit_saw(validation, held_in_nonlinear):
     # the rig protocol's validation tone moves y to about a third of the nonlinear stage's peak: the
