@@ -4,7 +4,9 @@ nonlinear stage (recon.estimator.pipeline.SIMPLER_FIT_SLACK).
 The record is diagnosis-stress recording #1018 of the independent generator (recon.testing.independent
 shares no code with the estimator): the rig protocol at 53.6 dB, a system with y^2 and a Bouc-Wen law,
 and a 0.66 ms delay of the tip channel. Its validation stage moves 0.37 mm, the nonlinear stage 1.8 mm.
-The full model is reconstruct's estimate on the fitting part (rank.fitting_part), inadequate because
+The full model is reconstruct's estimate on the first 70 % of the nonlinear stage (the fitting part
+rank.fitting_part gave before 2026-12-05; rank.hold_cut now fits half of this stage's top level too,
+and the record is kept as it was: the test is of reconstruct's choice on it), inadequate because
 of the delay: an elastic model (c, k, y^2, a softening y^3) predicted the small validation stage in a
 quarter of its error while it fitted the nonlinear stage nine times worse, and it replaced the full
 model; on the stage's held-out end it then left the record (NRMSE 1.47).
@@ -45,7 +47,19 @@ def _stress_record(i: int) -> tuple[Run, dict]:
 def record():
     whole, rec = _stress_record(ROW)
     assert rec["protocol"] == "rig" and rec["snr"] == pytest.approx(53.6)
-    return whole, rank.fitting_part(whole)
+    return whole, _first_70(whole)
+
+
+def _first_70(whole: Run) -> Run:
+    """``whole`` with its nonlinear stage cut to its first 1 - HOLD_FRACTION (rank.fit_cut)."""
+    from shakerlab.run_data import Stage
+
+    stages = dict(whole.stages)
+    st = stages["nonlinear"]
+    cut = rank.fit_cut(st.t.size)
+    stages["nonlinear"] = Stage("nonlinear", st.t[:cut], {c: v[:cut] for c, v in st.recorded().items()},
+                                st.excitation, dict(st.settings))
+    return Run(stages, dict(whole.attrs), whole.source)
 
 
 # reconstruct's admissible estimate on the fitting part (its y^2 and Bouc-Wen law are the truth's
