@@ -21,14 +21,12 @@ from recon.diagnosis import rank                  # noqa: E402
 
 def moved_stages(run) -> list[str]:
     """``stage:fitted share`` for each partly held-out stage of ``run`` whose cut hold_cut moves."""
-    has_val, extend = rank.has_validation(run), rank.uncovered_stages(run)
-    out = []
-    for name in run.stages:
-        if has_val and name not in extend:
-            continue
+    out, partly = [], rank.partly_held_stages(run)
+    for name in (n for n in run.stages if n in partly):
         y = run.stage(name).y
-        if rank.hold_cut(y) != rank.fit_cut(y.size):
-            out.append(f"{name}:{rank.hold_cut(y) / y.size:.3f}")
+        cut = rank.hold_cut(y)
+        if cut != rank.fit_cut(y.size):
+            out.append(f"{name}:{cut / y.size:.3f}")
     return out
 
 

@@ -47,19 +47,9 @@ def _stress_record(i: int) -> tuple[Run, dict]:
 def record():
     whole, rec = _stress_record(ROW)
     assert rec["protocol"] == "rig" and rec["snr"] == pytest.approx(53.6)
-    return whole, _first_70(whole)
-
-
-def _first_70(whole: Run) -> Run:
-    """``whole`` with its nonlinear stage cut to its first 1 - HOLD_FRACTION (rank.fit_cut)."""
-    from shakerlab.run_data import Stage
-
-    stages = dict(whole.stages)
-    st = stages["nonlinear"]
-    cut = rank.fit_cut(st.t.size)
-    stages["nonlinear"] = Stage("nonlinear", st.t[:cut], {c: v[:cut] for c, v in st.recorded().items()},
-                                st.excitation, dict(st.settings))
-    return Run(stages, dict(whole.attrs), whole.source)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(rank, "TOP_REACH", 0.0)      # the 70/30 split (rank.fit_cut), as before hold_cut
+        return whole, rank.fitting_part(whole)
 
 
 # reconstruct's admissible estimate on the fitting part (its y^2 and Bouc-Wen law are the truth's

@@ -207,8 +207,7 @@ def stage_output(am: AugmentedModel, d: StageData, initial=None) -> np.ndarray:
 def prepare(run: Run, model: HystereticModel) -> list[StageData]:
     """Per stage: input (computed once), recorded y, fit/held masks, noise level."""
     names = list(run.stages)
-    has_val = has_validation(run)
-    extend = uncovered_stages(run)
+    partly = partly_held_stages(run)
     out = []
     for n in names:
         st = run.stage(n)
@@ -220,7 +219,7 @@ def prepare(run: Run, model: HystereticModel) -> list[StageData]:
         y = st.y
         fit = np.ones(y.size, bool)
         held = np.zeros(y.size, bool)
-        if has_val and n not in extend:
+        if n not in partly:
             if n.startswith("validation"):
                 fit[:] = False
                 held[:] = True
@@ -352,6 +351,12 @@ def uncovered_stages(run: Run) -> set[str]:
     reach = max(val, default=0.0)
     return {n for n in names if not n.startswith("validation")
             and response_peak(run.stage(n).y) * COVER_SHARE > reach}
+
+
+def partly_held_stages(run: Run) -> set[str]:
+    """The stages of ``run`` whose end (from :func:`hold_cut` on) is held out: every stage of a run
+    without validation stages, else the :func:`uncovered_stages`."""
+    return uncovered_stages(run) if has_validation(run) else set(run.stages)
 
 
 def fitting_part(run: Run) -> Run:
