@@ -12,7 +12,8 @@ import importlib
 import sys
 
 from shakerlab import __version__
-from shakerlab.errors import UserFacingError
+from shakerlab.errors import Terminated, UserFacingError
+from shakerlab.output_files import terminate_raises
 
 COMMAND_MODULES = (
     "workflows.commands",
@@ -40,10 +41,16 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "handler", None):
         parser.print_help()
         return 2
+    terminate_raises()      # SIGTERM cleans up like Ctrl-C (acquire installs its own ramp-down handler)
     try:
         return int(args.handler(args) or 0)
+    except Terminated:
+        print(f"shakerlab {args.command}: terminated (SIGTERM); files being written were discarded, existing "
+              f"files left as they were", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        print(f"shakerlab {args.command}: interrupted (Ctrl-C); files being written were discarded, existing "
+              f"files left as they were", file=sys.stderr)
         return 130
     except UserFacingError as exc:
         print(f"shakerlab {args.command}: error: {exc}", file=sys.stderr)

@@ -13,3 +13,8 @@ class UserFacingError(Exception):
 class EstimateRefused(UserFacingError):
     """The recording does not determine part of an estimate (not an input error): reconstruct
     records it and goes on to its other passes and, failing them, to the simpler models."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM: handled like Ctrl-C (everything being written is discarded, existing files stay as they
+    were); the command line exits with 143 (128 + SIGTERM) instead of 130."""

@@ -233,33 +233,59 @@ def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False
     if len(kinds) > 1:
         desc = ", ".join(f"{' '.join(map(str, p[0]))} is {p[1]} excitation" for p in parsed.values())
         raise UserFacingError(f"the stage files mix excitation kinds ({desc}); one run has one kind")
-    output = Path(output)
+    from shakerlab.output_files import (check_name, check_signals, disk_full, need_space, no_space,
+                                        signals_deferred)  # heavy: loaded when the command runs
+
+    output = check_name(output)
     attrs = {"source": "import"}
     if constitutive:
         from shakerlab.modes import CONSTITUTIVE, MODE_ATTR  # heavy: loaded when the command runs
 
         attrs[MODE_ATTR] = CONSTITUTIVE
-    with RunWriter(output, overwrite=overwrite, attrs=attrs) as writer:
-        writer.log("info", f"imported with shakerlab import from {len(parsed)} stage file set(s)"
-                   if mapping else f"imported with shakerlab import from {len(parsed)} CSV file(s)")
-        for stage, (files, kind, t, rate, info, values, quantities) in parsed.items():
-            src = [str(Path(f).resolve()) for f in files]
-            settings = {"source_file": src[0] if len(src) == 1 else src, "source_t0": info.pop("source_t0", None)}
-            if settings["source_t0"] is None:
-                settings.pop("source_t0")
-            settings.update(info)
-            if mapping:
-                settings["channel_map"] = {r: f"{c}:{q}" if q else c for r, (c, q) in mapping.items()}
-            extra = {c: EXTRA_UNITS[c] for c in values if c in EXTRA_UNITS} if constitutive else {}
-            sw = writer.begin_stage(stage, fs=rate, excitation=kind, settings=settings,
-                                    quantities={r: q for r, q in quantities.items() if q != "displacement"},
-                                    extra_channels=extra)
-            sw.append(0, values, time_s=t)
-            sw.close("complete", summary={"n_samples": int(t.size), "duration_s": float(t[-1] - t[0])})
-            qs = ", ".join(f"{r} {q}" for r, q in quantities.items() if q != "displacement")
-            writer.log("info", f"stage {stage!r}: {t.size} samples from {', '.join(map(str, files))} ({kind} "
-                               f"excitation{', ' + qs if qs else ''}, fs {rate:.6g} Hz)")
+    # each sample: time, sample index and every channel (8 bytes each) and a flag byte per channel
+    n_bytes = sum(p[2].size * (16 + 9 * len(p[5])) for p in parsed.values()) + (1 << 20)
+    need_space(output.parent, n_bytes, f"{output.name} was left as it was" if output.exists() else "nothing was written")
+    keep = f"{output.name} was left as it was" if output.exists() else "nothing was written"
+    try:
+        with signals_deferred(), RunWriter(output, overwrite=overwrite, attrs=attrs) as writer:
+            if writer.removed_stale:
+                print(writer.removed_stale)
+            _write_stages(writer, parsed, mapping, constitutive, check_signals)
+            check_signals()
+    except (OSError, RuntimeError, ValueError) as exc:
+        if disk_full(exc):
+            raise no_space(output, keep) from None
+        raise
     return output
+
+
+# samples per append: the interrupt is looked at between them, and no copy is larger than this
+APPEND_BLOCK = 1 << 20
+
+
+def _write_stages(writer, parsed: dict, mapping, constitutive: bool, between) -> None:
+    writer.log("info", f"imported with shakerlab import from {len(parsed)} stage file set(s)"
+               if mapping else f"imported with shakerlab import from {len(parsed)} CSV file(s)")
+    for stage, (files, kind, t, rate, info, values, quantities) in parsed.items():
+        src = [str(Path(f).resolve()) for f in files]
+        settings = {"source_file": src[0] if len(src) == 1 else src, "source_t0": info.pop("source_t0", None)}
+        if settings["source_t0"] is None:
+            settings.pop("source_t0")
+        settings.update(info)
+        if mapping:
+            settings["channel_map"] = {r: f"{c}:{q}" if q else c for r, (c, q) in mapping.items()}
+        extra = {c: EXTRA_UNITS[c] for c in values if c in EXTRA_UNITS} if constitutive else {}
+        sw = writer.begin_stage(stage, fs=rate, excitation=kind, settings=settings,
+                                quantities={r: q for r, q in quantities.items() if q != "displacement"},
+                                extra_channels=extra)
+        for i in range(0, t.size, APPEND_BLOCK):
+            j = min(i + APPEND_BLOCK, t.size)
+            sw.append(i, {c: v[i:j] for c, v in values.items()}, time_s=t[i:j])
+            between()
+        sw.close("complete", summary={"n_samples": int(t.size), "duration_s": float(t[-1] - t[0])})
+        qs = ", ".join(f"{r} {q}" for r, q in quantities.items() if q != "displacement")
+        writer.log("info", f"stage {stage!r}: {t.size} samples from {', '.join(map(str, files))} ({kind} "
+                           f"excitation{', ' + qs if qs else ''}, fs {rate:.6g} Hz)")
 
 
 # a component test's CSV columns -> the run file's channels (shakerlab.modes), and their units

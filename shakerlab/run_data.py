@@ -20,6 +20,7 @@ File formats (``.h5`` run files, ``.npz``) are read by :func:`load_run`.
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,6 +31,18 @@ from shakerlab.quantities import CONTINUOUS, DISPLACEMENT, PREFIX, channel_name,
 BASE = "base"
 FORCE = "force"
 CHANNELS = {BASE: ("x_base", "x_tip"), FORCE: ("force", "x")}
+
+# a stage name read from a file: a plain name (letters, digits, _ . -), never a path
+STAGE_NAME = re.compile(r"[^\W][\w.-]{0,99}")
+
+
+def check_stage_name(name: str, source) -> str:
+    """Refuse a stage name from a file that is not a plain name: no path separators, no ``..``, no
+    control characters, at most 100 characters (stage names become output file names)."""
+    if not isinstance(name, str) or not STAGE_NAME.fullmatch(name) or ".." in name:
+        raise UserFacingError(f"{source}: stage name {name!r} is not a plain name (letters, digits, '_', '.', "
+                              f"'-'; no path separators or '..'); the file is refused")
+    return name
 
 
 @dataclass

@@ -9,7 +9,7 @@ import numpy as np
 
 from shakerlab.errors import UserFacingError
 from shakerlab.quantities import PREFIX, channel_name, parse_channel
-from shakerlab.run_data import BASE, CHANNELS, FORCE, Run, Stage
+from shakerlab.run_data import BASE, CHANNELS, FORCE, Run, Stage, check_stage_name
 from shakerlab.runfile.format import open_read, stage_order, text
 
 
@@ -22,6 +22,14 @@ def dataset(group, key: str, path) -> np.ndarray:
         return group[key][:]
     except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
         raise UserFacingError(f"{path}: dataset {where} cannot be read ({exc}); the file is damaged") from None
+
+
+def one_dimensional(values: np.ndarray, where: str, path) -> np.ndarray:
+    """A sampled channel holds one value per sample: refuse any other shape, naming the dataset."""
+    if values.ndim != 1:
+        raise UserFacingError(f"{path}: {where} has shape {values.shape}; a channel holds one value per sample "
+                              f"(one dimension). The file is refused.")
+    return values
 
 
 def json_attr(obj, key: str, path) -> dict:
@@ -69,17 +77,18 @@ def _read_run(path: Path, stages: list[str] | None) -> Run:
                 raise UserFacingError(f"{path}: no stage(s) {', '.join(missing)} (stages: {', '.join(names)})")
             names = [n for n in names if n in stages]
         for name in names:
+            check_stage_name(name, path)
             g = entry["stages"][name]
             excitation = text(g.attrs.get("excitation", "base"))
             if excitation not in CHANNELS:
                 raise UserFacingError(f"{path}: stage {name!r} has excitation {excitation!r}, expected one of "
                                       f"{', '.join(sorted(CHANNELS))}")
-            t = dataset(g, "time", path)
+            t = one_dimensional(dataset(g, "time", path), f"dataset {g.name}/time", path)
             if t.size < 2:
                 continue  # a stage interrupted before its first block holds nothing to analyse
             stored = [stored_channel(g, role) for role in CHANNELS[excitation]]   # missing: dataset() names it
             stored += list(json.loads(text(g.attrs.get("extra_channels", "[]"))))   # e.g. a component test's command
-            channels = {ch: dataset(g, ch, path) for ch in stored}
+            channels = {ch: one_dimensional(dataset(g, ch, path), f"dataset {g.name}/{ch}", path) for ch in stored}
             for ch, v in channels.items():
                 if v.shape != t.shape:
                     raise UserFacingError(f"{path}: stage {name!r}: dataset {ch!r} holds {v.size} samples, "
@@ -206,6 +215,9 @@ def load_npz(path: str | Path) -> Run:
         raise UserFacingError(f"{path}: no stage arrays (expected names like 'linear/t', 'linear/x_tip')")
     stages = {}
     for name, ch in grouped.items():
+        check_stage_name(name, path)
+        for c, v in ch.items():
+            one_dimensional(v, f"array {name}/{c}", path)
         if "t" not in ch:
             raise UserFacingError(f"{path}: stage {name!r} has no time array 't'")
         excitation = FORCE if "force" in ch else BASE

@@ -12,9 +12,9 @@ import numpy as np
 from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
-from shakerlab.output_files import OutputLock, partial_path, refuse_partial
+from shakerlab.output_files import OutputLock, check_name, check_signals, partial_path, refuse_partial
 from shakerlab.quantities import DISPLACEMENT, QUANTITIES, UNITS, channel_name
-from shakerlab.run_data import CHANNELS
+from shakerlab.run_data import CHANNELS, check_stage_name
 from shakerlab.runfile.format import (CHUNK, FORMAT, FORMAT_VERSION, LEVELS, event_dtype, now_iso, set_scalar_attrs,
                                       step_dtype, str_dtype)
 
@@ -106,7 +106,7 @@ class RunWriter:
 
     def __init__(self, path: str | Path, *, overwrite: bool = False, flush_interval: float = 0.5,
                  attrs: dict | None = None):
-        self.path = Path(path)
+        self.path = check_name(path)
         self.partial = partial_path(self.path)
         self.problems: list[str] = []      # what the check after closing found (empty: the file is whole)
         self.renamed = False
@@ -116,7 +116,10 @@ class RunWriter:
         if self.path.exists() and not overwrite:
             raise UserFacingError(f"{self.path}: file exists (choose another -o name or delete it)")
         self._lock = OutputLock(self.path).acquire()
+        self.removed_stale: str | None = None     # what a stale import's partial file was, when removed
         try:
+            if overwrite:
+                self.removed_stale = remove_stale_import(self.partial)
             refuse_partial(self.path)
             try:
                 self.file = h5py.File(self.partial, "x")  # default libver, never SWMR
@@ -133,7 +136,7 @@ class RunWriter:
         f.attrs.update({
             "format": FORMAT, "format_version": FORMAT_VERSION, "software_version": __version__,
             "creator": f"shakerlab {__version__}", "created": now_iso(), "file_name": self.path.name,
-            "clean_close": False, "NX_class": "NXroot", "default": "entry",
+            "clean_close": False, "NX_class": "NXroot", "default": "entry", "writer_pid": os.getpid(),
         })
         entry = f.create_group("entry")
         entry.attrs.update({"NX_class": "NXentry", "status": "running", "start_time": now_iso()})
@@ -210,6 +213,7 @@ class RunWriter:
         command, shakerlab.modes), listed in the stage attribute ``extra_channels``."""
         if excitation not in CHANNELS:
             raise ValueError(f"excitation must be one of {sorted(CHANNELS)}")
+        check_stage_name(name, self.path)
         quantities = dict(quantities or {})
         bad = {r: q for r, q in quantities.items() if r not in CHANNELS[excitation] or r == "force"
                or q not in QUANTITIES}
@@ -284,6 +288,11 @@ class RunWriter:
             self.file.close()
             self.problems = self.verify()
             if not self.problems:
+                try:
+                    check_signals()     # a SIGINT/SIGTERM held while writing: the existing file stays
+                except KeyboardInterrupt:
+                    self.partial.unlink(missing_ok=True)
+                    raise
                 self._rename()
         finally:
             self._lock.release()
@@ -334,3 +343,29 @@ class RunWriter:
     def n_recorded(self) -> int:
         """Samples appended over all stages."""
         return sum(sw.n_samples for sw in self.stages.values())
+
+
+def remove_stale_import(partial: Path) -> str | None:
+    """Delete ``partial`` if it is certainly the leftover of a killed ``shakerlab import`` (its writer
+    process is gone; its sources can be imported again) and say so; anything else (a recording, a file
+    that cannot be read) is kept. Called under the output lock, so no live shakerlab process writes it."""
+    if not partial.is_file() or partial.is_symlink():
+        return None
+    try:
+        with h5py.File(partial, "r") as f:
+            source = f["entry"].attrs.get("source", "") if "entry" in f else ""
+            pid = int(f.attrs.get("writer_pid", 0))
+    except Exception:  # noqa: BLE001 - unreadable: not known to be an import's, kept
+        return None
+    if (source.decode() if isinstance(source, bytes) else str(source)) != "import":
+        return None
+    if pid:
+        try:
+            os.kill(pid, 0)
+            return None         # that process still runs (under another name?): keep its file
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            return None
+    partial.unlink()
+    return f"removed {partial}, left by an import that was killed (pid {pid or 'unknown'}, no longer running)"

@@ -1,0 +1,49 @@
+"""Peak memory of `shakerlab import` on a large CSV, against the size of the file.
+
+    python bench/csv_import_memory.py [ROWS]      # default 5 000 000 rows (about 220 MB)
+
+Writes the CSV in a temporary directory (t printed to 10 significant digits, as an exporter
+does), imports it (shakerlab.import_command.import_csv) under tracemalloc and prints the
+file size, the peak of Python-allocated memory (numpy arrays included) and their ratio.
+"""
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+
+def write_csv(path: Path, rows: int) -> None:
+    t = np.arange(rows) / 10000.0
+    with open(path, "w") as fh:
+        fh.write("t,x_base,x_tip\n")
+        for i in range(0, rows, 100_000):
+            j = min(i + 100_000, rows)
+            block = np.column_stack([t[i:j], 1e-3 * np.sin(t[i:j]), 2e-3 * np.sin(t[i:j])])
+            np.savetxt(fh, block, delimiter=",", fmt=["%.10g", "%.9e", "%.9e"])
+
+
+def measure(rows: int) -> dict:
+    from shakerlab.import_command import import_csv
+
+    with tempfile.TemporaryDirectory() as d:
+        csv = Path(d) / "big.csv"
+        write_csv(csv, rows)
+        size = csv.stat().st_size
+        tracemalloc.start()
+        t0 = time.perf_counter()
+        import_csv(Path(d) / "big.h5", {"linear": csv})
+        seconds = time.perf_counter() - t0
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return {"rows": rows, "file_bytes": size, "peak_bytes": peak, "ratio": peak / size, "seconds": seconds}
+
+
+if __name__ == "__main__":
+    r = measure(int(sys.argv[1]) if len(sys.argv) > 1 else 5_000_000)
+    print(f"{r['rows']} rows, file {r['file_bytes'] / 1e6:.1f} MB: peak {r['peak_bytes'] / 1e6:.1f} MB "
+          f"({r['ratio']:.2f} x the file), {r['seconds']:.1f} s")
