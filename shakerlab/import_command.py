@@ -333,12 +333,18 @@ def _handle(args) -> int:
     from shakerlab.errors import UserFacingError  # heavy: numpy, h5py; loaded when the command runs
     from shakerlab.runfile.reader import read_info  # heavy: numpy, h5py; loaded when the command runs
     from shakerlab.runfile.results import recover_copy  # heavy: numpy, h5py; loaded when the command runs
+    from shakerlab.output_files import check_name  # heavy: loaded when the command runs
 
+    check_name(args.output)
     if args.recover is not None:
         if any(getattr(args, s) for s in STAGE_OPTIONS):
             raise UserFacingError("--recover copies a run file; do not combine it with --linear/--nonlinear/--validation")
-        recover_copy(args.recover, args.output, overwrite=args.force)
-        print(f"wrote {args.output} (clean copy of {args.recover})")
+        lost: list[str] = []
+        recover_copy(args.recover, args.output, overwrite=args.force, losses=lost)
+        for line in lost:
+            print(f"recovery: {line}")
+        print(f"wrote {args.output} (clean copy of {args.recover}, status recovered; "
+              f"{'what was dropped or rebuilt is listed above and in its event log' if lost else 'every object copied as stored'})")
         return 0
     from shakerlab.importers import mapping  # heavy: loaded when the command runs
 

@@ -44,6 +44,10 @@ def _serve(args) -> int:
     for name, port in ports.items():
         if not 0 <= port <= 65535:
             raise UserFacingError(f"--{name.replace('_', '-')}-port must be 0..65535, got {port}")
+    if not _loopback(args.host):
+        print(f"warning: --host {args.host} serves the simulated instruments beyond this machine: anyone who "
+              f"reaches this host can drive the simulated amplifier (ENABLE, gain, amplitude). Keep instrument "
+              f"networks isolated (docs/acquisition.md, 'Instrument networks').", file=sys.stderr, flush=True)
     try:
         rig = SimulatedRig(args.config, speed=speed, seed=args.seed, pty=args.pty, host=args.host,
                            ports=ports)
@@ -66,3 +70,15 @@ def _serve(args) -> int:
     finally:
         rig.stop()
     return 0
+
+
+def _loopback(host: str) -> bool:
+    """True when ``host`` binds the loopback interface only (127.0.0.0/8, ::1, localhost)."""
+    import ipaddress  # lazy: only for sim serve
+
+    if host in ("localhost", "ip6-localhost"):
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False

@@ -20,7 +20,7 @@ from recon.constitutive.signals import component_signals
 from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
-from shakerlab.output_files import check_directory, write_text
+from shakerlab.output_files import check_directory, inside, write_text
 from shakerlab.runfile.results import store_result
 from workflows.figures import plot_force_law
 
@@ -49,7 +49,7 @@ def law_plots(result, run, outdir) -> list[Path]:
         t, F, Fp, x = predict(result.law, run.stage(name), result.settings)
         nr = result.validation.get("per_stage", {}).get(name)
         what = "fitted" if name == result.settings.fit_stage else "held out"
-        paths.append(plot_force_law(outdir / f"{name}_force.png", t, x, F, Fp,
+        paths.append(plot_force_law(inside(outdir, f"{name}_force", ".png"), t, x, F, Fp,
                                     title=f"{name} ({what}): recorded vs law"
                                     + (f" (NRMSE {nr:.3g})" if nr is not None else "")))
     return paths

@@ -9,7 +9,7 @@ matplotlib.use("Agg")  # files only, never a window: before pyplot is imported
 import matplotlib.pyplot as plt  # noqa: E402
 
 from recon.validation import hysteretic_force_from_data  # noqa: E402
-from shakerlab.output_files import atomic_output  # noqa: E402
+from shakerlab.output_files import atomic_output, inside  # noqa: E402
 
 
 def savefig(fig, path, dpi: int = 90) -> Path:
@@ -61,7 +61,7 @@ def write_validation_plots(result, run, outdir):
         st = run.stage(name)
         u = result.model.stage_input(st)
         ysim, _, zsim = result.model.simulate(st.t - st.t[0], u, initial=result.model.stage_start(st, u))
-        paths.append(plot_overlay(outdir / f"{name}.png", st.t, st.y, ysim, z_sim=zsim,
+        paths.append(plot_overlay(inside(outdir, name, ".png"), st.t, st.y, ysim, z_sim=zsim,
                                   title=f"{name}: measured vs reconstructed (NRMSE {result.validation['per_stage'].get(name, float('nan')):.3g})"))
     sig = result.signals
     z_meas = hysteretic_force_from_data(result.model, sig["y"], sig["dy"], sig["ddy"], sig["u"])

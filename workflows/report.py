@@ -45,7 +45,7 @@ from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.runfile.reader import load_run
 from shakerlab.jsonsafe import clean
-from shakerlab.output_files import OutputLock, check_directory, write_text
+from shakerlab.output_files import OutputLock, check_directory, inside, write_text
 from shakerlab.runfile.results import store_result
 from workflows.batch import RESULT_KIND, settings_hash
 from workflows.plausibility import warnings_for
@@ -217,7 +217,7 @@ def fig_validation(sims: dict, result, path: Path) -> list[Path]:
         axes[0].legend(loc="upper right", fontsize=7)
         axes[1].set_title("last second", fontsize=9)
         fig.suptitle(f"{n}: measured vs simulated from rest (NRMSE {nrmse(ys, ym):.3g})", fontsize=10)
-        paths.append(_save(fig, path.parent / f"{path.stem}_{n}.png"))
+        paths.append(_save(fig, inside(path.parent, f"{path.stem}_{n}", ".png", option="-o")))
     return paths
 
 
