@@ -74,4 +74,6 @@ def _acquire(args) -> int:
                               observers=[progress], on_runner=hook,
                               attrs={"simulated": True, "seed": args.seed})
     print_summary(outcome)
+    if getattr(outcome, "no_space", None):
+        raise UserFacingError(outcome.no_space)
     return EXIT_CODES.get(outcome.status, 1)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from shakerlab.quantities import CONTINUOUS, channel_name
-from shakerlab.runfile.writer import RunWriter
+from shakerlab.runfile.writer import NoSpace, RunWriter
 
 # one row per closed-loop analysis window (rig.sine_control), dataset ``control`` of the stage group
 CONTROL_FIELDS = ("sample_index", "window_n", "frequency_hz", "target_m", "effective_target_m", "achieved_m",
@@ -42,6 +42,7 @@ class Recorder:
         self._starts_pending = False
         self.stage = None
         self.discarded = False      # a run that recorded nothing did not replace the existing file
+        self.no_space: NoSpace | None = None    # the file system filled up: recording stopped, data kept
 
     def on_run_start(self, info: dict) -> None:
         w = self.writer
@@ -54,6 +55,8 @@ class Recorder:
         w.set_attrs(excitation="base", **{k: v for k, v in info.get("attrs", {}).items()})
 
     def on_stage_begin(self, name: str, settings: dict, index: int) -> None:
+        if self.no_space is not None:
+            return
         if self.quantities:
             # the velocity is integrated from the start value this recorder keeps (shakerlab.quantities)
             settings = {**settings, "integration": CONTINUOUS}
@@ -71,8 +74,16 @@ class Recorder:
             self._starts_pending = False
         values = {"x_base": block.x_base, "x_tip": block.x_tip, **block.measured}
         flags = {"x_base": block.flags_base, "x_tip": block.flags_tip}
-        self.stage.append(block.index0, {name: values[name] for name, _ in self.channels},
-                          flags={name: flags[role] for name, role in self.channels})
+        try:
+            self.stage.append(block.index0, {name: values[name] for name, _ in self.channels},
+                              flags={name: flags[role] for name, role in self.channels})
+        except NoSpace as exc:
+            # the run stops (the runner ramps down on an observer's error); the file stays whole to
+            # its last flush and nothing more is written into it
+            self.no_space = exc
+            self.writer.abandon()
+            self.stage = None
+            raise
 
     def _integrate(self, block) -> dict:
         """Advance the running integrals by this block; return their values at its first sample."""
@@ -115,9 +126,13 @@ class Recorder:
             self.stage = None
 
     def on_event(self, level: str, message: str, run_time: float) -> None:
+        if self.no_space is not None:
+            return
         self.writer.log(level, message, run_time=run_time)
 
     def on_run_end(self, status: str, reason: str) -> None:
+        if self.no_space is not None:
+            return
         if status != "complete" and self.writer.n_recorded() == 0 and self.path.exists():
             # stopped before a single sample: the file would hold nothing but the error, and the
             # existing file it would replace (--force) may hold a whole run

@@ -71,6 +71,7 @@ class RunOutcome:
     wall_time_s: float = 0.0
     run_time_s: float = 0.0
     plan_result: object = None
+    no_space: str = ""              # the run file's disk filled up: what happened and where the data is
 
 
 class Runner:

@@ -83,6 +83,13 @@ def check_recording(recorder: Recorder, outcome: RunOutcome) -> str:
     """After the run: was the file closed, read back whole and renamed into place? Returns a note for
     the summary and turns a complete run whose file failed the check into an error."""
     w = recorder.writer
+    if recorder.no_space is not None:
+        outcome.path = w.partial
+        outcome.status = "error"
+        outcome.no_space = (f"{recorder.no_space}; the recording stopped, the output was ramped down, and the data "
+                            f"recorded so far is in {w.partial}: `shakerlab import --recover {w.partial} -o "
+                            f"{w.path}` on a disk with room makes the run file")
+        return f"the disk filled up: the recorded data is in {w.partial} (recover it with `shakerlab import --recover`)"
     if recorder.discarded:
         outcome.path = None
         return (f"nothing recorded: {w.path} was left as it was" if w.path.exists()

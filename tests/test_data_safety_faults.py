@@ -301,6 +301,23 @@ def test_issue69_4_full_disk_write_back_and_figures(small_fs, run_file, capsys):
     assert tree(small_fs) == before and leftovers(small_fs) == []
 
 
+def test_issue69_4_full_disk_acquire_stops_safely_and_keeps_the_partial(small_fs, tmp_path, capsys):
+    proto = tmp_path / "p.toml"
+    proto.write_text(SMALL_PROTOCOL)
+    out = small_fs / "run.h5"
+    r = subprocess.run([sys.executable, "-m", "shakerlab.cli", "acquire", "--sim-speed", "0", "--protocol", str(proto),
+                        "-o", str(out)], capture_output=True, text=True, env=_env(), timeout=120)
+    assert r.returncode == 2, r.stdout + r.stderr
+    line = one_line(r.stderr)
+    assert f"no space left on {small_fs} (writing {out}.partial" in line
+    assert f"`shakerlab import --recover {out}.partial -o {out}`" in line
+    assert "amplifier muted (read back" in r.stdout and "Traceback" not in r.stdout
+    assert sorted(tree(small_fs)) == ["run.h5.partial"]          # no lock, no temporary file: the partial kept
+    code, stdout, err = cli(["import", "--recover", f"{out}.partial", "-o", tmp_path / "rec.h5"], capsys)
+    assert code == 0, err
+    assert read_run(tmp_path / "rec.h5").stage("linear").t.size > 0
+
+
 # ---- 5: write-back through a symbolic link -------------------------------------------------------------
 
 def test_issue69_5_write_back_through_a_symlink_goes_into_its_target(run_copy, tmp_path):

@@ -12,11 +12,21 @@ import numpy as np
 from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
-from shakerlab.output_files import OutputLock, check_name, check_signals, partial_path, refuse_partial
+from shakerlab.output_files import (OutputLock, check_name, check_signals, free_bytes, mount_point, partial_path,
+                                    refuse_partial)
 from shakerlab.quantities import DISPLACEMENT, QUANTITIES, UNITS, channel_name
 from shakerlab.run_data import CHANNELS, check_stage_name
 from shakerlab.runfile.format import (CHUNK, FORMAT, FORMAT_VERSION, LEVELS, event_dtype, now_iso, set_scalar_attrs,
                                       step_dtype, str_dtype)
+
+
+class NoSpace(UserFacingError):
+    """The file system of a run file being written is (almost) full: nothing more is buffered."""
+
+    def __init__(self, partial: Path, free: int, need: int):
+        self.partial = partial
+        super().__init__(f"no space left on {mount_point(partial)} (writing {partial}: {free} bytes free, "
+                         f"{need} needed to go on)")
 
 
 def _clean_attr(value):
@@ -52,6 +62,7 @@ class StageWriter:
             raise ValueError(f"stage {self.name!r}: channels differ in length")
         if n == 0:
             return
+        self._writer.check_space(n * (17 + 9 * len(self.channels)))
         index = np.arange(index0, index0 + n, dtype=np.int64)
         if time_s is None:
             time_s = (index - self.start_index) / self.fs
@@ -130,6 +141,7 @@ class RunWriter:
             raise
         self.flush_interval = float(flush_interval)
         self._last_flush = time.monotonic()
+        self._unflushed = 0
         self._t_start = time.time()
         self.n_events = 0
         f = self.file
@@ -262,12 +274,26 @@ class RunWriter:
         return sw
 
     # -- flushing and closing --------------------------------------------------
+    # bytes kept free on the file system: room to flush what is buffered and to close the file
+    RESERVE_BYTES = 512 * 1024
+
+    def check_space(self, n_bytes: int) -> None:
+        """Refuse to buffer ``n_bytes`` more when the file system could not then take the flush and
+        the close: HDF5 fails part-way on a full disk (and h5py reports it only while freeing its
+        objects), so the writer stops while the file on disk is still whole to its last flush."""
+        self._unflushed += n_bytes
+        free = free_bytes(self.partial)
+        need = self.RESERVE_BYTES + 2 * self._unflushed + CHUNK * 8 * 2 * max(len(self.stages), 1) * 8
+        if free < need:
+            raise NoSpace(self.partial, free, need)
+
     def _maybe_flush(self) -> None:
         if time.monotonic() - self._last_flush >= self.flush_interval:
             self.flush()
 
     def flush(self) -> None:
         self.file.flush()
+        self._unflushed = 0
         self._last_flush = time.monotonic()
 
     def close(self, status: str = "complete") -> None:
@@ -330,6 +356,17 @@ class RunWriter:
             self.problems.append(f"cannot be renamed to {self.path} ({exc.strerror}); the run is in {self.partial}")
             return
         self.renamed = True
+
+    def abandon(self) -> None:
+        """Stop writing, keep the partial file as it is on disk (whole to its last flush, not marked
+        clean) and release the lock: what a full disk leaves, for ``shakerlab import --recover``."""
+        try:
+            if self.file.id.valid:
+                self.file.close()
+        except Exception:  # noqa: BLE001 - the data on disk is what was flushed; closing may fail to add to it
+            pass
+        finally:
+            self._lock.release()
 
     def discard(self) -> None:
         """Close and delete the partial file; ``path`` keeps whatever it held before."""
