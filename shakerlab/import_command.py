@@ -233,8 +233,8 @@ def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False
     if len(kinds) > 1:
         desc = ", ".join(f"{' '.join(map(str, p[0]))} is {p[1]} excitation" for p in parsed.values())
         raise UserFacingError(f"the stage files mix excitation kinds ({desc}); one run has one kind")
-    from shakerlab.output_files import (check_name, check_signals, disk_full, need_space, no_space,
-                                        signals_deferred)  # heavy: loaded when the command runs
+    from shakerlab.output_files import check_name, check_signals, disk_full, need_space, no_space  # heavy: loaded when the command runs
+    from shakerlab.output_files import signals_deferred  # heavy: loaded when the command runs
 
     output = check_name(output)
     attrs = {"source": "import"}
