@@ -306,3 +306,23 @@ def test_check_rig_names_an_unreachable_instrument(tmp_path, capsys):
     assert main(["check-rig", "--config", str(rig), "--json"]) == 1
     report = json.loads(capsys.readouterr().out)
     assert "cannot reach the instruments" in report["reasons"][0] and "signal generator" in report["reasons"][0]
+
+
+# ---- GUI start-up check --------------------------------------------------------------------------------
+def test_a_missing_qt_platform_library_gives_one_line_naming_the_package(monkeypatch, capsys):
+    from rig.gui import startup
+
+    present_and_absent = {"libc.so.6": "libc6", "libshakerlab-absent-xcb-cursor.so.0": "libxcb-cursor0"}
+    line = startup.problem(present_and_absent, environ={"DISPLAY": ":0"})
+    assert "sudo apt-get install libxcb-cursor0 " in line and "libc6" not in line
+    assert startup.problem(present_and_absent, environ={"DISPLAY": ":0", "QT_QPA_PLATFORM": "offscreen"}) is None
+    assert startup.problem(present_and_absent, environ={}) is None  # no display: the existing message
+    assert set(startup.XCB_LIBRARIES.values()) >= {"libxcb-cursor0", "libxcb-icccm4", "libxcb-keysyms1"}
+    # through the command: exit 2 and the one line, before Qt is loaded
+    monkeypatch.setitem(startup.XCB_LIBRARIES, "libshakerlab-absent-xcb-cursor.so.0", "libxcb-cursor0")
+    monkeypatch.setenv("DISPLAY", ":0")
+    monkeypatch.delenv("QT_QPA_PLATFORM", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert main(["gui"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "libxcb-cursor0" in err[0] and err[0].startswith("shakerlab gui: error:")
