@@ -326,3 +326,17 @@ def test_a_missing_qt_platform_library_gives_one_line_naming_the_package(monkeyp
     assert main(["gui"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "libxcb-cursor0" in err[0] and err[0].startswith("shakerlab gui: error:")
+
+
+def test_the_configs_in_the_real_rig_guide_are_valid():
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "real-rig.md").read_text()
+    blocks = re.findall(r"```toml\n(.*?)```", text, re.S)
+    full = tomllib.loads(blocks[0])
+    cfg = parse_config(full, blocks[0], "real-rig.md")
+    assert cfg.amplifier_kind == "manual" and cfg.data["sensors"]["base"]["baudrate"] == 9600
+    modbus = tomllib.loads("\n".join(line[2:] for line in blocks[1].splitlines()))
+    full["amplifier"] = modbus["amplifier"]
+    assert parse_config(full, "", "real-rig.md").data["amplifier"]["registers"]["gain"] == 101
