@@ -294,7 +294,9 @@ def test_check_rig_fails_with_the_reason_when_a_sensitivity_is_off_by_10_percent
     assert "FAIL: the sensors disagree" in capsys.readouterr().out
     # the declared sensitivity corrects it: the check passes again
     rig = tmp_path / "rig.toml"
-    rig.write_text(DEFAULT_RIG_PATH.read_text().replace("[sensors.tip]", "[sensors.tip]\nsensitivity = 0.90909091"))
+    shipped = DEFAULT_RIG_PATH.read_text()
+    tip = shipped.index("[sensors.tip]")
+    rig.write_text(shipped[:tip] + shipped[tip:].replace("sensitivity = 1.0", "sensitivity = 0.90909091", 1))
     assert main(["check-rig", "--sim-speed", "0", "--sim-config", str(sim), "--config", str(rig),
                  "--simulated"]) == 0
 
