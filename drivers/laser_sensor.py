@@ -57,11 +57,12 @@ class SensorBlock:
 class LaserSensor(Instrument):
     name = "laser sensor"
 
-    def __init__(self, url: str, timeout: float = 1.0, name: str | None = None, **link_options):
+    def __init__(self, url: str, timeout: float = 1.0, name: str | None = None, write_term: str = "\r",
+                 read_term: str = "\r", **link_options):
         if name:
             self.name = f"laser sensor {name}"
         self.url = url
-        self.link = LineLink(self.name, url, timeout=timeout, write_term="\r", read_term="\r",
+        self.link = LineLink(self.name, url, timeout=timeout, write_term=write_term, read_term=read_term,
                              **link_options)
         self._pending: list[SensorBlock] = []
         self._last_end = 0

@@ -1,5 +1,9 @@
 """A line-based request/reply link over pyserial (``socket://``, real serial ports, ptys).
 
+The serial line settings (:class:`SerialSettings`: baud rate, data bits,
+parity, stop bits, flow control) are the instrument's, as set on its front
+panel; they matter on a serial device or pty and are ignored by a socket.
+
 Every call has a deadline; a missing, partial or undecodable reply raises an
 :class:`~drivers.base.InstrumentError` subclass naming the instrument and the
 command, never hangs.  Reconnect policy: after any transport error or timeout
@@ -12,6 +16,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import dataclass
 
 import serial
 
@@ -20,6 +25,41 @@ from drivers.base import InstrumentConnectionError, InstrumentTimeout, Malformed
 MAX_REPLY = 16 * 1024 * 1024
 URL_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep")  # pyserial's URL handlers
 URL_FORMS = "socket://host:port, a serial device such as /dev/ttyUSB0, or a pty path"
+
+
+BAUD_RATES = (300, 600, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
+DATA_BITS = {5: serial.FIVEBITS, 6: serial.SIXBITS, 7: serial.SEVENBITS, 8: serial.EIGHTBITS}
+PARITIES = {"none": serial.PARITY_NONE, "even": serial.PARITY_EVEN, "odd": serial.PARITY_ODD,
+            "mark": serial.PARITY_MARK, "space": serial.PARITY_SPACE}
+STOP_BITS = {1: serial.STOPBITS_ONE, 1.5: serial.STOPBITS_ONE_POINT_FIVE, 2: serial.STOPBITS_TWO}
+FLOW_CONTROLS = ("none", "xonxoff", "rtscts", "dsrdtr")
+TERMINATIONS = ("\n", "\r", "\r\n")
+
+
+@dataclass(frozen=True)
+class SerialSettings:
+    """The line settings of a serial instrument; each is checked when made (ValueError names it)."""
+
+    baudrate: int = 115200
+    data_bits: int = 8
+    parity: str = "none"
+    stop_bits: float = 1
+    flow_control: str = "none"
+
+    def __post_init__(self):
+        checks = (("baudrate", BAUD_RATES), ("data_bits", tuple(DATA_BITS)), ("parity", tuple(PARITIES)),
+                  ("stop_bits", tuple(STOP_BITS)), ("flow_control", FLOW_CONTROLS))
+        for name, allowed in checks:
+            value = getattr(self, name)
+            if isinstance(value, bool) or value not in allowed:
+                raise ValueError(f"serial {name}: {value!r} is not one of {', '.join(map(str, allowed))}")
+
+    def pyserial_kwargs(self) -> dict:
+        """The keyword arguments of ``serial.serial_for_url`` these settings make."""
+        return {"baudrate": self.baudrate, "bytesize": DATA_BITS[self.data_bits],
+                "parity": PARITIES[self.parity], "stopbits": STOP_BITS[self.stop_bits],
+                "xonxoff": self.flow_control == "xonxoff", "rtscts": self.flow_control == "rtscts",
+                "dsrdtr": self.flow_control == "dsrdtr"}
 
 
 def url_problem(url: str) -> str | None:
@@ -40,16 +80,20 @@ def url_problem(url: str) -> str | None:
 
 class LineLink:
     def __init__(self, instrument: str, url: str, timeout: float = 1.0, write_term: str = "\n",
-                 read_term: str = "\n", baudrate: int = 115200, reconnect_attempts: int = 3,
-                 reconnect_delay: float = 0.1):
+                 read_term: str = "\n", serial_settings: SerialSettings | None = None,
+                 reconnect_attempts: int = 3, reconnect_delay: float = 0.1):
         if not isinstance(timeout, (int, float)) or not timeout > 0:
             raise ValueError(f"{instrument}: timeout must be > 0 s, got {timeout!r}")
+        for what, term in (("write", write_term), ("read", read_term)):
+            if term not in TERMINATIONS:
+                raise ValueError(f"{instrument}: {what} termination {term!r} is not one of "
+                                 f"{', '.join(map(repr, TERMINATIONS))}")
         self.instrument = instrument
         self.url = url
         self.timeout = float(timeout)
         self.write_term = write_term.encode()
         self.read_term = read_term.encode()
-        self.baudrate = baudrate
+        self.serial_settings = SerialSettings() if serial_settings is None else serial_settings
         self.reconnect_attempts = reconnect_attempts
         self.reconnect_delay = reconnect_delay
         self._port: serial.SerialBase | None = None
@@ -65,8 +109,8 @@ class LineLink:
         last = None
         for attempt in range(max(1, self.reconnect_attempts)):
             try:
-                self._port = serial.serial_for_url(self.url, baudrate=self.baudrate,
-                                                   timeout=self.timeout, write_timeout=self.timeout)
+                self._port = serial.serial_for_url(self.url, timeout=self.timeout, write_timeout=self.timeout,
+                                                   **self.serial_settings.pyserial_kwargs())
                 self._buf.clear()
                 return
             except (serial.SerialException, OSError, ValueError) as exc:

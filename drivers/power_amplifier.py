@@ -1,29 +1,20 @@
-"""Driver for the shaker power amplifier over Modbus TCP (pymodbus client).
+"""Driver for the shaker power amplifier with the shakerlab register map, over Modbus TCP.
 
 Register map: see docs/protocols.md (the simulated amplifier implements it).
-Every request has a timeout; a Modbus exception reply raises
-:class:`InstrumentFault`, a lost or refused connection
-:class:`InstrumentConnectionError`, no reply :class:`InstrumentTimeout` -- each
-naming the register.  Reconnect policy: a lost connection is reopened on the
-next call (``reconnect_attempts`` tries); a failed request is not re-sent.
+Errors, timeouts and the reconnect policy are those of the transport,
+:class:`drivers.modbus_link.ModbusTcpInstrument`.  An amplifier with another
+register map: :mod:`drivers.modbus_amplifier`.
 """
 from __future__ import annotations
 
-import threading
-import time
 from dataclasses import dataclass
 
-from pymodbus.client import ModbusTcpClient
-from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
-
-from drivers.base import (Instrument, InstrumentConnectionError, InstrumentFault, InstrumentTimeout,
-                          MalformedReply, Register, SettingRangeError, in_range)
+from drivers.base import MalformedReply, Register, SettingRangeError, in_range
+from drivers.modbus_link import MODBUS_EXCEPTIONS, ModbusTcpInstrument
 
 STATUS_ACTIVE, STATUS_OVER_CURRENT, STATUS_OVER_TEMPERATURE, STATUS_CLIP, STATUS_WATCHDOG = 1, 2, 4, 8, 16
 MAX_WATCHDOG_S = 60.0
 REG_IDENT, N_IDENT = 32, 16
-MODBUS_EXCEPTIONS = {1: "illegal function", 2: "illegal data address", 3: "illegal data value (out of range)",
-                     4: "device failure", 6: "device busy"}
 
 
 @dataclass(frozen=True)
@@ -41,7 +32,7 @@ class AmplifierFaults:
         return [n for n in ("over_current", "over_temperature", "clip", "watchdog") if getattr(self, n)]
 
 
-class PowerAmplifier(Instrument):
+class PowerAmplifier(ModbusTcpInstrument):
     """The register map (docs/protocols.md), one property per register."""
 
     name = "power amplifier"
@@ -68,72 +59,6 @@ class PowerAmplifier(Instrument):
                         cached=True)
     max_current_limit = Register(21, "MAX_CURRENT_LIMIT", "Highest current limit the device accepts [A].",
                                  scale=1000, writable=False, cached=True)
-
-    def __init__(self, address: str, device_id: int = 1, timeout: float = 1.0,
-                 reconnect_attempts: int = 3, reconnect_delay: float = 0.1):
-        host, sep, port = address.rpartition(":")
-        if not sep or not host or not port.isdigit():
-            raise ValueError(f"{self.name}: address must be 'host:port', got {address!r}")
-        if not isinstance(timeout, (int, float)) or not timeout > 0:
-            raise ValueError(f"{self.name}: timeout must be > 0 s, got {timeout!r}")
-        self.address = address
-        self.device_id = device_id
-        self.timeout = float(timeout)
-        self.reconnect_attempts = reconnect_attempts
-        self.reconnect_delay = reconnect_delay
-        self._client = ModbusTcpClient(host, port=int(port), timeout=self.timeout, retries=0)
-        self._lock = threading.Lock()
-        self._heartbeat = 0
-        self._connect("connect")
-
-    # ---- transport ---------------------------------------------------------------------------
-    def _connect(self, what: str) -> None:
-        for attempt in range(max(1, self.reconnect_attempts)):
-            if self._client.connect():
-                return
-            if attempt + 1 < self.reconnect_attempts:
-                time.sleep(self.reconnect_delay)
-        raise InstrumentConnectionError(self.name, what, f"cannot connect to Modbus TCP {self.address}")
-
-    def _call(self, what: str, func, *args, **kwargs):
-        with self._lock:
-            if not self._client.connected:
-                self._connect(what)
-            try:
-                rr = func(*args, device_id=self.device_id, **kwargs)
-            except ConnectionException as exc:
-                self._client.close()
-                raise InstrumentConnectionError(self.name, what, f"connection lost: {exc}") from None
-            except ModbusIOException as exc:
-                self._client.close()
-                raise InstrumentTimeout(self.name, what, f"no valid reply within {self.timeout:g} s ({exc})") from None
-            except ModbusException as exc:
-                self._client.close()
-                raise MalformedReply(self.name, what, f"Modbus error: {exc}") from None
-            except OSError as exc:
-                self._client.close()
-                raise InstrumentConnectionError(self.name, what, f"connection lost: {exc}") from None
-        if rr.isError():
-            code = getattr(rr, "exception_code", None)
-            meaning = MODBUS_EXCEPTIONS.get(code, "error")
-            raise InstrumentFault(self.name, what, f"Modbus exception {code}: {meaning}")
-        return rr
-
-    def _read(self, reg: int, count: int, label: str) -> list[int]:
-        what = f"read {label} (register {reg}, count {count})"
-        rr = self._call(what, self._client.read_holding_registers, reg, count=count)
-        regs = list(getattr(rr, "registers", []) or [])
-        if len(regs) != count:
-            raise MalformedReply(self.name, what, f"expected {count} register(s), got {len(regs)}")
-        return regs
-
-    def _write_register(self, reg: int, value: int, label: str) -> None:
-        what = f"write {label} (register {reg}) = {value}"
-        self._call(what, self._client.write_register, reg, value)
-
-    def _write_regs(self, reg: int, values: list[int]) -> None:
-        what = f"write registers {reg}..{reg + len(values) - 1} = {values}"
-        self._call(what, self._client.write_registers, reg, values)
 
     @property
     def faults(self) -> AmplifierFaults:
@@ -172,9 +97,6 @@ class PowerAmplifier(Instrument):
         """Disable the output and set the gain to 0 (one request)."""
         self._write_regs(PowerAmplifier.enabled.address, [0, 0])
 
-    def close(self) -> None:
-        with self._lock:
-            self._client.close()
 
 
-__all__ = ["PowerAmplifier", "AmplifierFaults", "SettingRangeError"]
+__all__ = ["PowerAmplifier", "AmplifierFaults", "SettingRangeError", "MODBUS_EXCEPTIONS"]

@@ -1,7 +1,9 @@
-"""Driver for a Keysight 33500B-style function generator over SCPI (pyserial transport).
+"""Driver for a Keysight 33500B-style function generator over SCPI.
 
-Works with any pyserial URL: ``socket://host:port`` (LAN socket port 5025 on a
-real 33500B), a serial device or a pty.  Every setting is validated before it
+The address is a VISA resource string (``TCPIP0::192.168.1.20::5025::SOCKET``,
+``TCPIP0::host::inst0::INSTR``, ``USB0::0x0957::0x2C07::MY1234::INSTR``,
+``GPIB0::10::INSTR``; through pyvisa, :mod:`drivers.visa_link`) or a pyserial
+URL (``socket://host:port``, a serial device or a pty; :mod:`drivers.line_link`).  Every setting is validated before it
 is sent; every write is followed (in the same line) by ``SYST:ERR?`` so an
 instrument-side rejection (e.g. a settings conflict with the voltage limits)
 raises :class:`InstrumentFault` at once, naming the command.
@@ -13,6 +15,7 @@ import re
 from drivers.base import (Instrument, InstrumentError, InstrumentFault, MalformedReply, SettingRangeError,
                           boolean, in_range, int_range, on_off, parse_bool, parse_float)
 from drivers.line_link import LineLink
+from drivers.visa_link import VisaLink, is_visa_resource
 
 FREQ_RANGE = (1e-6, 30e6)      # Hz (sine)
 VPP_RANGE = (1e-3, 10.0)       # Vpp into 50 ohm
@@ -32,10 +35,17 @@ class SignalGenerator(Instrument):
 
     name = "signal generator"
 
-    def __init__(self, url: str, timeout: float = 1.0, **link_options):
+    def __init__(self, url: str, timeout: float = 1.0, write_term: str = "\n", read_term: str = "\n",
+                 visa_library: str = "", **link_options):
+        """``url``: a VISA resource string or a pyserial URL; ``visa_library`` applies to the first
+        ("": NI/Keysight VISA when installed, else pyvisa-py; "@py"; "@ivi")."""
         self.url = url
-        self.link = LineLink(self.name, url, timeout=timeout, write_term="\n", read_term="\n",
-                             **link_options)
+        if is_visa_resource(url):
+            self.link = VisaLink(self.name, url, timeout=timeout, write_term=write_term, read_term=read_term,
+                                 visa_library=visa_library, **link_options)
+        else:
+            self.link = LineLink(self.name, url, timeout=timeout, write_term=write_term, read_term=read_term,
+                                 **link_options)
 
     # ---- transport primitives used by Setting ------------------------------------------------
     def _query(self, command: str) -> str:
@@ -141,7 +151,10 @@ class SignalGenerator(Instrument):
             raise InstrumentFault(self.name, "OUTP OFF", "output still reports ON")
 
     def close(self) -> None:
-        self.link.close()
+        if isinstance(self.link, VisaLink):
+            self.link.close_library()
+        else:
+            self.link.close()
 
 
 __all__ = ["SignalGenerator", "InstrumentError"]

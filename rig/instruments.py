@@ -11,6 +11,15 @@ integrated here, block by block, into the displacement every consumer of a
 metres); the velocity itself travels in ``Block.measured`` to the recorder.
 See :class:`VelocityIntegrator` for the integrator and its error.
 
+Each sensor's ``sensitivity`` (its calibration factor, ``[sensors.*]``)
+multiplies every reading here, before anything else sees it.
+
+The amplifier is one of three kinds (``[amplifier] kind``): the shakerlab
+register map, a declared vendor Modbus map, or a *manual* amplifier with no
+remote control.  A manual amplifier cannot be muted from here: stopping then
+means ramping the generator down and switching its output off, and
+:class:`SafeStateReport` says so.
+
 The heartbeat feeds the amplifier's comms watchdog from a background thread
 only while the runner keeps making progress (:meth:`mark_alive`): if the
 controller process dies or its loop stalls for ``stall_timeout_s``, the
@@ -27,6 +36,8 @@ from scipy.signal import lfilter
 
 from drivers.base import InstrumentError
 from drivers.laser_sensor import LaserSensor
+from drivers.line_link import SerialSettings
+from drivers.modbus_amplifier import RegisterMap, modbus_amplifier
 from drivers.power_amplifier import PowerAmplifier
 from drivers.signal_generator import SignalGenerator
 
@@ -148,7 +159,8 @@ class SafeStateReport:
 
     generator_problem: str
     amplifier_problem: str
-    watchdog_timeout_s: float
+    watchdog_timeout_s: float | None
+    manual_amplifier: bool = False
 
     @property
     def confirmed(self) -> bool:
@@ -157,9 +169,15 @@ class SafeStateReport:
     def __str__(self) -> str:
         generator = ("generator output off (read back)" if not self.generator_problem else
                      f"generator output NOT confirmed off ({self.generator_problem})")
+        if self.manual_amplifier:
+            return (f"{generator}; manual amplifier: not muted (no remote control), the generator was stopped "
+                    f"instead")
+        if self.watchdog_timeout_s is None:
+            watchdog = "it has no comms watchdog: switch it off at its front panel"
+        else:
+            watchdog = f"its comms watchdog mutes it after {self.watchdog_timeout_s:g} s of silence"
         amplifier = ("amplifier muted (read back: disabled, gain 0)" if not self.amplifier_problem else
-                     f"amplifier NOT confirmed muted ({self.amplifier_problem}); its comms watchdog mutes it "
-                     f"after {self.watchdog_timeout_s:g} s of silence")
+                     f"amplifier NOT confirmed muted ({self.amplifier_problem}); {watchdog}")
         return f"{generator}; {amplifier}"
 
 
@@ -167,6 +185,38 @@ class SamplesLost(Exception):
     def __init__(self, message: str, n: int):
         super().__init__(message)
         self.n = n
+
+
+class ManualAmplifier:
+    """An amplifier with no remote control: the gain the operator set on its front panel, as data."""
+
+    name = "manual amplifier"
+
+    def __init__(self, gain: float):
+        self.gain = float(gain)
+
+    def identify(self) -> str:
+        return f"manual amplifier (gain {self.gain:g} set on the front panel; no remote control)"
+
+    def close(self) -> None:
+        pass
+
+
+def serial_settings(table: dict) -> SerialSettings:
+    """The serial line settings of one instrument's rig-config table."""
+    return SerialSettings(baudrate=table["baudrate"], data_bits=table["data_bits"], parity=table["parity"],
+                          stop_bits=table["stop_bits"] if table["stop_bits"] == 1.5 else int(table["stop_bits"]),
+                          flow_control=table["flow_control"])
+
+
+def link_options(table: dict) -> dict:
+    """Keyword arguments of a text-protocol driver from its rig-config table."""
+    return {"timeout": table["timeout_s"], "read_term": table["read_termination"],
+            "write_term": table["write_termination"], "serial_settings": serial_settings(table)}
+
+
+def register_map(table: dict) -> RegisterMap:
+    return RegisterMap(**{k: v for k, v in table.items() if v is not None})
 
 
 class RigInstruments:
@@ -189,6 +239,8 @@ class RigInstruments:
         self.max_heartbeat_gap = 0.0  # longest time between two heartbeats [s] (diagnostic)
         self.identities: dict[str, str] = {}
         self.quantities = config.quantities          # {"base": ..., "tip": ...}
+        self.amp_kind = config.data["amplifier"]["kind"]
+        self.sensitivity = {p: float(config.data["sensors"][p]["sensitivity"]) for p in ("base", "tip")}
         self._integrators: dict[str, VelocityIntegrator] = {}
         self.vpp = 0.0
         self.frequency = 0.0
@@ -198,11 +250,18 @@ class RigInstruments:
     def connect(self) -> dict:
         """Open every driver and identify it; return {name: identity}."""
         d = self.config.data
-        self.gen = SignalGenerator(d["generator"]["url"], timeout=d["generator"]["timeout_s"])
-        self.amp = PowerAmplifier(d["amplifier"]["address"], device_id=d["amplifier"]["device_id"],
-                                  timeout=d["amplifier"]["timeout_s"])
-        self.base = LaserSensor(d["sensors"]["base"]["url"], timeout=d["sensors"]["base"]["timeout_s"], name="base")
-        self.tip = LaserSensor(d["sensors"]["tip"]["url"], timeout=d["sensors"]["tip"]["timeout_s"], name="tip")
+        g = d["generator"]
+        self.gen = SignalGenerator(g["resource"] or g["url"], visa_library=g["visa_library"], **link_options(g))
+        a = d["amplifier"]
+        if self.amp_kind == "manual":
+            self.amp = ManualAmplifier(a["gain"])
+        elif self.amp_kind == "modbus":
+            self.amp = modbus_amplifier(a["address"], register_map(a["registers"]), device_id=a["device_id"],
+                                        timeout=a["timeout_s"])
+        else:
+            self.amp = PowerAmplifier(a["address"], device_id=a["device_id"], timeout=a["timeout_s"])
+        self.base = LaserSensor(d["sensors"]["base"]["url"], name="base", **link_options(d["sensors"]["base"]))
+        self.tip = LaserSensor(d["sensors"]["tip"]["url"], name="tip", **link_options(d["sensors"]["tip"]))
         self.identities = {"generator": self.gen.identify(), "amplifier": self.amp.identify(),
                            "sensor_base": self.base.identify(), "sensor_tip": self.tip.identify()}
         return self.identities
@@ -229,16 +288,37 @@ class RigInstruments:
                 if got != self.quantities[point]:
                     raise InstrumentError(s.name, "MD", f"measuring mode reads back {got!r}, "
                                                         f"[sensors.{point}] quantity asks {self.quantities[point]!r}")
+            want = self.config.data["sensors"][point]["range_m"]
+            if want is not None:
+                got = s.measuring_range if self.quantities[point] == "displacement" else s.velocity_range
+                if abs(got - want) > 1e-3 * want:
+                    raise InstrumentError(s.name, "RG" if self.quantities[point] == "displacement" else "VR",
+                                          f"the controller reports a half range of {got:g}, [sensors.{point}] "
+                                          f"range_m asks {want:g}")
         supervisor.check_gain(d["amplifier"]["gain"])
-        with self.amp_lock:
-            amp = self.amp
-            amp.enabled = False
-            amp.reset_faults()
-            amp.gain = d["amplifier"]["gain"]
-            amp.current_limit = d["amplifier"]["current_limit_a"]
-            amp.watchdog_timeout = d["amplifier"]["watchdog_timeout_s"]
-            amp.enabled = True  # the generator output is off: nothing flows yet
+        if self.amp_kind != "manual":
+            with self.amp_lock:
+                amp = self.amp
+                amp.enabled = False
+                amp.reset_faults()
+                if self.amp_kind == "shakerlab":
+                    amp.gain = d["amplifier"]["gain"]
+                    amp.current_limit = d["amplifier"]["current_limit_a"]
+                    amp.watchdog_timeout = d["amplifier"]["watchdog_timeout_s"]
+                else:
+                    if amp.register_map.gain is not None:
+                        amp.gain = d["amplifier"]["gain"]
+                    if amp.has_watchdog:
+                        amp.watchdog_timeout = d["amplifier"]["watchdog_timeout_s"]
+                amp.enabled = True  # the generator output is off: nothing flows yet
         self.vpp, self.output = MIN_VPP, False
+
+    @property
+    def watchdog_timeout_s(self) -> float | None:
+        """The amplifier's comms watchdog [s]; None when it has none (manual, or a map without one)."""
+        if self.amp_kind == "shakerlab" or (self.amp_kind == "modbus" and self.amp.has_watchdog):
+            return self.config.data["amplifier"]["watchdog_timeout_s"]
+        return None
 
     def settings(self) -> dict:
         """Every setting read back from the instruments (for the run file)."""
@@ -247,15 +327,37 @@ class RigInstruments:
         out["generator"] = {"address": self.config.data["generator"]["url"], "frequency_hz": g.frequency,
                             "amplitude_vpp": g.amplitude, "offset_v": g.offset, "output": g.output,
                             "voltage_limit_vpp": self.config.limits["max_generator_vpp"]}
+        if self.config.data["generator"]["resource"]:
+            out["generator"]["visa_library"] = self.config.data["generator"]["visa_library"] or "auto"
+        ca = self.config.data["amplifier"]
         with self.amp_lock:
             a = self.amp
-            out["amplifier"] = {"address": self.config.data["amplifier"]["address"],
-                                "device_id": self.config.data["amplifier"]["device_id"],
-                                "enabled": a.enabled, "gain": a.gain, "current_limit_a": a.current_limit,
-                                "watchdog_timeout_s": a.watchdog_timeout}
+            if self.amp_kind == "shakerlab":
+                out["amplifier"] = {"address": ca["address"], "device_id": ca["device_id"],
+                                    "enabled": a.enabled, "gain": a.gain, "current_limit_a": a.current_limit,
+                                    "watchdog_timeout_s": a.watchdog_timeout}
+            elif self.amp_kind == "modbus":
+                m = a.register_map
+                out["amplifier"] = {"kind": "modbus", "address": ca["address"], "device_id": ca["device_id"],
+                                    "enabled": a.enabled,
+                                    "gain": a.gain if m.gain is not None else ca["gain"],
+                                    "gain_source": "register" if m.gain is not None else "front panel (rig config)",
+                                    "watchdog_timeout_s": a.watchdog_timeout if a.has_watchdog else "none",
+                                    "register_map": {k: v for k, v in ca["registers"].items() if v is not None}}
+            else:
+                out["amplifier"] = {"kind": "manual", "gain": a.gain, "gain_source": "front panel (rig config)",
+                                    "remote_control": False,
+                                    "on_stop": "the generator is ramped down and its output switched off; the "
+                                               "amplifier is not muted (no remote control)"}
         for name, s in (("sensor_base", self.base), ("sensor_tip", self.tip)):
-            out[name] = {"address": self.config.data["sensors"][name.split("_")[1]]["url"],
+            point = name.split("_")[1]
+            cs = self.config.data["sensors"][point]
+            out[name] = {"address": cs["url"],
                          "sampling_rate_hz": s.sampling_rate, "measuring_range_m": s.measuring_range}
+            if (cs["sensitivity"], cs["serial_number"], cs["calibration_date"]) != (1.0, "", ""):
+                # the uncalibrated default keeps the settings it always had (the same run file)
+                out[name].update(sensitivity=cs["sensitivity"], serial_number=cs["serial_number"],
+                                 calibration_date=cs["calibration_date"])
             if self.quantities[name.split("_")[1]] != "displacement":
                 # the displacement default keeps the settings it always had (the same run file)
                 out[name].update(quantity=s.quantity, velocity_range_m_s=s.velocity_range)
@@ -266,7 +368,9 @@ class RigInstruments:
         self._alive = time.monotonic()
 
     def start_heartbeat(self) -> None:
-        period = self.config.data["amplifier"]["watchdog_timeout_s"] / 8
+        if self.watchdog_timeout_s is None:
+            return  # no comms watchdog to feed
+        period = self.watchdog_timeout_s / 8
         stall = self.config.acquisition["stall_timeout_s"]
         self._hb_stop.clear()
         self.mark_alive()
@@ -323,6 +427,10 @@ class RigInstruments:
             if got is not None:
                 break
         index0, ((xb, fb), (xt, ft)) = got
+        if self.sensitivity["base"] != 1.0:
+            xb = xb * self.sensitivity["base"]
+        if self.sensitivity["tip"] != 1.0:
+            xt = xt * self.sensitivity["tip"]
         measured = {}
         if self._integrators:
             readings = {"base": xb, "tip": xt}
@@ -333,9 +441,11 @@ class RigInstruments:
                 # the flag in this block; the integrator carries on from zero velocity
                 readings[point] = integrate(np.where(np.isfinite(v), v, 0.0))
             xb, xt = readings["base"], readings["tip"]
-        with self.amp_lock:
-            current = self.amp.output_current
-            faults = self.amp.check_errors()
+        current, faults = None, []
+        if self.amp_kind != "manual":
+            with self.amp_lock:
+                current = self.amp.output_current
+                faults = self.amp.check_errors()
         self.mark_alive()
         return Block(index0=index0, fs=self.fs, x_base=xb, x_tip=xt, flags_base=fb, flags_tip=ft,
                      amplitude_vpp=self.vpp if self.output else 0.0, frequency_hz=self.frequency,
@@ -362,22 +472,25 @@ class RigInstruments:
 
     def mute(self) -> "SafeStateReport":
         """Generator output off and amplifier muted, each tried even if the other fails, each read back;
-        report what was confirmed."""
+        report what was confirmed. A manual amplifier cannot be muted: the generator output off is the
+        safe state."""
         generator_problem = amplifier_problem = ""
         try:
             self.gen.safe_state()  # OUTP OFF, then OUTP? must read 0
             self.output = False
         except Exception as exc:  # noqa: BLE001 - reported, the amplifier is still muted
             generator_problem = str(exc)
+        if self.amp_kind == "manual":
+            return SafeStateReport(generator_problem, "", None, manual_amplifier=True)
         try:
             with self.amp_lock:
                 self.amp.safe_state()
-                if self.amp.enabled or self.amp.gain != 0.0:
+                has_gain = self.amp_kind == "shakerlab" or self.amp.register_map.gain is not None
+                if self.amp.enabled or (has_gain and self.amp.gain != 0.0):
                     amplifier_problem = "ENABLE/GAIN still read non-zero after the write"
         except Exception as exc:  # noqa: BLE001 - reported; its comms watchdog mutes it
             amplifier_problem = str(exc)
-        return SafeStateReport(generator_problem, amplifier_problem,
-                               self.config.data["amplifier"]["watchdog_timeout_s"])
+        return SafeStateReport(generator_problem, amplifier_problem, self.watchdog_timeout_s)
 
     def close(self) -> None:
         self.stop_heartbeat()

@@ -68,6 +68,8 @@ def check_device_settings(config: RigConfig, inst: RigInstruments) -> None:
     """The settings the instruments themselves bound, read from the connected devices: refused before
     the run file is created and before anything is driven."""
     amp = config.data["amplifier"]
+    if inst.amp_kind != "shakerlab":
+        return  # a declared map's gain_max is checked with the config; a manual amplifier reports nothing
     with inst.amp_lock:
         max_gain, max_current = inst.amp.max_gain, inst.amp.max_current_limit
     if amp["gain"] > max_gain:
@@ -111,13 +113,19 @@ def check_recording(recorder: Recorder, outcome: RunOutcome) -> str:
 
 
 @contextlib.contextmanager
-def simulated_rig(speed: float | None = 1.0, seed: int = 0, sim_config=None, rig_config: str | Path | None = None):
-    """Start the simulated rig; yield (SimulatedRig, RigConfig with its addresses)."""
+def simulated_rig(speed: float | None = 1.0, seed: int = 0, sim_config=None,
+                  rig_config: str | Path | RigConfig | None = None):
+    """Start the simulated rig; yield (SimulatedRig, RigConfig with its addresses). With a manual amplifier
+    the simulated amplifier's front panel is set to the config's gain, as the operator would."""
     from sim_backend.rig import SimulatedRig  # lazy: the simulator only when a simulated rig is asked for
 
     sim = SimulatedRig(sim_config, speed=speed, seed=seed)
     sim.start()
     try:
-        yield sim, load_config(rig_config).with_addresses(sim.addresses)
+        config = rig_config if isinstance(rig_config, RigConfig) else load_config(rig_config)
+        if config.amplifier_kind == "manual":
+            # the operator's part: gain knob and output switch on the (simulated) front panel
+            sim.amplifier.front_panel(config.data["amplifier"]["gain"])
+        yield sim, config.with_addresses(sim.addresses)
     finally:
         sim.stop()

@@ -40,7 +40,8 @@ class Field:
         what = {"number": "a number", "int": "an integer", "str": "a string", "bool": "true or false",
                 "list_number": "a list of numbers"}[self.kind]
         if self.choices:
-            what = "one of " + ", ".join(repr(c) for c in self.choices)
+            what = "one of " + ", ".join(f"{c:g}" if isinstance(c, (int, float)) else repr(c)
+                                          for c in self.choices)
         bounds = []
         if self.min is not None:
             bounds.append(f"{'>' if self.min_exclusive else '>='} {self.min:g}")
@@ -78,6 +79,8 @@ def _check_value(field: Field, value, where: str):
         if field.min is not None and (value < field.min or (field.min_exclusive and value == field.min)):
             raise bad()
         if field.max is not None and value > field.max:
+            raise bad()
+        if field.choices and value not in field.choices:
             raise bad()
         return float(value) if field.kind == "number" else int(value)
     if field.kind == "list_number":

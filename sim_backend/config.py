@@ -31,7 +31,7 @@ NON_NEGATIVE_FIELDS = {
     ("specimen", "c_m"), ("shaker", "suspension_stiffness"), ("shaker", "suspension_damping"),
     ("amplifier", "watchdog_timeout"), ("sensors", "noise_std"), ("sensors", "velocity_noise_std"),
     ("effects", "coulomb_friction"), ("effects", "contact_stiffness"), ("effects", "channel_delay"),
-    ("effects", "higher_mode_frequency"), ("effects", "higher_mode_damping"),
+    ("effects", "higher_mode_frequency"), ("effects", "higher_mode_damping"), ("sensors", "tip_on_base"),
 }
 
 
@@ -91,5 +91,8 @@ def _cross_check(cfg: dict, source: str) -> None:
             f"{source}: effects.higher_mode_frequency {f2} Hz is too close to Nyquist for "
             f"clock.sample_rate {fs} Hz (keep it below sample_rate/10)"
         )
+    if cfg["sensors"]["tip_on_base"] not in (0.0, 1.0):
+        raise UserFacingError(f"{source}: sensors.tip_on_base: expected 0 (tip sensor on the tip) or 1 (on the "
+                              f"base), got {cfg['sensors']['tip_on_base']!r}")
     if cfg["effects"]["contact_stiffness"] > 0 and cfg["effects"]["contact_gap"] <= 0:
         raise UserFacingError(f"{source}: effects.contact_gap must be > 0 when contact_stiffness is set")

@@ -29,8 +29,8 @@ P_DT, P_M, P_C, P_K, P_ALPHA, P_GAMMA, P_DELTA, P_A2, P_A3, P_B2 = range(10)
 P_MA, P_KS, P_CS, P_KF, P_R = range(10, 15)
 P_GM, P_RAIL, P_RTH, P_TAU, P_TAMB, P_TMAX = range(15, 21)
 P_MU, P_C2, P_GAP, P_KC, P_DRIFT, P_W2, P_Z2, P_PHI2 = range(21, 29)
-P_SCALE_B, P_SCALE_T, P_NOISE, P_SEED, P_VNOISE = range(29, 34)
-N_P = 34
+P_SCALE_B, P_SCALE_T, P_NOISE, P_SEED, P_VNOISE, P_TIP_ON_BASE = range(29, 35)
+N_P = 35
 # the velocity readings' noise is a second counter-based stream: (seed, step + VELOCITY_STREAM), so the
 # displacement readings (and their noise) are the same whether or not velocity is read
 VELOCITY_STREAM = 1 << 60
@@ -169,7 +169,7 @@ def _advance(P, X, G, A, step0, n, xb_out, xt_out, vb_out, vt_out, with_velocity
         t = step * dt
         # sensors sample the state at the start of the step
         xb = X[X_XB]
-        xt = xb + X[X_Y] + P[P_PHI2] * X[X_Q]
+        xt = xb + (1.0 - P[P_TIP_ON_BASE]) * (X[X_Y] + P[P_PHI2] * X[X_Q])
         nb = 0.0
         nt = 0.0
         if P[P_NOISE] > 0.0:
@@ -180,7 +180,7 @@ def _advance(P, X, G, A, step0, n, xb_out, xt_out, vb_out, vt_out, with_velocity
         xt_out[j] = (1.0 + P[P_SCALE_T]) * xt + nt
         if with_velocity:
             vb = X[X_VB]
-            vt = vb + X[X_VY] + P[P_PHI2] * X[X_VQ]
+            vt = vb + (1.0 - P[P_TIP_ON_BASE]) * (X[X_VY] + P[P_PHI2] * X[X_VQ])
             mb = 0.0
             mt = 0.0
             if P[P_VNOISE] > 0.0:
@@ -267,4 +267,5 @@ def parameter_vector(cfg: dict, seed: int) -> np.ndarray:
     P[P_NOISE] = sen["noise_std"]
     P[P_SEED] = float(seed % (2**52))
     P[P_VNOISE] = sen["velocity_noise_std"]
+    P[P_TIP_ON_BASE] = sen["tip_on_base"]
     return P

@@ -216,6 +216,16 @@ class SimPowerAmplifier:
                 values[k] = 0
         return None
 
+    def front_panel(self, gain: float, enabled: bool = True) -> None:
+        """The operator's hands on the front panel: gain knob and output switch (a manual amplifier)."""
+        if not 0.0 <= gain <= self.max_gain:
+            raise ValueError(f"simulated amplifier: front-panel gain {gain:g} is outside 0..{self.max_gain:g}")
+
+        def set_panel():
+            self.world.A[ph.A_GAIN] = float(gain)
+            self.world.A[ph.A_ENABLE] = 1.0 if enabled else 0.0
+        self.world.apply(set_panel)
+
     def _reset_faults(self) -> None:
         A, X = self.world.A, self.world.X
         A[ph.A_OC] = 0.0

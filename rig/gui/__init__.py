@@ -18,14 +18,19 @@ def run_gui(args) -> int:
     import os  # heavy: Qt and pyqtgraph; loaded when the window opens
     import sys  # heavy: Qt and pyqtgraph; loaded when the window opens
 
+    from rig.gui.startup import problem  # heavy: Qt and pyqtgraph; loaded when the window opens
+    from shakerlab.errors import UserFacingError  # heavy: Qt and pyqtgraph; loaded when the window opens
+
+    missing = problem()
+    if missing is not None:
+        raise UserFacingError(missing)
+
     from PySide6 import QtWidgets  # heavy: Qt and pyqtgraph; loaded when the window opens
 
     from rig.gui.window import MainWindow  # heavy: Qt and pyqtgraph; loaded when the window opens
 
     if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY") and sys.platform.startswith("linux") \
             and not os.environ.get("QT_QPA_PLATFORM"):
-        from shakerlab.errors import UserFacingError  # heavy: Qt and pyqtgraph; loaded when the window opens
-
         raise UserFacingError("no display (DISPLAY and WAYLAND_DISPLAY are unset); set QT_QPA_PLATFORM=offscreen "
                               "to run the window without one")
     app = QtWidgets.QApplication.instance() or QtWidgets.QApplication(["shakerlab"])
