@@ -20,12 +20,19 @@ Three steps, each kept only on the evidence of the joint fit:
    of squares, each stage's share divided by the residual's :func:`colour` where the loss changes
    the fit: the white-noise price is too low for a residual coloured by the input's noise at
    resonance.
-3. :func:`restart`: when the joint fit stays above ``FLOOR_RATIO`` times the noise (mean square
-   per sample, in noise variances), or step 1 finds the stages in disagreement, the fit may be in
-   another basin: it restarts from the stiffness terms alone (y^2, y^3), and from the generic
-   Bouc-Wen starts of the nonlinear stage's polish when that is not at the floor either, and keeps
-   the restart when it fits the two stages better (and, after a disagreement, agrees with the
-   nonlinear stage).
+3. :func:`restart`: when the joint fit stays above ``FLOOR_RATIO`` times the record's floor, or
+   step 1 finds the stages in disagreement, the fit may be in another basin: it restarts from the
+   stiffness terms alone (y^2, y^3), and from the generic Bouc-Wen starts of the nonlinear stage's
+   polish when that is not at the floor either, and keeps the restart when it fits the two stages
+   better (and, after a disagreement, agrees with the nonlinear stage).
+
+The floor (:meth:`TwoStages.floor`) is the mean square per sample, in output noise variances, that
+the record's noise leaves in the residual of a model that is right: the output's white noise (1)
+plus the input sensor's noise carried through the model (the input u is made from a measured
+channel, so its noise drives the simulation; near a resonance that is a coloured residual well
+above the white level). It is measured, not assumed: the stage's own input filter applied to white
+noise at the input channel's noise level (the draws the uncertainty ensemble uses), simulated
+through the model, and compared with the same simulation without it.
 
 Measured on the independent generator (bench/recon_accuracy.py --stress, docs/method.md).
 """
@@ -44,15 +51,16 @@ from recon.estimator.result import ReconSettings
 from recon.model import HystereticModel
 from recon.output_error.polish import decimate, polish
 from recon.output_error.problem import OutputError
-from shakerlab.run_data import Run, Stage
+from recon.signals import input_filter
+from shakerlab.run_data import BASE, Run, Stage
 
 JOINT_FALSE_ALARM = 0.01
-# mean square of the joint residual per sample, in noise variances, above which the joint fit is
-# taken to be in another basin. The truth's own joint fit is at 1.00-1.05 on the independent
-# generator's draws; the mean square's sampling spread is sqrt(2/n), under 0.01 for n > 20000, so
-# 10 % above the floor is model error (stress seed 6 at 50 dB: a spurious y^2 y' at 1.14, the truth
-# at 1.00; 1.5 until 2026-11-26 let it stand)
+# the joint fit's mean square per sample over the record's floor (TwoStages.floor) above which it is
+# taken to be in another basin: the mean square's sampling spread is sqrt(2/n), under 0.01 for
+# n > 20000, and the floor's own estimate is good to a few per cent, so 10 % above it is model error
 FLOOR_RATIO = 1.1
+FLOOR_DRAWS = 2          # noise draws per stage of the floor's estimate (each: one simulation)
+FLOOR_SEED = 20261205    # the draws are fixed: the same record gives the same floor
 STIFFNESS_TERMS = ("y^2", "y^3")
 
 
@@ -95,6 +103,34 @@ class TwoStages:
             ys = OutputError.response(model, d[0], d[1], d[3] if len(d) > 3 else None)
             out.append(((ys - d[2]) / sd, float(d[0][1] - d[0][0])))
         return out
+
+    def floor(self, model: HystereticModel, items: list) -> float:
+        """The mean square per sample, in noise variances, of the joint residual that the record's
+        noise leaves under ``model`` if ``model`` is right (module doc): 1 for the output's white
+        noise plus the input noise carried through the model, over the items as the polish fits
+        them. Under base excitation the base sensor's noise enters y = x_tip - x_base as well as
+        u; its own share of the output noise is replaced by the pair's joint effect."""
+        rng = np.random.default_rng(FLOOR_SEED)
+        total, count = 0.0, 0
+        for st, item, sd in zip(self.stages, items, self.noise):
+            d, q = decimate(item)
+            f = input_filter(st)
+            base = OutputError.response(model, d[0], d[1], d[3] if len(d) > 3 else None)
+            share = []
+            for _ in range(FLOOR_DRAWS):
+                nb = rng.normal(0.0, f.noise_std, st.t.size)
+                un = f(nb)
+                ys = OutputError.response(model, d[0], (item[1] + un)[::q], d[3] if len(d) > 3 else None)
+                if not np.all(np.isfinite(ys)):
+                    return float("inf")
+                if st.excitation == BASE:     # y_meas carries -n_base: the residual gets +n_base
+                    e = ys - base + nb[::q]
+                    share.append((float(np.mean(e ** 2)) - f.noise_std ** 2) / sd ** 2)
+                else:
+                    share.append(float(np.mean((ys - base) ** 2)) / sd ** 2)
+            total += d[2].size * (1.0 + max(float(np.mean(share)), 0.0))
+            count += d[2].size
+        return total / max(count, 1)
 
     def sse(self, model: HystereticModel, items: list) -> tuple[float, int]:
         """The joint sum of squares in noise variances over the items as the polish fits them
@@ -264,8 +300,14 @@ def restart(model: HystereticModel, two: TwoStages, force: bool = False, known: 
             sse, n = two.sse(model, two.items(model))
         except NUMERICAL_ERRORS as exc:
             return model, {"failed": f"{type(exc).__name__}: {exc}"}
-    record = {"mean_square_noise_variances": sse / n, "limit": FLOOR_RATIO, "applied": False}
-    if sse / n <= FLOOR_RATIO and not force:
+    try:
+        floor = two.floor(model, two.items(model))
+    except NUMERICAL_ERRORS:
+        floor = 1.0
+    floor = floor if np.isfinite(floor) else 1.0
+    record = {"mean_square_noise_variances": sse / n, "floor_noise_variances": floor,
+              "limit": FLOOR_RATIO * floor, "applied": False}
+    if sse / n <= FLOOR_RATIO * floor and not force:
         return model, record
     trial = HystereticModel.from_dict(model.to_dict())
     trial.provenance = model.provenance
@@ -273,7 +315,7 @@ def restart(model: HystereticModel, two: TwoStages, force: bool = False, known: 
     trial = with_term_scales(trial, two.items(trial))
     fit = _joint_fit(trial, two)
     record["start"] = "stiffness_terms"
-    if fit is None or fit[1] / n > FLOOR_RATIO:
+    if fit is None or fit[1] / n > FLOOR_RATIO * floor:
         # not at the floor from the model's own Bouc-Wen law either: the generic starts, screened
         fit = _generic_fit(model, two, record) or fit
     if fit is None:
