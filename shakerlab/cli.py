@@ -8,7 +8,10 @@ handlers) so that ``shakerlab --help`` is instant.
 from __future__ import annotations
 
 import argparse
+import atexit
+import contextlib
 import importlib
+import os
 import sys
 
 from shakerlab import __version__
@@ -35,7 +38,33 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def quiet_exit_on_terminal() -> None:
+    """At exit, once Python has flushed its output, a terminal on stdout is detached: the JIT compiler's
+    library (LLVM, through numba) resets the terminal's colour in its static destructors, which would
+    leave a stray escape code after every command's last line. Pipes and files get no such code."""
+    try:
+        if not os.isatty(1):
+            return
+    except OSError:
+        return
+
+    def detach():
+        with contextlib.suppress(OSError, ValueError):
+            sys.stdout.flush()
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 1)
+
+    atexit.register(detach)
+
+
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    finally:
+        quiet_exit_on_terminal()    # registered last, so it runs before the libraries' own exit handlers
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "handler", None):
