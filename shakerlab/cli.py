@@ -14,7 +14,7 @@ import importlib
 import os
 import sys
 
-from shakerlab import __version__
+from shakerlab import __version__, progress_view
 from shakerlab.errors import Terminated, UserFacingError
 from shakerlab.output_files import terminate_raises
 
@@ -72,7 +72,10 @@ def _main(argv: list[str] | None) -> int:
         return 2
     terminate_raises()      # SIGTERM cleans up like Ctrl-C (acquire installs its own ramp-down handler)
     try:
-        return int(args.handler(args) or 0)
+        try:
+            return int(args.handler(args) or 0)
+        finally:
+            progress_view.stop()    # before any message below, so it is not drawn over
     except Terminated:
         print(f"shakerlab {args.command}: terminated (SIGTERM); files being written were discarded, existing "
               f"files left as they were", file=sys.stderr)

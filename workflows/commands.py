@@ -10,11 +10,16 @@ import importlib
 import sys
 from pathlib import Path
 
+from shakerlab import progress_view
 
-def _handler(name: str, module: str = "workflows.handlers"):
-    """The handler ``<module>.<name>``, imported on first call."""
+
+def _handler(name: str, module: str = "workflows.handlers", progress: bool = False):
+    """The handler ``<module>.<name>``, imported on first call. With ``progress`` the command's
+    progress line starts at once (loading the numerical libraries takes seconds), unless --quiet."""
 
     def run(args) -> int:
+        if progress:
+            progress_view.start("loading the numerical libraries", quiet=getattr(args, "quiet", False))
         # the module is heavy (numpy, scipy, h5py, recon): imported only when a command runs
         return getattr(importlib.import_module(module), name)(args)
 
@@ -53,7 +58,7 @@ def register(subparsers) -> None:
                         "also fit the exciter's even-order distortion and low-frequency roll-off, kept when it "
                         "predicts the validation stage better (force excitation; docs/real-data.md)")
     _inertia_option(p)
-    p.set_defaults(handler=_handler("reconstruct_command"))
+    p.set_defaults(handler=_handler("reconstruct_command", progress=True))
     register_reprocessing(subparsers)
     register_diagnosis(subparsers)
     register_backbone(subparsers)
@@ -82,7 +87,7 @@ def register_reprocessing(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print the result JSON instead of a summary")
     quiet_option(p)
     _inertia_option(p)
-    p.set_defaults(handler=_handler("report_command"))
+    p.set_defaults(handler=_handler("report_command", progress=True))
 
     p = subparsers.add_parser(
         "reprocess",
@@ -106,7 +111,7 @@ def register_reprocessing(subparsers) -> None:
     p.add_argument("--term-models", metavar="N", type=int, default=0,
                    help="term-selection ensemble size per run (row-subsampled reselections; default 0: off)")
     _common_recon_options(p)
-    p.set_defaults(handler=_handler("reprocess_command"))
+    p.set_defaults(handler=_handler("reprocess_command", progress=True))
 
 
 def _common_recon_options(p) -> None:
@@ -146,7 +151,7 @@ def register_diagnosis(subparsers) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace an existing --save-model file or -o files (never a run file)")
     quiet_option(p)
-    p.set_defaults(handler=_handler("diagnose_command"))
+    p.set_defaults(handler=_handler("diagnose_command", progress=True))
 
 
 # --- amplitude dependence from a ring-down: `backbone` (recon/backbone.py, workflows/backbone.py) ---------

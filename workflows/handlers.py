@@ -176,8 +176,11 @@ def reprocess_command(args) -> int:
                       term_models=_term_models(args))
     where = ("a plain loop" if args.serial else f"scheduler {args.scheduler}" if args.scheduler
              else f"a local Dask cluster ({args.workers} {'threads' if args.threads else 'processes'})")
-    print(f"reprocessing {len(paths)} run(s) on {where}", file=sys.stderr)
     with progress_line(quiet=args.quiet, done=None) as line:
+        if line is None:
+            print(f"reprocessing {len(paths)} run(s) on {where}", file=sys.stderr)
+        else:
+            line.note(f"reprocessing {len(paths)} run(s) on {where}")
         progress = TextProgress(len(paths), enabled=not args.quiet, line=line)
         rows = run_loop(paths, s, progress) if args.serial else run_batch(paths, s, progress)
     print(format_table(rows))

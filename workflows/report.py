@@ -343,6 +343,7 @@ def render_html(run, d: dict, figures: dict, info: dict) -> str:
         h.append(_img(figures, key))
     h.append("<h2>Hysteresis loops at several amplitudes</h2>" + _img(figures, "loops"))
     h.append("<h2>Residual</h2>" + _img(figures, "residual"))
+    h += info.get("sections", [])
     h.append(f"<h2>Timings</h2><p>{html.escape(timings_text(info['timings_s']))}.</p>")
     h.append("<p>The full result is in <code>result.json</code> next to this file.</p></body></html>")
     return "\n".join(h)
@@ -358,14 +359,18 @@ def _polish_text(prov: dict) -> str:
 
 def _img(figures: dict, key: str) -> str:
     p = figures.get(key)
-    if p is None:
-        return ""
-    data = base64.b64encode(Path(p).read_bytes()).decode()
-    return f"<p><img alt='{html.escape(key)}' src='data:image/png;base64,{data}'></p>"
+    return "" if p is None else img_html(p, key)
+
+
+def img_html(path, alt: str) -> str:
+    """A PNG embedded in the page (a data URI: the report is one self-contained file)."""
+    data = base64.b64encode(Path(path).read_bytes()).decode()
+    return f"<p><img alt='{html.escape(alt)}' src='data:image/png;base64,{data}'></p>"
 
 
 def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncertainty_settings=None,
-                write_back: bool = True, term_models: int = 0, overwrite: bool = False) -> dict:
+                write_back: bool = True, term_models: int = 0, overwrite: bool = False, result=None,
+                sections: list[str] | None = None) -> dict:
     """Reconstruct ``run_path`` and write the report into ``outdir``; returns the result JSON
     (with ``uncertainty`` and ``report``: the files written and where the result went).
 
@@ -373,7 +378,9 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
     complete (a new ``outdir`` is renamed into place whole; into an existing one, with
     ``overwrite``, each report file replaces its namesake). Only then is the result written back
     into the run file; if that cannot be done (the file is being written by another process, was
-    not closed cleanly, ...) the report says so and stays complete. Its steps are reported through
+    not closed cleanly, ...) the report says so and stays complete. ``result``: a reconstruction of
+    the run already made with ``settings`` (not repeated); ``sections``: HTML sections added before the
+    timings (the demo's comparison with the simulator's truth). Its steps are reported through
     :mod:`recon.progress` (``workflows.progress_line`` shows them)."""
     run_path = Path(run_path)
     outdir = check_directory(outdir, option="-o")
@@ -393,7 +400,7 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
     progress.step(f"reconstructing {run_path.name}", share=shares["reconstruct"] / (sum(shares.values()) + 0.1))
     if term_models > 0:
         result, problem = reconstruct_capturing(run, settings)
-    else:
+    elif result is None:
         result = reconstruct(run, settings)
     timings["reconstruct"] = time.perf_counter() - t
     d = result.to_dict()
@@ -433,7 +440,8 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
         digest = settings_hash(job)
         d["reprocess"] = {"settings_hash": digest, "settings": job, "software": f"shakerlab {__version__}"}
         info = {"created": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
-                "timings_s": {**result.timings, **timings}, "polish": _polish_text(result.model.provenance)}
+                "timings_s": {**result.timings, **timings}, "polish": _polish_text(result.model.provenance),
+                "sections": list(sections or [])}
         pending = ("Result not written into the run file (--no-write-back)." if not write_back else
                    "Result not yet written into the run file (the report is written first).")
         _write_report_files(staging, run, d, figures, info, outdir, None, pending)

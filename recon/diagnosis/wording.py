@@ -10,7 +10,7 @@ from shakerlab.words import nrmse_text
 KINDS = {
     "time_segment": "in time", "time_trend": "a trend over the stage", "diverged": "the simulation diverged",
     "frequency_harmonic": "a harmonic", "frequency_band_at_input": "at the input's frequencies",
-    "frequency_resonance": "at a resonance", "channel": "explained by a channel",
+    "frequency_resonance": "at a resonance", "channel": "explained by",
     "state_cluster": "in a quarter of the state plane", "state_near_zero_velocity": "near zero velocity",
     "state_beyond_displacement": "beyond a displacement", "correlation_tests": "correlation tests failed",
 }
@@ -63,7 +63,7 @@ def diagnosis_text(d: dict) -> str:
         text = (f"missing physics: {', '.join(m['id'] for m in missing)} (held-out NRMSE {nrmse_text(before)} "
                 f"-> {nrmse_text(after)})")
         if un:
-            text += (f"; with it added the held-out NRMSE {nrmse_text(un.get('held_out_nrmse'))} is still above "
+            text += (f"; with {'it' if len(missing) == 1 else 'them'} added the held-out NRMSE {nrmse_text(un.get('held_out_nrmse'))} is still above "
                      f"the {nrmse_text(un.get('nrmse_limit'))} limit: something else is missing too")
         return text
     if un:
