@@ -144,12 +144,14 @@ def run_demo(outdir: Path, *, realtime: bool = False, protocol_path=None, seed: 
     print("\nparameter      identified        true   error")
     for r in rows:
         print(f"{r['name']:<14s} {r['identified']:>11.5g} {r['true']:>11.5g} {_err_text(r)}")
-    store_result(path, "reconstruction", clean({**d, "truth": truth, "comparison": rows}), text=str(result.model))
+    group, note = store_result(path, "reconstruction", clean({**d, "truth": truth, "comparison": rows}),
+                               text=str(result.model))
     info = read_info(path)
     figs = _plots(outdir, info)
     with progress_line(quiet=quiet):
         make_report(path, outdir, settings=settings, uncertainty=False, write_back=False, overwrite=True,
-                    result=result, sections=[_demo_section(outdir, outcome, info, rows, figs, t_rec)])
+                    result=result, sections=[_demo_section(outdir, outcome, info, rows, figs, t_rec)],
+                    stored=f"Result {note}, with the simulator's truth and the comparison.")
     # the demo's result.json holds the truth and the comparison beside the reconstruction
     write_text(outdir / "result.json", json.dumps(clean({"reconstruction": d, "truth": truth, "comparison": rows}), indent=2))
     print(f"\nreport: {outdir / 'index.html'} (run file {path}); total {duration_text(time.monotonic() - t0)}")

@@ -370,7 +370,7 @@ def img_html(path, alt: str) -> str:
 
 def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncertainty_settings=None,
                 write_back: bool = True, term_models: int = 0, overwrite: bool = False, result=None,
-                sections: list[str] | None = None) -> dict:
+                sections: list[str] | None = None, stored: str | None = None) -> dict:
     """Reconstruct ``run_path`` and write the report into ``outdir``; returns the result JSON
     (with ``uncertainty`` and ``report``: the files written and where the result went).
 
@@ -380,7 +380,8 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
     into the run file; if that cannot be done (the file is being written by another process, was
     not closed cleanly, ...) the report says so and stays complete. ``result``: a reconstruction of
     the run already made with ``settings`` (not repeated); ``sections``: HTML sections added before the
-    timings (the demo's comparison with the simulator's truth). Its steps are reported through
+    timings (the demo's comparison with the simulator's truth); ``stored``: where the caller wrote the result
+    itself (said in the report instead of the write-back note). Its steps are reported through
     :mod:`recon.progress` (``workflows.progress_line`` shows them)."""
     run_path = Path(run_path)
     outdir = check_directory(outdir, option="-o")
@@ -442,7 +443,7 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
         info = {"created": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
                 "timings_s": {**result.timings, **timings}, "polish": _polish_text(result.model.provenance),
                 "sections": list(sections or [])}
-        pending = ("Result not written into the run file (--no-write-back)." if not write_back else
+        pending = (stored if stored else "Result not written into the run file (--no-write-back)." if not write_back else
                    "Result not yet written into the run file (the report is written first).")
         _write_report_files(staging, run, d, figures, info, outdir, None, pending)
         with OutputLock(outdir):
