@@ -37,7 +37,8 @@ from pathlib import Path
 
 from dask.distributed import Client, LocalCluster, as_completed, get_worker
 
-from recon import ReconSettings, progress, reconstruct
+from recon import ReconSettings, reconstruct
+from recon import progress as recon_progress
 from recon.estimator.adequacy import verdict_summary
 from recon.constitutive.estimator import ConstitutiveSettings, reconstruct_constitutive
 from recon.constitutive.output_error import intervals
@@ -168,10 +169,10 @@ def process_run(path: str, job: dict) -> dict:
         return _process_run(path, job)
     name = Path(path).name
 
-    def forward(u: progress.Update) -> None:
+    def forward(u: recon_progress.Update) -> None:
         worker.log_event(PROGRESS_TOPIC, {"run": name, "text": u.text, "fraction": u.fraction})
 
-    with progress.reporting(forward):
+    with recon_progress.reporting(forward):
         return _process_run(path, job)
 
 
@@ -198,12 +199,12 @@ def _process_run(path: str, job: dict) -> dict:
                 return _fill(_row(path, "skipped", reason=f"already processed with these settings ({hit[0]})",
                                   group=hit[0], settings_hash=digest, seconds=time.perf_counter() - t0), hit[1])
         run = load_run(path)
-        progress.step("reconstruction", share=0.5 if job.get("diagnose") else 1.0)
+        recon_progress.step("reconstruction", share=0.5 if job.get("diagnose") else 1.0)
         result, payload = reconstruct_payload(run, job)
         payload["reprocess"] = {"settings_hash": digest, "settings": job, "software": f"shakerlab {__version__}"}
         row = _fill(_row(path, "ok", settings_hash=digest), payload)
         if job.get("diagnose"):
-            progress.step("diagnosis", share=0.5)
+            recon_progress.step("diagnosis", share=0.5)
             row["diagnosis"] = _diagnose(run, result, path if is_h5 else None, row)
         if job.get("write_back", True):
             group, note = store_result(path, RESULT_KIND, payload, text=str(result.model), settings_hash=digest)
@@ -260,6 +261,7 @@ class TextProgress:
         self.counts = {"ok": 0, "skipped": 0, "failed": 0}
         self.t0 = time.monotonic()
         self.running: dict[str, tuple[str, float]] = {}     # run name: (its step, its fraction)
+        self.finished: set[str] = set()
 
     def update(self, row: dict) -> None:
         """One run finished."""
@@ -267,6 +269,7 @@ class TextProgress:
         self.counts[row["status"]] = self.counts.get(row["status"], 0) + 1
         name = Path(row["run"]).name
         self.running.pop(name, None)
+        self.finished.add(name)
         if self.line is None:
             return
         what = row["status"] + (f", {nrmse_text(row['nrmse'])} NRMSE" if row["status"] == "ok" else "")
@@ -278,18 +281,29 @@ class TextProgress:
     def event(self, event) -> None:
         """A worker's step (a PROGRESS_TOPIC event: (timestamp, {"run", "text", "fraction"}))."""
         msg = event[1] if isinstance(event, tuple) else event
+        if msg["run"] in self.finished:
+            return              # a late event of a run already done
         self.running[msg["run"]] = (msg["text"], float(msg["fraction"]))
         self._show()
 
+    def status(self, text: str) -> None:
+        """What the batch does besides its runs (starting or closing the cluster)."""
+        if self.line is not None:
+            self.line.update(recon_progress.Update(text, self.done / max(self.total, 1),
+                                                   time.monotonic() - self.t0, None))
+
     def _show(self) -> None:
-        if self.line is None or self.done >= self.total:
+        if self.line is None:
+            return
+        if self.done >= self.total:
+            self.status(f"all {self.total} runs done; closing")
             return
         frac = (self.done + sum(f for _, f in self.running.values())) / max(self.total, 1)
         busy = "; ".join(f"{n} [{100 * f:.0f} %] {t}" for n, (t, f) in self.running.items())
         text = f"{self.done} of {self.total} runs done" + (f"; running {busy}" if busy else "")
         elapsed = time.monotonic() - self.t0
-        left = elapsed * (1 - frac) / frac if frac >= progress.MIN_FRACTION_FOR_ESTIMATE else None
-        self.line.update(progress.Update(text, frac, elapsed, left))
+        left = elapsed * (1 - frac) / frac if frac >= recon_progress.MIN_FRACTION_FOR_ESTIMATE else None
+        self.line.update(recon_progress.Update(text, frac, elapsed, left))
 
 
 def expand(patterns: list[str]) -> list[str]:
@@ -311,7 +325,7 @@ def run_loop(paths: list[str], settings: BatchSettings, progress: TextProgress |
     paths = list(dict.fromkeys(str(p) for p in paths))
     rows = []
     for i, p in enumerate(paths):
-        progress.step(f"run {i + 1} of {len(paths)}: {Path(p).name}", share=1.0 / len(paths))
+        recon_progress.step(f"run {i + 1} of {len(paths)}: {Path(p).name}", share=1.0 / len(paths))
         rows.append(process_run(str(p), settings.job()))
         if progress:
             progress.update(rows[-1])
@@ -339,6 +353,8 @@ def run_batch(paths: list[str], settings: BatchSettings | None = None, progress:
             extra = ({"env": {"SHAKERLAB_THREADS": os.environ.get("SHAKERLAB_THREADS")
                               or str(max(1, thread_count() // s.workers))}} if s.processes else {})
             # warnings of the cluster's own (a worker slow to stop is killed at the end) are not the batch's
+            if progress:
+                progress.status(f"starting a local Dask cluster ({s.workers} workers)")
             cluster = LocalCluster(n_workers=s.workers, threads_per_worker=1, processes=s.processes,
                                    dashboard_address=":0", host="127.0.0.1", silence_logs=logging.ERROR, **extra)
             client = Client(cluster)
