@@ -11,6 +11,11 @@ from rig.gui import register_gui  # the operator window (rig/gui/); import-light
 
 
 
+def sim_speed(text: str) -> float:
+    """A --sim-speed value: a number, or 'max' (as fast as possible, like 0)."""
+    return 0.0 if text.strip().lower() == "max" else float(text)
+
+
 def register(subparsers) -> None:
     """Add this package's sub-commands to the ``shakerlab`` parser."""
     p = subparsers.add_parser(
@@ -30,8 +35,8 @@ def register(subparsers) -> None:
                    help="protocol (default: rig/default_protocol.toml)")
     p.add_argument("-o", "--output", type=Path, required=True, help="run file to write (.h5)")
     p.add_argument("--force", action="store_true", help="overwrite the output file")
-    p.add_argument("--sim-speed", type=float, default=1.0, metavar="X",
-                   help="simulated rig: simulated time per wall time (1 = real time, 0 = as fast as possible)")
+    p.add_argument("--sim-speed", type=sim_speed, default=1.0, metavar="X",
+                   help="simulated rig: simulated time per wall time (1 = real time, 0 or 'max' = as fast as possible)")
     p.add_argument("--seed", type=int, default=0, help="simulated rig: the noise seed")
     p.add_argument("--quiet", action="store_true", help="print only warnings, errors and the summary")
     p.set_defaults(handler=_acquire)

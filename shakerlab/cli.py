@@ -8,10 +8,13 @@ handlers) so that ``shakerlab --help`` is instant.
 from __future__ import annotations
 
 import argparse
+import atexit
+import contextlib
 import importlib
+import os
 import sys
 
-from shakerlab import __version__
+from shakerlab import __version__, progress_view
 from shakerlab.errors import Terminated, UserFacingError
 from shakerlab.output_files import terminate_raises
 
@@ -35,7 +38,33 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def quiet_exit_on_terminal() -> None:
+    """At exit, once Python has flushed its output, a terminal on stdout is detached: the JIT compiler's
+    library (LLVM, through numba) resets the terminal's colour in its static destructors, which would
+    leave a stray escape code after every command's last line. Pipes and files get no such code."""
+    try:
+        if not os.isatty(1):
+            return
+    except OSError:
+        return
+
+    def detach():
+        with contextlib.suppress(OSError, ValueError):
+            sys.stdout.flush()
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 1)
+
+    atexit.register(detach)
+
+
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    finally:
+        quiet_exit_on_terminal()    # registered last, so it runs before the libraries' own exit handlers
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "handler", None):
@@ -43,7 +72,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     terminate_raises()      # SIGTERM cleans up like Ctrl-C (acquire installs its own ramp-down handler)
     try:
-        return int(args.handler(args) or 0)
+        try:
+            return int(args.handler(args) or 0)
+        finally:
+            progress_view.stop()    # before any message below, so it is not drawn over
     except Terminated:
         print(f"shakerlab {args.command}: terminated (SIGTERM); files being written were discarded, existing "
               f"files left as they were", file=sys.stderr)

@@ -73,12 +73,15 @@ def read_csv(path: str | Path):
 def _signals(path: Path, time_column):
     import importlib  # lazy: the reader of one format
 
-    module = MAT_SUFFIXES.get(path.suffix.lower())
     from shakerlab.errors import UserFacingError  # heavy: loaded when the command runs
+    from shakerlab.importers.csv_file import data_suffix  # heavy: numpy; loaded when the command runs
+
+    module = MAT_SUFFIXES.get(data_suffix(path))
 
     if module is None:
         raise UserFacingError(f"{path}: unknown file type {path.suffix!r} (expected one of "
-                              f"{', '.join(sorted(MAT_SUFFIXES))})")
+                              f"{', '.join(sorted(MAT_SUFFIXES))}; a CSV may be compressed: .csv.gz, .csv.bz2, "
+                              f".csv.xz)")
     reader = importlib.import_module(f"shakerlab.importers.{module}")
     if module == "csv_file":
         return reader.read_signals(path, time_column)
@@ -93,8 +96,9 @@ def _stage_from_map(files: list[Path], mapping: dict):
     pool: dict = {}
     for f in files:
         tc = time_column
-        if Path(f).suffix.lower() in (".csv", ".txt"):
-            from shakerlab.importers.csv_file import parse  # heavy: numpy; loaded when the command runs
+        from shakerlab.importers.csv_file import data_suffix, parse  # heavy: numpy; loaded when the command runs
+
+        if data_suffix(f) in (".csv", ".txt"):
 
             header = parse(f, any_header=True)[0]
             tc = time_column if time_column in header else None
@@ -206,7 +210,7 @@ def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False
         elif constitutive:
             kind, roles, quantities, time_sig = _component_csv(stage, files)
         else:
-            if len(files) != 1 or files[0].suffix.lower() not in (".csv", ".txt", ""):
+            if len(files) != 1 or csv_file.data_suffix(files[0]) not in (".csv", ".txt", ""):
                 raise UserFacingError(f"--{stage} {' '.join(map(str, files))}: without --map, one shakerlab CSV "
                                       f"per stage; map the channels of other files with --map ROLE=CHANNEL[:Q]")
             header, data, lines, quanta = csv_file.parse(files[0])
@@ -312,7 +316,7 @@ def _component_csv(stage: str, files):
     from shakerlab.importers import csv_file  # heavy: numpy; loaded when the command runs
     from shakerlab.importers.signal import Signal  # heavy: numpy; loaded when the command runs
 
-    if len(files) != 1 or files[0].suffix.lower() not in (".csv", ".txt", ""):
+    if len(files) != 1 or csv_file.data_suffix(files[0]) not in (".csv", ".txt", ""):
         raise UserFacingError(f"--{stage} {' '.join(map(str, files))}: with --constitutive and without --map, one "
                               f"CSV 't,x,force[,v][,cmd]' per stage")
     header, data, lines, quanta = csv_file.parse(files[0], any_header=True)

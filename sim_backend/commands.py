@@ -6,11 +6,16 @@ def register(subparsers) -> None:
     """Add this package's sub-commands to the ``shakerlab`` parser."""
     sim = subparsers.add_parser("sim", help="the simulated rig (instrument servers on loopback)")
     sim_sub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND")
-    serve = sim_sub.add_parser("serve", help="serve all simulated instruments until interrupted")
+    serve = sim_sub.add_parser(
+        "serve", help="serve all simulated instruments until interrupted",
+        description="Start the simulated rig's instruments (signal generator, power amplifier, base and tip "
+                    "laser sensors) as servers on this machine and print their addresses, to point "
+                    "`shakerlab acquire` or the operator window at them. They speak the real instruments' "
+                    "protocols over TCP (and ptys with --pty); Ctrl-C stops them.")
     serve.add_argument("--config", help="simulator config TOML (overrides sim_backend/default_sim.toml)")
-    serve.add_argument("--speed", default="1.0",
+    serve.add_argument("--speed", "--sim-speed", dest="speed", default="1.0",
                        help="simulated seconds per wall-clock second (default 1.0 = real time); "
-                            "'max' = lockstep, advanced by sensor fetches")
+                            "'max' or 0 = lockstep, advanced by sensor fetches (--sim-speed as elsewhere)")
     serve.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     serve.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1)")
     serve.add_argument("--pty", action="store_true", help="also serve the line instruments on ptys")
@@ -30,15 +35,15 @@ def _serve(args) -> int:
     from shakerlab.errors import UserFacingError  # heavy: numba physics; loaded when the command runs
     from sim_backend.rig import SimulatedRig  # heavy: numba physics; loaded when the command runs
 
-    if args.speed == "max":
+    if args.speed.strip().lower() in ("max", "0", "0.0"):
         speed = None
     else:
         try:
             speed = float(args.speed)
         except ValueError:
-            raise UserFacingError(f"--speed must be a positive number or 'max', got {args.speed!r}") from None
+            raise UserFacingError(f"--speed must be a positive number, 0 or 'max', got {args.speed!r}") from None
         if not speed > 0:
-            raise UserFacingError(f"--speed must be a positive number or 'max', got {args.speed!r}")
+            raise UserFacingError(f"--speed must be a positive number, 0 or 'max', got {args.speed!r}")
     ports = {"generator": args.generator_port, "amplifier": args.amplifier_port,
              "sensor_base": args.sensor_base_port, "sensor_tip": args.sensor_tip_port}
     for name, port in ports.items():

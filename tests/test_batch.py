@@ -116,7 +116,7 @@ def test_reprocess_cli_serial_and_errors(batch_dir, tmp_path, capsys):
     cap = capsys.readouterr()
     assert rc == 1                       # one run failed
     assert "no stage 'linear'" in cap.out and "run_b.h5" in cap.out
-    assert "3/3 runs" in cap.err         # progress on stderr
+    assert "run 3 of 3 done" in cap.err    # progress on stderr
     assert csv_path.exists() and len(csv_path.read_text().splitlines()) == 4
     assert main(["reprocess", str(d / "nothing_*.h5")]) == 2
     assert "no run file matches" in capsys.readouterr().err

@@ -62,3 +62,23 @@ def test_cli_errors(tmp_path, capsys):
     assert "nothing to import" in capsys.readouterr().err
     assert main(["import", "-o", str(tmp_path / "r.h5"), "--linear", str(tmp_path / "nope.csv")]) == 2
     assert "nope.csv: no such file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("suffix, opener", [(".csv.gz", "gzip"), (".csv.bz2", "bz2"), (".csv.xz", "lzma")])
+def test_import_compressed_csv(tmp_path, capsys, suffix, opener):
+    """A CSV compressed whole is imported as the plain one; a corrupt one is a one-line error."""
+    import importlib
+    t = np.arange(300) / 1000.0
+    plain = _csv(tmp_path / "non.csv", "t,x_base,x_tip", [t, np.sin(40 * t), 2 * np.sin(40 * t)])
+    packed = tmp_path / f"non{suffix}"
+    with importlib.import_module(opener).open(packed, "wb") as fh:
+        fh.write(plain.read_bytes())
+    out = tmp_path / "run.h5"
+    assert main(["import", "-o", str(out), "--nonlinear", str(packed)]) == 0
+    assert "nonlinear: 300 samples at 1000 Hz" in capsys.readouterr().out
+    np.testing.assert_allclose(load_run(out).stage("nonlinear").y, np.sin(40 * t))
+    bad = tmp_path / f"bad{suffix}"
+    bad.write_bytes(b"not compressed at all")
+    assert main(["import", "-o", str(tmp_path / "bad.h5"), "--nonlinear", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert f"bad{suffix}: cannot read as a text CSV file" in err and len(err.strip().splitlines()) == 1

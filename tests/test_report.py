@@ -108,4 +108,4 @@ def test_reconstruct_uncertainty_flag(run_file, capsys):
     assert "intervals" not in capsys.readouterr().out
     assert main(["reconstruct", str(path), "--uncertainty"]) == 0
     out = capsys.readouterr().out
-    assert "95 % intervals (200 ensemble members)" in out and "a[y^3]" in out
+    assert "95 % intervals (200 ensemble members)" in out and "fn_m[y^3]" in out and "1/(m^2*s^2)" in out

@@ -38,8 +38,10 @@ def test_serve_prints_addresses_that_answer():
 
 
 def test_serve_rejects_bad_options(capsys):
-    assert main(["sim", "serve", "--speed", "0"]) == 2
+    assert main(["sim", "serve", "--speed", "-1"]) == 2
     assert "--speed" in capsys.readouterr().err
+    assert main(["sim", "serve", "--sim-speed", "fast"]) == 2
+    assert "--speed must be a positive number, 0 or 'max'" in capsys.readouterr().err
     assert main(["sim", "serve", "--generator-port", "70000"]) == 2
     assert "--generator-port" in capsys.readouterr().err
     assert main(["sim", "serve", "--config", "/nonexistent/sim.toml", "--duration", "0"]) == 2

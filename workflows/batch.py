@@ -22,20 +22,24 @@ processes scale better) unless the address of a running scheduler is given.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import glob
 import hashlib
 import importlib.util
 import json
+import logging
 import os
 import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from dask.distributed import Client, LocalCluster, as_completed
+from dask.distributed import Client, LocalCluster, as_completed, get_worker
 
 from recon import ReconSettings, reconstruct
+from recon import progress as recon_progress
+from recon.estimator.adequacy import verdict_summary
 from recon.constitutive.estimator import ConstitutiveSettings, reconstruct_constitutive
 from recon.constitutive.output_error import intervals
 from recon.constitutive.signals import component_signals
@@ -50,6 +54,7 @@ from shakerlab.modes import CONSTITUTIVE, run_mode
 from shakerlab.runfile.reader import load_run
 from shakerlab.runfile.results import find_result, store_result
 from shakerlab.runfile.writer import RunWriter
+from shakerlab.words import duration_text, nrmse_text
 
 RESULT_KIND = "reconstruction"
 PARAMS = ("c_m", "k_m", "alpha_m", "gamma", "delta", "inv_m",
@@ -96,7 +101,8 @@ def settings_hash(job: dict) -> str:
 
 def _row(path, status, **kw) -> dict:
     row = {"run": str(path), "status": status, "reason": "", "written": False, "group": "", "seconds": 0.0,
-           "parameters": {}, "intervals": {}, "nrmse": None, "validation_stage": None, "notes": []}
+           "parameters": {}, "intervals": {}, "nrmse": None, "validation_stage": None, "notes": [],
+           "verdict": "", "verdict_text": ""}
     row.update(kw)
     return row
 
@@ -107,6 +113,9 @@ def _fill(row: dict, payload: dict) -> dict:
     val = payload.get("validation") or {}
     row["nrmse"] = val.get("nrmse")
     row["validation_stage"] = val.get("stage")
+    if payload.get("adequacy"):
+        v = verdict_summary(payload["adequacy"])
+        row["verdict"], row["verdict_text"] = v["label"], v["text"]
     return row
 
 
@@ -149,8 +158,33 @@ def reconstruct_payload(run, job: dict):
     return result, clean(payload)
 
 
+PROGRESS_TOPIC = "shakerlab-progress"      # a worker's steps, forwarded to the client (TextProgress)
+
+
 def process_run(path: str, job: dict) -> dict:
-    """Reconstruct one run file; never raises (failures are rows with a reason)."""
+    """Reconstruct one run file; never raises (failures are rows with a reason). On a Dask worker its
+    steps (recon.progress) go to the client as events of PROGRESS_TOPIC."""
+    worker = _worker()
+    if worker is None:
+        return _process_run(path, job)
+    name = Path(path).name
+
+    def forward(u: recon_progress.Update) -> None:
+        worker.log_event(PROGRESS_TOPIC, {"run": name, "text": u.text, "fraction": u.fraction})
+
+    with recon_progress.reporting(forward):
+        return _process_run(path, job)
+
+
+def _worker():
+    """The Dask worker running this task, None outside one."""
+    try:
+        return get_worker()
+    except ValueError:
+        return None
+
+
+def _process_run(path: str, job: dict) -> dict:
     t0 = time.perf_counter()
     path = Path(path)
     try:
@@ -165,10 +199,12 @@ def process_run(path: str, job: dict) -> dict:
                 return _fill(_row(path, "skipped", reason=f"already processed with these settings ({hit[0]})",
                                   group=hit[0], settings_hash=digest, seconds=time.perf_counter() - t0), hit[1])
         run = load_run(path)
+        recon_progress.step("reconstruction", share=0.5 if job.get("diagnose") else 1.0)
         result, payload = reconstruct_payload(run, job)
         payload["reprocess"] = {"settings_hash": digest, "settings": job, "software": f"shakerlab {__version__}"}
         row = _fill(_row(path, "ok", settings_hash=digest), payload)
         if job.get("diagnose"):
+            recon_progress.step("diagnosis", share=0.5)
             row["diagnosis"] = _diagnose(run, result, path if is_h5 else None, row)
         if job.get("write_back", True):
             group, note = store_result(path, RESULT_KIND, payload, text=str(result.model), settings_hash=digest)
@@ -198,6 +234,7 @@ def _diagnose(run, result, path, row) -> str:
         return "unavailable"
     try:
         from recon.diagnosis.diagnose import diagnose  # optional: diagnosis may be left out of an install
+        from recon.diagnosis.wording import diagnosis_text  # optional: as recon.diagnosis.diagnose
 
         d = diagnose(run, baseline=result.model).to_dict()
     except Exception as exc:  # noqa: BLE001 - a failed diagnosis leaves the reconstruction valid
@@ -205,7 +242,7 @@ def _diagnose(run, result, path, row) -> str:
         return "failed"
     if path is not None:
         store_result(path, "diagnosis", clean(d), text=str(d.get("result", "")))
-    return str(d.get("result", ""))
+    return diagnosis_text(d)
 
 
 # ---------------------------------------------------------------------------
@@ -213,31 +250,60 @@ def _diagnose(run, result, path, row) -> str:
 # ---------------------------------------------------------------------------
 
 class TextProgress:
-    """A one-line text progress bar on stderr (redrawn in place on a terminal, one line per run otherwise)."""
+    """Progress of a batch on stderr: a line per finished run, and the runs in flight with their
+    current step (from the workers' PROGRESS_TOPIC events, or this process's own steps in a plain
+    loop) through a :class:`workflows.progress_line.ProgressLine` (``line``; None: nothing shown)."""
 
-    def __init__(self, total: int, stream=None, width: int = 30, enabled: bool = True):
-        self.total, self.width, self.enabled = total, width, enabled
-        self.stream = stream or sys.stderr
+    def __init__(self, total: int, stream=None, width: int = 30, enabled: bool = True, line=None):
+        self.total, self.enabled = total, enabled
+        self.line = line if enabled else None
         self.done = 0
         self.counts = {"ok": 0, "skipped": 0, "failed": 0}
         self.t0 = time.monotonic()
-        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.running: dict[str, tuple[str, float]] = {}     # run name: (its step, its fraction)
+        self.finished: set[str] = set()
 
     def update(self, row: dict) -> None:
+        """One run finished."""
         self.done += 1
         self.counts[row["status"]] = self.counts.get(row["status"], 0) + 1
-        if not self.enabled:
+        name = Path(row["run"]).name
+        self.running.pop(name, None)
+        self.finished.add(name)
+        if self.line is None:
             return
-        frac = self.done / max(self.total, 1)
-        bar = "#" * int(round(frac * self.width))
-        line = (f"[{bar:<{self.width}}] {self.done}/{self.total} runs  ok {self.counts['ok']}  "
-                f"skipped {self.counts['skipped']}  failed {self.counts['failed']}  "
-                f"{time.monotonic() - self.t0:.0f} s")
-        if self.tty:
-            self.stream.write("\r" + line + ("\n" if self.done == self.total else ""))
-        else:
-            self.stream.write(f"{line}  {Path(row['run']).name}: {row['status']}\n")
-        self.stream.flush()
+        what = row["status"] + (f", {nrmse_text(row['nrmse'])} NRMSE" if row["status"] == "ok" else "")
+        what += f", {row['verdict']}" if row.get("verdict") else ""
+        self.line.note(f"run {self.done} of {self.total} done: {name}: {what} ({duration_text(row.get('seconds', 0))}); "
+                       f"ok {self.counts['ok']}, skipped {self.counts['skipped']}, failed {self.counts['failed']}")
+        self._show()
+
+    def event(self, event) -> None:
+        """A worker's step (a PROGRESS_TOPIC event: (timestamp, {"run", "text", "fraction"}))."""
+        msg = event[1] if isinstance(event, tuple) else event
+        if msg["run"] in self.finished:
+            return              # a late event of a run already done
+        self.running[msg["run"]] = (msg["text"], float(msg["fraction"]))
+        self._show()
+
+    def status(self, text: str) -> None:
+        """What the batch does besides its runs (starting or closing the cluster)."""
+        if self.line is not None:
+            self.line.update(recon_progress.Update(text, self.done / max(self.total, 1),
+                                                   time.monotonic() - self.t0, None))
+
+    def _show(self) -> None:
+        if self.line is None:
+            return
+        if self.done >= self.total:
+            self.status(f"all {self.total} runs done; closing")
+            return
+        frac = (self.done + sum(f for _, f in self.running.values())) / max(self.total, 1)
+        busy = "; ".join(f"{n} [{100 * f:.0f} %] {t}" for n, (t, f) in self.running.items())
+        text = f"{self.done} of {self.total} runs done" + (f"; running {busy}" if busy else "")
+        elapsed = time.monotonic() - self.t0
+        left = elapsed * (1 - frac) / frac if frac >= recon_progress.MIN_FRACTION_FOR_ESTIMATE else None
+        self.line.update(recon_progress.Update(text, frac, elapsed, left))
 
 
 def expand(patterns: list[str]) -> list[str]:
@@ -258,7 +324,8 @@ def run_loop(paths: list[str], settings: BatchSettings, progress: TextProgress |
     """The plain loop (no Dask): same rows, same order as ``paths`` (duplicates once)."""
     paths = list(dict.fromkeys(str(p) for p in paths))
     rows = []
-    for p in paths:
+    for i, p in enumerate(paths):
+        recon_progress.step(f"run {i + 1} of {len(paths)}: {Path(p).name}", share=1.0 / len(paths))
         rows.append(process_run(str(p), settings.job()))
         if progress:
             progress.update(rows[-1])
@@ -285,10 +352,15 @@ def run_batch(paths: list[str], settings: BatchSettings | None = None, progress:
             # (recon/threads.py; a user's SHAKERLAB_THREADS is kept)
             extra = ({"env": {"SHAKERLAB_THREADS": os.environ.get("SHAKERLAB_THREADS")
                               or str(max(1, thread_count() // s.workers))}} if s.processes else {})
+            # warnings of the cluster's own (a worker slow to stop is killed at the end) are not the batch's
+            if progress:
+                progress.status(f"starting a local Dask cluster ({s.workers} workers)")
             cluster = LocalCluster(n_workers=s.workers, threads_per_worker=1, processes=s.processes,
-                                   dashboard_address=":0", host="127.0.0.1", **extra)
+                                   dashboard_address=":0", host="127.0.0.1", silence_logs=logging.ERROR, **extra)
             client = Client(cluster)
         with client:
+            if progress:
+                client.subscribe_topic(PROGRESS_TOPIC, progress.event)
             job = s.job()
             futures = [client.submit(process_run, str(p), job, pure=False, key=f"reprocess-{i}-{Path(p).name}")
                        for i, p in enumerate(paths)]
@@ -306,7 +378,8 @@ def run_batch(paths: list[str], settings: BatchSettings | None = None, progress:
             return rows
     finally:
         if cluster is not None:
-            cluster.close()
+            with _quiet_logs("distributed"):
+                cluster.close()
 
 
 # ---------------------------------------------------------------------------
@@ -344,6 +417,18 @@ def _interval(row: dict, col: str):
     return (iv.get(key) or {}).get(name) if key else iv.get(col)
 
 
+@contextlib.contextmanager
+def _quiet_logs(name: str):
+    """Only errors from logger ``name`` and its children inside."""
+    log = logging.getLogger(name)
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        log.setLevel(level)
+
+
 def write_csv(rows: list[dict], path: str | Path) -> Path:
     """One line per run: run, status, nrmse, each parameter with its interval, reason, notes."""
     path = Path(path)
@@ -351,7 +436,7 @@ def write_csv(rows: list[dict], path: str | Path) -> Path:
     header = ["run", "status", "validation_stage", "nrmse"]
     for c in cols:
         header += [c, f"{c}_low", f"{c}_high"]
-    header += ["written", "group", "seconds", "reason", "notes"]
+    header += ["written", "group", "seconds", "reason", "notes", "verdict", "verdict_text"]
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(header)
@@ -361,7 +446,7 @@ def write_csv(rows: list[dict], path: str | Path) -> Path:
                 iv = _interval(r, c) or [None, None]
                 line += [_fmt_csv(_value(r, c)), _fmt_csv(iv[0]), _fmt_csv(iv[1])]
             line += [r.get("written", False), r.get("group", ""), f"{r.get('seconds', 0.0):.2f}", r.get("reason", ""),
-                     "; ".join(r.get("notes", []))]
+                     "; ".join(r.get("notes", [])), r.get("verdict", ""), r.get("verdict_text", "")]
             w.writerow(line)
     return path
 
@@ -373,12 +458,11 @@ def _fmt_csv(v) -> str:
 def format_table(rows: list[dict]) -> str:
     """The summary printed for a person: one line per run, parameters to 4 significant digits."""
     cols = _columns(rows)
-    header = ["run", "status", "nrmse"] + cols
+    header = ["run", "status", "nrmse", "verdict"] + cols
     lines = [header]
     for r in rows:
-        nr = r.get("nrmse")
-        shown = "" if r["status"] == "failed" else "diverged" if nr is None else f"{nr:.3g}"
-        line = [Path(r["run"]).name, r["status"], shown]
+        shown = "" if r["status"] == "failed" else nrmse_text(r.get("nrmse"))
+        line = [Path(r["run"]).name, r["status"], shown, r.get("verdict", "")]
         line += ["" if _value(r, c) is None else f"{_value(r, c):.4g}" for c in cols]
         lines.append(line)
     widths = [max(len(str(l[i])) for l in lines) for i in range(len(header))]
@@ -389,6 +473,11 @@ def format_table(rows: list[dict]) -> str:
         out.append("failed runs:")
         out += [f"  {r['reason']}" if r["reason"].startswith(r["run"]) else f"  {r['run']}: {r['reason']}"
                 for r in bad]
+    verdicts = [(r["run"], r["verdict_text"]) for r in rows if r.get("verdict_text")]
+    if verdicts:
+        out.append("")
+        out.append("verdicts:")
+        out += [f"  {Path(p).name}: {v}" for p, v in verdicts]
     notes = [(r["run"], n) for r in rows for n in r.get("notes", [])]
     if notes:
         out.append("")

@@ -5,14 +5,21 @@ Only the parsers live here, so ``shakerlab --help`` stays instant; the handlers 
 imported when a command runs."""
 from __future__ import annotations
 
+import argparse
 import importlib
+import sys
 from pathlib import Path
 
+from shakerlab import progress_view
 
-def _handler(name: str, module: str = "workflows.handlers"):
-    """The handler ``<module>.<name>``, imported on first call."""
+
+def _handler(name: str, module: str = "workflows.handlers", progress: bool = False):
+    """The handler ``<module>.<name>``, imported on first call. With ``progress`` the command's
+    progress line starts at once (loading the numerical libraries takes seconds), unless --quiet."""
 
     def run(args) -> int:
+        if progress:
+            progress_view.start("loading the numerical libraries", quiet=getattr(args, "quiet", False))
         # the module is heavy (numpy, scipy, h5py, recon): imported only when a command runs
         return getattr(importlib.import_module(module), name)(args)
 
@@ -31,24 +38,27 @@ def register(subparsers) -> None:
     )
     p.add_argument("run", metavar="RUN", help="run file (.h5 or .npz)")
     p.add_argument("--json", action="store_true", help="print one JSON object (machine-readable)")
-    p.add_argument("--plots", metavar="DIR", help="write PNG overlays (time history, hysteresis loop) to DIR")
+    output_option(p, "--plots", "write PNG overlays (time history, hysteresis loop) to DIR")
     p.add_argument("--library-order", metavar="Q", type=int, default=5,
                    help="highest monomial degree of fn (default 5)")
     p.add_argument("--save-model", metavar="PATH", help="write the identified model as JSON to PATH")
     p.add_argument("--force", action="store_true",
-                   help="replace an existing --save-model file or --plots files (never a run file)")
+                   help="replace an existing --save-model file or -o files (never a run file)")
     p.add_argument("--no-polish", action="store_true", help="skip the output-error polish (equation-error estimate only)")
     p.add_argument("--form", choices=("joint", "weak", "ab"), default="joint",
                    help="nonlinear step: pointwise agent model on AB and CD (joint, default), the weak form "
                         "(needs no third derivative; holds to 40 dB SNR, see docs/method.md) or the paper's AB-only form")
     p.add_argument("--uncertainty", action="store_true",
                    help="add 95%% intervals of every parameter (key 'uncertainty'; see docs/reprocessing.md)")
+    p.add_argument("--no-uncertainty", dest="uncertainty", action="store_false",
+                   help="no parameter intervals (the default here)")
+    quiet_option(p)
     p.add_argument("--drive", action="store_true",
                    help="the force channel is the exciter's drive (an amplifier voltage), not a measured force: "
                         "also fit the exciter's even-order distortion and low-frequency roll-off, kept when it "
                         "predicts the validation stage better (force excitation; docs/real-data.md)")
     _inertia_option(p)
-    p.set_defaults(handler=_handler("reconstruct_command"))
+    p.set_defaults(handler=_handler("reconstruct_command", progress=True))
     register_reprocessing(subparsers)
     register_diagnosis(subparsers)
     register_backbone(subparsers)
@@ -75,8 +85,9 @@ def register_reprocessing(subparsers) -> None:
     p.add_argument("--term-models", metavar="N", type=int, default=0,
                    help="term-selection ensemble size (row-subsampled reselections, ~1 s each; default 0: off)")
     p.add_argument("--json", action="store_true", help="print the result JSON instead of a summary")
+    quiet_option(p)
     _inertia_option(p)
-    p.set_defaults(handler=_handler("report_command"))
+    p.set_defaults(handler=_handler("report_command", progress=True))
 
     p = subparsers.add_parser(
         "reprocess",
@@ -96,17 +107,21 @@ def register_reprocessing(subparsers) -> None:
     p.add_argument("--diagnose", action="store_true", help="also run the mismatch diagnosis on each run")
     p.add_argument("--force", action="store_true", help="reprocess runs already processed with the same settings")
     p.add_argument("--no-write-back", action="store_true", help="do not write results into the run files")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.add_argument("--term-models", metavar="N", type=int, default=0,
                    help="term-selection ensemble size per run (row-subsampled reselections; default 0: off)")
     _common_recon_options(p)
-    p.set_defaults(handler=_handler("reprocess_command"))
+    p.set_defaults(handler=_handler("reprocess_command", progress=True))
 
 
 def _common_recon_options(p) -> None:
     p.add_argument("--library-order", metavar="Q", type=int, default=5, help="highest monomial degree of fn (default 5)")
     p.add_argument("--no-polish", action="store_true", help="skip the output-error polish")
     p.add_argument("--no-uncertainty", action="store_true", help="skip the parameter intervals")
+    p.add_argument("--uncertainty", dest="no_uncertainty", action="store_false",
+                   help="compute the parameter intervals (the default)")
+    p.add_argument("--form", choices=("joint", "weak", "ab"), default="joint",
+                   help="nonlinear step, as reconstruct --form (default joint)")
     p.add_argument("--resamples", metavar="B", type=int, default=200,
                    help="ensemble members for the intervals (default 200)")
     p.add_argument("--drive", action="store_true",
@@ -131,11 +146,12 @@ def register_diagnosis(subparsers) -> None:
                         "a component test's law JSON (reconstruct --save-model of a constitutive run: its mass "
                         "and support are fitted on RUN)")
     p.add_argument("--json", action="store_true", help="print one JSON object (machine-readable)")
-    p.add_argument("--report", metavar="DIR", help="write PNG figures and diagnosis.json to DIR")
+    output_option(p, "--report", "write PNG figures and diagnosis.json to DIR")
     p.add_argument("--save-model", metavar="PATH", help="write the augmented model as JSON to PATH")
     p.add_argument("--force", action="store_true",
-                   help="replace an existing --save-model file or --report files (never a run file)")
-    p.set_defaults(handler=_handler("diagnose_command"))
+                   help="replace an existing --save-model file or -o files (never a run file)")
+    quiet_option(p)
+    p.set_defaults(handler=_handler("diagnose_command", progress=True))
 
 
 # --- amplitude dependence from a ring-down: `backbone` (recon/backbone.py, workflows/backbone.py) ---------
@@ -176,8 +192,29 @@ def register_demo(subparsers) -> None:
     d.add_argument("--realtime", action="store_true", help="run the simulated rig in real time")
     d.add_argument("--protocol", type=Path, metavar="PROTOCOL.toml", help="protocol (default: the shipped one)")
     d.add_argument("--seed", type=int, default=0, help="noise seed of the simulated rig")
+    d.add_argument("--force", action="store_true", help="replace the files of an existing output folder")
     d.add_argument("--quiet", action="store_true", help="print only warnings, errors and the results")
     d.set_defaults(handler=_handler("demo_command"))
+
+
+def output_option(p, old: str, help: str) -> None:
+    """``-o/--output DIR``, the one spelling of an output folder; ``old`` stays as a deprecated alias
+    (same destination; :func:`note_deprecated` says so when it is used)."""
+    p.add_argument("-o", "--output", metavar="DIR", dest=old.lstrip("-").replace("-", "_"), help=help)
+    p.add_argument(old, metavar="DIR", dest=old.lstrip("-").replace("-", "_"), action=DeprecatedAlias,
+                   help=f"deprecated spelling of -o/--output")
+
+
+class DeprecatedAlias(argparse.Action):
+    """Stores the value like the new option and says once, on stderr, which spelling replaces it."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        print(f"{parser.prog}: {option_string} is deprecated; use -o/--output", file=sys.stderr)
+
+
+def quiet_option(p) -> None:
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
 def _inertia_option(p) -> None:

@@ -4,11 +4,14 @@ Starts the simulated rig (as fast as possible, or in real time), runs the
 protocol through the same runner and recorder as ``shakerlab acquire``,
 reconstructs the governing equation from the run file (recon.estimator.pipeline),
 prints it with the validation error and the simulator's true parameters,
-writes the result back into the run file and a report (Markdown + PNG) into
-the output directory.
+writes the result back into the run file and the HTML report (index.html, as
+``shakerlab report`` writes it, with the comparison against the simulator's
+truth) into the output directory. An existing output directory is replaced
+only with ``--force``.
 """
 from __future__ import annotations
 
+import html
 import json
 import math
 import time
@@ -21,7 +24,11 @@ from rig.session import EXIT_CODES
 from rig.console import ConsoleProgress, print_summary, sigint_aborts
 from rig.protocol import load_protocol
 from rig.session import acquire, simulated_rig
-from workflows.figures import plt, savefig, write_validation_plots
+from workflows.figures import plt, savefig
+from workflows.progress_line import progress_line
+from workflows.report import img_html, make_report
+from shakerlab.errors import UserFacingError
+from shakerlab.words import duration_text, nrmse_text, parameter_units
 from shakerlab.runfile.reader import load_run, read_info
 from shakerlab.jsonsafe import clean
 from shakerlab.output_files import check_directory, write_text
@@ -55,23 +62,9 @@ def _err_text(row: dict) -> str:
     return f"{row['relative_error'] * 100:+.2f} %"
 
 
-def _plots(outdir: Path, run, info: dict, result) -> list[str]:
-
+def _plots(outdir: Path, info: dict) -> list[str]:
+    """The protocol's own figures (the report draws the stages, the fit and the validation)."""
     files = []
-    names = list(run.stages)
-    fig, axes = plt.subplots(len(names), 1, figsize=(10, 2.2 * len(names)), squeeze=False)
-    for ax, name in zip(axes[:, 0], names):
-        st = run.stage(name)
-        ax.plot(st.t, 1e3 * st.channels["x_base"], lw=0.5, label="x_base")
-        ax.plot(st.t, 1e3 * st.y, lw=0.5, label="y = x_tip - x_base")
-        ax.set_ylabel("mm")
-        ax.set_title(name, fontsize=9)
-    axes[-1, 0].set_xlabel("t since stage start [s]")
-    axes[0, 0].legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    savefig(fig, outdir / "stages.png", dpi=80)
-    files.append("stages.png")
-
     search = info["stages"].get("resonance_search", {}).get("summary", {})
     if search.get("frequencies_hz"):
         f = np.array(search["frequencies_hz"])
@@ -102,18 +95,17 @@ def _plots(outdir: Path, run, info: dict, result) -> list[str]:
         fig.tight_layout()
         savefig(fig, outdir / "levels.png", dpi=80)
         files.append("levels.png")
-
-    if result is not None:
-
-        for path in write_validation_plots(result, run, outdir):
-            files.append(Path(path).name)
     return files
 
 
-def run_demo(outdir: Path, *, realtime: bool = False, protocol_path=None, seed: int = 0, quiet: bool = False) -> int:
+def run_demo(outdir: Path, *, realtime: bool = False, protocol_path=None, seed: int = 0, quiet: bool = False,
+             force: bool = False) -> int:
 
     t0 = time.monotonic()
     outdir = check_directory(outdir, option="-o")
+    if outdir.is_dir() and any(outdir.iterdir()) and not force:
+        raise UserFacingError(f"-o {outdir}: the folder exists and is not empty (an earlier demo?); --force "
+                              f"replaces its files, or choose another -o")
     outdir.mkdir(parents=True, exist_ok=True)
     path = outdir / "run.h5"
     protocol = load_protocol(protocol_path)
@@ -138,32 +130,41 @@ def run_demo(outdir: Path, *, realtime: bool = False, protocol_path=None, seed: 
     run = load_run(path)
     # The weak (integral) form: the rig's sensor noise makes the pointwise form's third derivative
     # of the displacement unreliable; integrating against test functions avoids it.
-    result = reconstruct(run, ReconSettings(form=RECON_FORM))
+    settings = ReconSettings(form=RECON_FORM)
+    with progress_line(quiet=quiet):
+        result = reconstruct(run, settings)
     t_rec = time.monotonic() - t_rec
     d = result.to_dict()
     print()
     print(str(result.model))
     val = d["validation"]
-    print(f"\nvalidation on stage {val['stage']!r}: NRMSE {val['nrmse'] * 100:.2f} %")
+    print(f"\nvalidation on stage {val['stage']!r}: NRMSE {nrmse_text(val['nrmse'])}")
+    print(f"verdict: {d['verdict_text']}")
     rows = compare(d["parameters"], truth)
     print("\nparameter      identified        true   error")
     for r in rows:
         print(f"{r['name']:<14s} {r['identified']:>11.5g} {r['true']:>11.5g} {_err_text(r)}")
-    store_result(path, "reconstruction", clean({**d, "truth": truth, "comparison": rows}), text=str(result.model))
+    group, note = store_result(path, "reconstruction", clean({**d, "truth": truth, "comparison": rows}),
+                               text=str(result.model))
     info = read_info(path)
-    figs = _plots(outdir, run, info, result)
+    figs = _plots(outdir, info)
+    with progress_line(quiet=quiet):
+        make_report(path, outdir, settings=settings, uncertainty=False, write_back=False, overwrite=True,
+                    result=result, sections=[_demo_section(outdir, outcome, info, rows, figs, t_rec)],
+                    stored=f"Result {note}, with the simulator's truth and the comparison.")
+    # the demo's result.json holds the truth and the comparison beside the reconstruction
     write_text(outdir / "result.json", json.dumps(clean({"reconstruction": d, "truth": truth, "comparison": rows}), indent=2))
-    _report(outdir, outcome, info, result, d, rows, figs, t_rec)
-    print(f"\nreport: {outdir / 'report.md'} (run file {path}); total {time.monotonic() - t0:.1f} s")
+    print(f"\nreport: {outdir / 'index.html'} (run file {path}); total {duration_text(time.monotonic() - t0)}")
     return 0
 
 
-def _report(outdir, outcome, info, result, d, rows, figs, t_rec) -> None:
-    lines = ["# shakerlab demo report", "",
-             f"Simulated TMP-origami shaker rig; run file `run.h5` (status {outcome.status}, "
-             f"{outcome.run_time_s:.1f} s of rig time in {outcome.wall_time_s:.1f} s; samples lost "
-             f"{outcome.samples_lost}); reconstruction {t_rec:.1f} s.", "",
-             "## Stages", "", "| stage | status | duration [s] | notes |", "| --- | --- | --- | --- |"]
+def _demo_section(outdir, outcome, info, rows, figs, t_rec) -> str:
+    """The demo's part of the HTML report: the protocol's stages and the identified against the true."""
+    h = ["<h2>The simulated rig's protocol</h2>",
+         f"<p>Simulated TMP-origami shaker rig; run file <code>run.h5</code> (status {html.escape(outcome.status)}, "
+         f"{duration_text(outcome.run_time_s)} of rig time in {duration_text(outcome.wall_time_s)}; samples lost "
+         f"{outcome.samples_lost}); reconstruction {duration_text(t_rec)}.</p>",
+         "<table><tr><th>stage</th><th>status</th><th>duration [s]</th><th>notes</th></tr>"]
     for name, st in info["stages"].items():
         s = st["summary"]
         note = ""
@@ -173,12 +174,16 @@ def _report(outdir, outcome, info, result, d, rows, figs, t_rec) -> None:
             note = f"{len(s.get('levels', []))} levels, final {s['final_vpp']:.3f} Vpp: {s['stop_reason']}"
         elif "response" in s:
             note = f"relative amplitude {s['response']['relative_amplitude'] * 1e3:.3f} mm at {s['response']['frequency_hz']:.3f} Hz"
-        lines.append(f"| {name} | {st['status']} | {st['n_samples'] / st['fs']:.2f} | {note} |")
-    lines += ["", "## Identified equation (per unit mass)", "", "```", str(result.model), "```", "",
-              f"Validation on stage `{d['validation']['stage']}`: NRMSE {d['validation']['nrmse'] * 100:.2f} %.", "",
-              "## Identified vs true (the simulator's specimen)", "",
-              "| parameter | identified | true | error |", "| --- | --- | --- | --- |"]
+        h.append(f"<tr><td>{html.escape(name)}</td><td>{html.escape(st['status'])}</td>"
+                 f"<td>{st['n_samples'] / st['fs']:.2f}</td><td>{html.escape(note)}</td></tr>")
+    h.append("</table>")
+    h += [img_html(outdir / f, f) for f in figs]
+    h.append("<h2>Identified against true (the simulator's specimen)</h2><table><tr><th>parameter</th>"
+             "<th>identified</th><th>true</th><th>error</th><th>units</th></tr>")
     for r in rows:
-        lines.append(f"| {r['name']} | {r['identified']:.5g} | {r['true']:.5g} | {_err_text(r)} |")
-    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs] + [""]
-    write_text(outdir / "report.md", "\n".join(lines))
+        key, _, term = r["name"].partition("[")
+        units = parameter_units(key, term.rstrip("]") or None)
+        h.append(f"<tr><td>{html.escape(r['name'])}</td><td>{r['identified']:.5g}</td><td>{r['true']:.5g}</td>"
+                 f"<td>{html.escape(_err_text(r))}</td><td>{html.escape(units)}</td></tr>")
+    h.append("</table>")
+    return "\n".join(h)

@@ -7,7 +7,9 @@ import sys
 from pathlib import Path
 
 from recon import ReconSettings, diagnose, reconstruct
-from recon.estimator.adequacy import one_line
+from recon import progress
+from recon.diagnosis.wording import diagnosis_text, finding_text
+from recon.estimator.adequacy import verdict_text
 from recon.output_error.uncertainty import UncertaintySettings, parameter_intervals
 from shakerlab.errors import UserFacingError
 from shakerlab.jsonsafe import clean
@@ -21,7 +23,9 @@ from workflows.demo import run_demo
 from workflows.diagnosis_report import write_report
 from workflows.figures import write_validation_plots
 from workflows.plausibility import warnings_for
-from workflows.report import StepProgress, interval_lines, make_report
+from workflows.progress_line import progress_line
+from workflows.report import interval_lines, make_report
+from shakerlab.words import nrmse_text
 
 
 def reconstruct_command(args) -> int:
@@ -35,15 +39,21 @@ def reconstruct_command(args) -> int:
         return constitutive.reconstruct_command(args, run)
     if getattr(args, "inertia", "none") != "none":
         raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
-    result = reconstruct(run, ReconSettings(library_order=args.library_order, polish=not args.no_polish,
-                                            form=getattr(args, "form", "joint"),
-                                            drive=bool(getattr(args, "drive", False))))
-    out = result.to_dict()
-    out["warnings"] = warnings_for(run, result)
-    if getattr(args, "uncertainty", False):
-        out["uncertainty"] = parameter_intervals(result.model, run)
-    if args.plots:
-        out["plots"] = [str(p) for p in write_validation_plots(result, run, Path(args.plots))]
+    with progress_line(quiet=getattr(args, "quiet", False)):
+        intervals, plots = getattr(args, "uncertainty", False), bool(args.plots)
+        rest = 0.25 * intervals + 0.1 * plots
+        progress.step("reconstructing", share=1.0 - rest)
+        result = reconstruct(run, ReconSettings(library_order=args.library_order, polish=not args.no_polish,
+                                                form=getattr(args, "form", "joint"),
+                                                drive=bool(getattr(args, "drive", False))))
+        out = result.to_dict()
+        out["warnings"] = warnings_for(run, result)
+        if intervals:
+            progress.step("parameter intervals", share=0.25)
+            out["uncertainty"] = parameter_intervals(result.model, run)
+        if plots:
+            progress.step("figures", share=0.1)
+            out["plots"] = [str(p) for p in write_validation_plots(result, run, Path(args.plots))]
     if args.save_model:
         result.model.save(args.save_model, overwrite=getattr(args, "force", False))
     if args.json:
@@ -54,21 +64,21 @@ def reconstruct_command(args) -> int:
     for w in out["warnings"]:
         print(f"warning: {w}")
     v = result.validation
-    print(f"validation NRMSE on stage {v['stage']!r}: {v['nrmse']:.4g}"
+    print(f"validation NRMSE on stage {v['stage']!r}: {nrmse_text(v['nrmse'])}"
           + (" (no validation stage: fitted stage)" if v.get("fitted_on_validation_stage") else ""))
     if result.adequacy:
-        print(one_line(result.adequacy))
+        print(f"verdict: {verdict_text(result.adequacy)}")
         fb = result.adequacy.get("fallback") or {}
         if fb.get("used"):
-            was, estimate = (("inadequate", "replaced") if fb.get("trigger") == "inadequate"
-                             else ("not admissible", "inadmissible"))
-            print(f"the full model was {was}: answering with the simpler {fb['kind']} model, chosen by "
-                  f"{fb['chosen_by']}; the {estimate} estimate is in the JSON (adequacy.fallback)")
+            estimate = "replaced" if fb.get("trigger") == "inadequate" else "inadmissible"
+            print(f"  the simpler model was chosen by {fb['chosen_by']}; the {estimate} estimate is in the "
+                  f"JSON (adequacy.fallback)")
     drive = result.model.provenance.get("drive_fit")
     if drive:
         print("exciter (--drive): " + (
             f"distortion u2 {drive['drive_u2']:.4g}, roll-off {drive['drive_hp_hz']:.3g} Hz; held-out NRMSE "
-            f"{drive['held_out_nrmse_without']:.4g} -> {drive['held_out_nrmse_with']:.4g}" if drive.get("applied")
+            f"{nrmse_text(drive['held_out_nrmse_without'])} -> {nrmse_text(drive['held_out_nrmse_with'])}"
+            if drive.get("applied")
             else f"not kept ({drive.get('reason') or drive.get('failed')})"))
     rule = result.model.provenance.get("input_offset_rule") or {}
     if rule.get("on"):
@@ -96,7 +106,7 @@ def check_outputs(args) -> None:
     for option in ("plots", "report"):
         value = getattr(args, option, None)
         if isinstance(value, (str, Path)) and value:
-            check_directory(value, option=f"--{option}")
+            check_directory(value, option="-o")
 
 
 def _recon_settings(args) -> dict:
@@ -106,6 +116,7 @@ def _recon_settings(args) -> dict:
     if args.resamples < 50:
         raise UserFacingError(f"--resamples must be at least 50, got {args.resamples}")
     return {"library_order": args.library_order, "polish": not args.no_polish,
+            **({"form": args.form} if getattr(args, "form", "joint") != "joint" else {}),
             **({"drive": True} if getattr(args, "drive", False) else {})}
 
 
@@ -124,10 +135,10 @@ def report_command(args) -> int:
         return constitutive.report_command(args, load_run(args.run))
     if getattr(args, "inertia", "none") != "none":
         raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
-    d = make_report(args.run, args.output, settings=ReconSettings(**rs), uncertainty=not args.no_uncertainty,
-                    uncertainty_settings=UncertaintySettings(n_resamples=args.resamples),
-                    write_back=not args.no_write_back, progress=StepProgress(enabled=not args.json),
-                    term_models=_term_models(args), overwrite=args.force)
+    with progress_line(quiet=getattr(args, "quiet", False)):
+        d = make_report(args.run, args.output, settings=ReconSettings(**rs), uncertainty=not args.no_uncertainty,
+                        uncertainty_settings=UncertaintySettings(n_resamples=args.resamples),
+                        write_back=not args.no_write_back, term_models=_term_models(args), overwrite=args.force)
     if args.json:
         print(json.dumps(d))
         return 0
@@ -135,8 +146,10 @@ def report_command(args) -> int:
     for w in d.get("warnings", []):
         print(f"warning: {w}")
     v = d["validation"]
-    print(f"validation NRMSE on stage {v['stage']!r}: {v['nrmse']:.4g}" if v.get("nrmse") is not None
+    print(f"validation NRMSE on stage {v['stage']!r}: {nrmse_text(v['nrmse'])}" if v.get("nrmse") is not None
           else "validation: simulation diverged")
+    if d.get("verdict_text"):
+        print(f"verdict: {d['verdict_text']}")
     if "uncertainty" in d:
         print(*interval_lines(d), sep="\n")
     ts = d.get("term_selection") or {}
@@ -163,9 +176,13 @@ def reprocess_command(args) -> int:
                       term_models=_term_models(args))
     where = ("a plain loop" if args.serial else f"scheduler {args.scheduler}" if args.scheduler
              else f"a local Dask cluster ({args.workers} {'threads' if args.threads else 'processes'})")
-    print(f"reprocessing {len(paths)} run(s) on {where}", file=sys.stderr)
-    progress = TextProgress(len(paths), enabled=not args.quiet)
-    rows = run_loop(paths, s, progress) if args.serial else run_batch(paths, s, progress)
+    with progress_line(quiet=args.quiet, done=None) as line:
+        if line is None:
+            print(f"reprocessing {len(paths)} run(s) on {where}", file=sys.stderr)
+        else:
+            line.note(f"reprocessing {len(paths)} run(s) on {where}")
+        progress = TextProgress(len(paths), enabled=not args.quiet, line=line)
+        rows = run_loop(paths, s, progress) if args.serial else run_batch(paths, s, progress)
     print(format_table(rows))
     print(f"summary: {write_csv(rows, args.csv)}")
     n_bad = sum(r["status"] == "failed" for r in rows)
@@ -178,11 +195,15 @@ def diagnose_command(args) -> int:
     run = load_run(args.run)
     if run_mode(run) == CONSTITUTIVE:       # a component test: what its force law leaves out
         return constitutive.diagnose_command(args, run)
-    d = diagnose(run, baseline=args.baseline)
-    out = d.to_dict()
-    out["warnings"] = warnings_for(run)
-    if args.report:
-        out["report"] = [str(p) for p in write_report(d, run, Path(args.report))]
+    with progress_line(quiet=getattr(args, "quiet", False)):
+        progress.step("diagnosing", share=0.95 if args.report else 1.0)
+        d = diagnose(run, baseline=args.baseline)
+        out = d.to_dict()
+        out["warnings"] = warnings_for(run)
+        out["result_text"] = diagnosis_text(out)
+        if args.report:
+            progress.step("figures", share=0.05)
+            out["report"] = [str(p) for p in write_report(d, run, Path(args.report))]
     if args.save_model:
         d.best.save(args.save_model, overwrite=getattr(args, "force", False))
     if args.json:
@@ -193,16 +214,20 @@ def diagnose_command(args) -> int:
     for w in out["warnings"] + ([out["baseline_note"]] if out.get("baseline_note") else []):
         print(f"warning: {w}")
     fb, fa = out["fit_before"]["nrmse"], out["fit_after"]["nrmse"]
+    print("NRMSE per stage: the baseline as given, refitted, and with what was found")
     for stage in fb:
-        print(f"  NRMSE {stage:12s} before {fb[stage]:.4g}  refit {out['fit_before']['refit_nrmse'][stage]:.4g}"
-              f"  after {fa[stage]:.4g}")
-    for f in out["mismatch"][:8]:
-        print(f"  mismatch: {f['kind']} in {f['stage']} {f['region']} size {f['size']:.3g}")
-    print(out["result"])
+        print(f"  {stage:16s} before {nrmse_text(fb[stage]):>10s}  refit "
+              f"{nrmse_text(out['fit_before']['refit_nrmse'][stage]):>10s}  after {nrmse_text(fa[stage]):>10s}")
+    if out["mismatch"]:
+        print("where the baseline and the record disagree (largest first):")
+        for f in out["mismatch"][:8]:
+            print(f"  {finding_text(f)}")
+    print(f"result: {out['result_text']}")
     for m in out["missing_physics"]:
         ps = ", ".join(f"{k} = {v['value']:.4g}" for k, v in m["parameters"].items())
         print(f"  {m['id']}: {m['explanation']} ({ps}); held-out NRMSE "
-              f"{m['evidence']['held_out_nrmse_before']:.4g} -> {m['evidence']['held_out_nrmse_after']:.4g}")
+              f"{nrmse_text(m['evidence']['held_out_nrmse_before'])} -> "
+              f"{nrmse_text(m['evidence']['held_out_nrmse_after'])}")
     if out["missing_physics"]:
         print("augmented model:\n" + out["fit_after"]["model"])
     else:
@@ -212,8 +237,6 @@ def diagnose_command(args) -> int:
         if lims:
             print("not seen above (detection limits on this record): "
                   + ", ".join(f"{cid} {d['parameter']} {d['value']:.3g}" for cid, d in lims))
-    if out["unexplained_mismatch"]:
-        print(f"unexplained: {out['unexplained_mismatch']['note']}")
     for p in out.get("report", []):
         print(f"report: {p}")
     return 0
@@ -221,4 +244,4 @@ def diagnose_command(args) -> int:
 
 def demo_command(args) -> int:
     return run_demo(args.output, realtime=args.realtime, protocol_path=args.protocol, seed=args.seed,
-                    quiet=args.quiet)
+                    quiet=args.quiet, force=args.force)

@@ -33,15 +33,16 @@ from pathlib import Path
 
 import numpy as np
 
-from recon import ReconSettings, reconstruct
+from recon import ReconSettings, progress, reconstruct
+from recon.estimator.adequacy import verdict_summary
 from recon.library.clustering import cluster
-from recon.model import UNITS
 from recon.output_error.uncertainty import (UncertaintySettings, parameter_intervals, reconstruct_capturing,
                                             term_inclusion)
 from recon.signals import stage_signals
 from recon.validation import nrmse
 from workflows.figures import plt, savefig
 from shakerlab import __version__
+from shakerlab.words import duration_text, nrmse_text, parameter_name, parameter_units
 from shakerlab.errors import UserFacingError
 from shakerlab.runfile.reader import load_run
 from shakerlab.jsonsafe import clean
@@ -53,32 +54,10 @@ from workflows.plausibility import warnings_for
 CLUSTER_COLOURS = {1: ("tab:red", "AB (h = +1)"), -1: ("tab:blue", "CD (h = -1)"), 0: ("0.6", "BC/DA (h = 0)")}
 
 
-class StepProgress:
-    """Prints ``step ... done (x.x s)`` lines on stderr for the slow steps of one report."""
-
-    def __init__(self, stream=None, enabled: bool = True):
-        self.stream = stream or sys.stderr
-        self.enabled = enabled
-        self.t0 = time.monotonic()
-
-    def step(self, text: str):
-        outer = self
-
-        class _Step:
-            def __enter__(self):
-                self.t = time.monotonic()
-                if outer.enabled:
-                    outer.stream.write(f"{text} ...")
-                    outer.stream.flush()
-                return self
-
-            def __exit__(self, exc_type, exc, tb):
-                if outer.enabled:
-                    outer.stream.write(f" {'done' if exc_type is None else 'failed'} ({time.monotonic() - self.t:.1f} s)\n")
-                    outer.stream.flush()
-                return False
-
-        return _Step()
+BANNER_COLOURS = {"good": ("#e6f4ea", "#1e7b34"), "warning": ("#fff4e0", "#a15c00"), "bad": ("#fde8e8", "#b3261e")}
+TIMING_NAMES = {"reconstruct": "reconstruction", "term_selection": "term selection",
+                "uncertainty": "parameter intervals", "figures": "figures", "validation": "validation",
+                "two_stage_polish": "the two stages fitted together"}
 
 
 # ---------------------------------------------------------------------------
@@ -216,7 +195,7 @@ def fig_validation(sims: dict, result, path: Path) -> list[Path]:
             ax.set_ylabel("y [mm]")
         axes[0].legend(loc="upper right", fontsize=7)
         axes[1].set_title("last second", fontsize=9)
-        fig.suptitle(f"{n}: measured vs simulated from rest (NRMSE {nrmse(ys, ym):.3g})", fontsize=10)
+        fig.suptitle(f"{n}: measured vs simulated from rest (NRMSE {nrmse_text(nrmse(ys, ym))})", fontsize=10)
         paths.append(_save(fig, inside(path.parent, f"{path.stem}_{n}", ".png", option="-o")))
     return paths
 
@@ -256,16 +235,36 @@ def _fmt(v) -> str:
 
 
 def _param_rows(d: dict, unc: dict | None) -> list[tuple]:
-
+    """(name, estimate, [low, high], units) for every parameter, named and with units as everywhere
+    (shakerlab.words)."""
     p = d["parameters"]
     iv = (unc or {}).get("intervals", {})
     rows = []
-    for k in ("c_m", "k_m", "alpha_m", "gamma", "delta", "inv_m"):
+    for k in ("c_m", "k_m", "alpha_m", "gamma", "delta", "inv_m", "input_offset", "drive_u2", "drive_hp"):
         if k in p:
-            rows.append((k, p[k], (iv.get(k) or [None, None]), UNITS.get(k, "")))
+            rows.append((k, p[k], (iv.get(k) or [None, None]), parameter_units(k, excitation=d.get("excitation"))))
     for term, v in p.get("fn_m", {}).items():
-        rows.append((f"a[{term}]", v, (iv.get("fn_m", {}).get(term) or [None, None]), "see fn_m units"))
+        rows.append((parameter_name("fn_m", term), v, (iv.get("fn_m", {}).get(term) or [None, None]),
+                     parameter_units("fn_m", term)))
     return rows
+
+
+def verdict_banner(adequacy: dict | None) -> str:
+    """The verdict as a coloured banner (id ``verdict``), the same sentence as everywhere."""
+    v = verdict_summary(adequacy)
+    bg, fg = BANNER_COLOURS[v["level"]]
+    return (f"<div id='verdict' class='verdict {v['level']}' style='background:{bg};border-left:6px solid {fg};"
+            f"padding:0.6em 1em;margin:1em 0'><b style='color:{fg}'>Verdict: {html.escape(v['label'])}.</b> "
+            f"{html.escape(v['text'])}</div>")
+
+
+def timings_text(timings: dict) -> str:
+    """"reconstruction 1 min 03 s, parameter intervals 12 s, figures 4.1 s" (the report's own steps;
+    the reconstruction's inner steps when they are all there is)."""
+    own = {k: v for k, v in timings.items() if k in ("reconstruct", "term_selection", "uncertainty", "figures")}
+    use = own or timings
+    return ", ".join(f"{TIMING_NAMES.get(k, k.replace('_', ' '))} {duration_text(v)}" for k, v in use.items()
+                     if isinstance(v, (int, float))) + (f"; in all {duration_text(sum(own.values()))}" if own else "")
 
 
 def render_html(run, d: dict, figures: dict, info: dict) -> str:
@@ -277,6 +276,7 @@ def render_html(run, d: dict, figures: dict, info: dict) -> str:
     h = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>shakerlab report: "
          f"{html.escape(Path(run.source).name)}</title><style>{css}</style></head><body>",
          f"<h1>Reconstruction report: {html.escape(Path(run.source).name)}</h1>",
+         verdict_banner(d.get("adequacy")),
          f"<p>Run file <code>{html.escape(run.source)}</code>; {html.escape(d['excitation'])} excitation; "
          f"shakerlab {__version__}; made {html.escape(info['created'])}. {html.escape(info['write_back'])}</p>",
          "<h2>Recorded stages</h2><table><tr><th>stage</th><th>excitation</th><th>fs [Hz]</th><th>samples</th>"
@@ -305,10 +305,13 @@ def render_html(run, d: dict, figures: dict, info: dict) -> str:
                  f"<td>{html.escape(units)}</td></tr>")
     h.append("</table>")
     if unc:
-        h.append(f"<p>Intervals: {html.escape(unc['method'])}; {unc['n_resamples']} members, blocks of "
-                 f"{html.escape(json.dumps(unc['block_samples']))} samples; at the optimum of the output-error fit: "
-                 f"{unc['at_optimum']}. They do not include the uncertainty of which library terms were "
-                 f"selected (see docs/reprocessing.md).</p>")
+        blocks = ", ".join(f"{n} stage {b} samples" for n, b in (unc.get("block_samples") or {}).items())
+        h.append(f"<p>Intervals: {html.escape(unc['method'])}; {unc['n_resamples']} ensemble members"
+                 + (f", resampled in blocks ({html.escape(blocks)})" if blocks else "") + "; "
+                 + ("computed at the optimum of the output-error fit" if unc.get("at_optimum")
+                    else "the output-error fit had not reached its optimum, so they are approximate")
+                 + ". They do not include the uncertainty of which library terms were selected "
+                   "(see docs/reprocessing.md).</p>")
     else:
         h.append("<p>No intervals (uncertainty skipped).</p>")
     ts = d.get("term_selection") or {}
@@ -332,7 +335,7 @@ def render_html(run, d: dict, figures: dict, info: dict) -> str:
     h.append("<h2>Nonlinear force by kernel cluster</h2>" + _img(figures, "restoring_force"))
     h.append("<h2>Validation</h2><table><tr><th>stage</th><th>NRMSE</th></tr>")
     for n, v in (d["validation"].get("per_stage") or {}).items():
-        h.append(f"<tr><td>{html.escape(n)}</td><td>{_fmt(v)}</td></tr>")
+        h.append(f"<tr><td>{html.escape(n)}</td><td>{nrmse_text(v)}</td></tr>")
     h.append("</table>")
     if d["validation"].get("fitted_on_validation_stage"):
         h.append("<p><b>No validation stage was recorded: the NRMSE is on the fitted stage.</b></p>")
@@ -340,7 +343,8 @@ def render_html(run, d: dict, figures: dict, info: dict) -> str:
         h.append(_img(figures, key))
     h.append("<h2>Hysteresis loops at several amplitudes</h2>" + _img(figures, "loops"))
     h.append("<h2>Residual</h2>" + _img(figures, "residual"))
-    h.append(f"<h2>Timings</h2><p>{html.escape(json.dumps({k: round(v, 3) for k, v in info['timings_s'].items()}))} s</p>")
+    h += info.get("sections", [])
+    h.append(f"<h2>Timings</h2><p>{html.escape(timings_text(info['timings_s']))}.</p>")
     h.append("<p>The full result is in <code>result.json</code> next to this file.</p></body></html>")
     return "\n".join(h)
 
@@ -348,21 +352,25 @@ def render_html(run, d: dict, figures: dict, info: dict) -> str:
 def _polish_text(prov: dict) -> str:
     p = prov.get("output_error_polish") or {}
     if not p.get("applied"):
-        return "not applied" + (f" (NRMSE {p['nrmse_before']:.3g} not improved)" if "nrmse_before" in p else "")
-    return f"applied, fitting-stage NRMSE {p['nrmse_before']:.3g} -> {p['nrmse_after']:.3g} ({p.get('nfev')} simulations)"
+        return "not applied" + (f" (NRMSE {nrmse_text(p['nrmse_before'])} not improved)" if "nrmse_before" in p else "")
+    return (f"applied, fitting-stage NRMSE {nrmse_text(p['nrmse_before'])} -> {nrmse_text(p['nrmse_after'])} "
+            f"({p.get('nfev')} simulations)")
 
 
 def _img(figures: dict, key: str) -> str:
     p = figures.get(key)
-    if p is None:
-        return ""
-    data = base64.b64encode(Path(p).read_bytes()).decode()
-    return f"<p><img alt='{html.escape(key)}' src='data:image/png;base64,{data}'></p>"
+    return "" if p is None else img_html(p, key)
+
+
+def img_html(path, alt: str) -> str:
+    """A PNG embedded in the page (a data URI: the report is one self-contained file)."""
+    data = base64.b64encode(Path(path).read_bytes()).decode()
+    return f"<p><img alt='{html.escape(alt)}' src='data:image/png;base64,{data}'></p>"
 
 
 def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncertainty_settings=None,
-                write_back: bool = True, progress: StepProgress | None = None, term_models: int = 0,
-                overwrite: bool = False) -> dict:
+                write_back: bool = True, term_models: int = 0, overwrite: bool = False, result=None,
+                sections: list[str] | None = None, stored: str | None = None) -> dict:
     """Reconstruct ``run_path`` and write the report into ``outdir``; returns the result JSON
     (with ``uncertainty`` and ``report``: the files written and where the result went).
 
@@ -370,9 +378,11 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
     complete (a new ``outdir`` is renamed into place whole; into an existing one, with
     ``overwrite``, each report file replaces its namesake). Only then is the result written back
     into the run file; if that cannot be done (the file is being written by another process, was
-    not closed cleanly, ...) the report says so and stays complete."""
-
-    progress = progress or StepProgress(enabled=False)
+    not closed cleanly, ...) the report says so and stays complete. ``result``: a reconstruction of
+    the run already made with ``settings`` (not repeated); ``sections``: HTML sections added before the
+    timings (the demo's comparison with the simulator's truth); ``stored``: where the caller wrote the result
+    itself (said in the report instead of the write-back note). Its steps are reported through
+    :mod:`recon.progress` (``workflows.progress_line`` shows them)."""
     run_path = Path(run_path)
     outdir = check_directory(outdir, option="-o")
     if outdir.is_dir() and any(outdir.iterdir()) and not overwrite:
@@ -387,26 +397,26 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
         raise UserFacingError(f"-o {outdir}: cannot create the report directory ({exc})") from None
     t = time.perf_counter()
     problem = None
-    with progress.step(f"reconstructing {run_path.name}"):
-        if term_models > 0:
-
-            result, problem = reconstruct_capturing(run, settings)
-        else:
-            result = reconstruct(run, settings)
+    shares = {"reconstruct": 0.5, "terms": 0.1 if term_models > 0 else 0.0, "intervals": 0.35 if uncertainty else 0.0}
+    progress.step(f"reconstructing {run_path.name}", share=shares["reconstruct"] / (sum(shares.values()) + 0.1))
+    if term_models > 0:
+        result, problem = reconstruct_capturing(run, settings)
+    elif result is None:
+        result = reconstruct(run, settings)
     timings["reconstruct"] = time.perf_counter() - t
     d = result.to_dict()
     d["warnings"] = warnings_for(run, result)
     if term_models > 0:
 
         t = time.perf_counter()
-        with progress.step(f"term selection on {term_models} row subsamples"):
-            d["term_selection"] = term_inclusion(problem, n_models=term_models)
+        progress.step(f"term selection on {term_models} row subsamples", share=0.1 / (sum(shares.values()) + 0.1))
+        d["term_selection"] = term_inclusion(problem, n_models=term_models)
         timings["term_selection"] = time.perf_counter() - t
     if uncertainty:
 
         t = time.perf_counter()
-        with progress.step("parameter intervals"):
-            d["uncertainty"] = parameter_intervals(result.model, run, uncertainty_settings or UncertaintySettings())
+        progress.step("parameter intervals", share=0.35 / (sum(shares.values()) + 0.1))
+        d["uncertainty"] = parameter_intervals(result.model, run, uncertainty_settings or UncertaintySettings())
         timings["uncertainty"] = time.perf_counter() - t
     staging = outdir.with_name(f".{outdir.name}.{secrets.token_hex(4)}.tmp")
     try:
@@ -416,14 +426,14 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
     try:
         t = time.perf_counter()
         figures = {}
-        with progress.step("figures"):
-            figures["stages"] = fig_stages(run, staging / "stages.png")
-            figures["restoring_force"] = fig_restoring_force(result, run, staging / "restoring_force.png")
-            sims = simulated_stages(result, run)
-            for p in fig_validation(sims, result, staging / "validation.png"):
-                figures[p.stem] = p
-            figures["loops"] = fig_loops(result, run, staging / "loops.png")
-            figures["residual"] = fig_residual(sims, staging / "residual.png")
+        progress.step("figures", share=1.0)
+        figures["stages"] = fig_stages(run, staging / "stages.png")
+        figures["restoring_force"] = fig_restoring_force(result, run, staging / "restoring_force.png")
+        sims = simulated_stages(result, run)
+        for p in fig_validation(sims, result, staging / "validation.png"):
+            figures[p.stem] = p
+        figures["loops"] = fig_loops(result, run, staging / "loops.png")
+        figures["residual"] = fig_residual(sims, staging / "residual.png")
         timings["figures"] = time.perf_counter() - t
         job = {"recon": settings.to_dict(), "uncertainty": uncertainty,
                "uncertainty_settings": (uncertainty_settings.to_dict() if uncertainty_settings else {}),
@@ -431,8 +441,9 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
         digest = settings_hash(job)
         d["reprocess"] = {"settings_hash": digest, "settings": job, "software": f"shakerlab {__version__}"}
         info = {"created": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
-                "timings_s": {**result.timings, **timings}, "polish": _polish_text(result.model.provenance)}
-        pending = ("Result not written into the run file (--no-write-back)." if not write_back else
+                "timings_s": {**result.timings, **timings}, "polish": _polish_text(result.model.provenance),
+                "sections": list(sections or [])}
+        pending = (stored if stored else "Result not written into the run file (--no-write-back)." if not write_back else
                    "Result not yet written into the run file (the report is written first).")
         _write_report_files(staging, run, d, figures, info, outdir, None, pending)
         with OutputLock(outdir):
@@ -473,8 +484,8 @@ def interval_lines(d: dict) -> list[str]:
     """Plain-text lines 'name = estimate  [low, high]' for every parameter with an interval."""
     unc = d.get("uncertainty") or {}
     out = [f"{100 * unc.get('level', 0.95):.0f} % intervals ({unc.get('n_resamples')} ensemble members):"]
-    for k, v, (lo, hi), _ in _param_rows(d, unc):
-        out.append(f"  {k:<14s} {v:>13.6g}  [{_num(lo)}, {_num(hi)}]")
+    for k, v, (lo, hi), units in _param_rows(d, unc):
+        out.append(f"  {k:<14s} {v:>13.6g}  [{_num(lo)}, {_num(hi)}]  {units}")
     return out
 
 

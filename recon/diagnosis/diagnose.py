@@ -24,6 +24,7 @@ import numpy as np
 
 from recon.constitutive.bridge import KIND, shaker_baseline
 from recon.constitutive.law import ConstitutiveLaw, is_law_file
+from recon import progress
 from recon.determinism import single_thread_blas
 from recon.diagnosis import rank
 from recon.diagnosis.ambiguity import ambiguous_pair, separating_stage
@@ -636,6 +637,7 @@ def _check_null(null, data, run) -> None:
 
 
 @single_thread_blas
+@progress.task("diagnose")
 def diagnose(run: Run, baseline="paper", candidates=None, max_nfev: int = 30) -> Diagnosis:
     """Diagnose ``run`` against ``baseline`` ("paper", "linear", a model JSON path or a model)."""
     return _diagnose(run, baseline, candidates, max_nfev)
@@ -643,6 +645,7 @@ def diagnose(run: Run, baseline="paper", candidates=None, max_nfev: int = 30) ->
 
 def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     t0 = time.perf_counter()
+    progress.step("the baseline model", share=0.15)
     base, kind = resolve_baseline(run, baseline)
     if base.excitation != run.excitation:
         raise UserFacingError(f"baseline model is {base.excitation} excitation, {run.source or 'run'} is {run.excitation}")
@@ -672,6 +675,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     # effect, friction as extra viscous damping), the rest stays as given
     base_free = full_free if refit_better else list(GIVEN_FREE)
     sims = ref.sims
+    progress.step("locating the mismatch", share=0.05)
 
     derivs = stage_derivatives(run, data)
     findings, ctx = locate(ref.model, run, data, sims, derivs)
@@ -879,6 +883,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     references = {}     # candidate id: (the reference it was scored against, its added parameters)
 
     for cid in ids:
+        progress.step(f"candidate {cid} ({ids.index(cid) + 1} of {len(ids)})", share=0.65 / len(ids))
         if cid not in CATALOG:
             raise UserFacingError(f"unknown candidate {cid!r} (catalog: {', '.join(CATALOG)})")
         cand = CATALOG[cid]
@@ -971,6 +976,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                     t["compared_with_nested_null"] = True
     # what the record can show: the size at which each candidate's effect, added to it, would be named
     # (an estimate; sensitivity.py)
+    progress.step("detection limits", share=0.1)
     limits = detection_limits(ref, fits, data, noise_mse, CANDIDATE_FAILURES)
     for t in tested:
         if t["id"] in limits:

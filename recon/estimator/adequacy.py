@@ -18,6 +18,7 @@ import numpy as np
 from recon.differentiation import estimate_spectrum
 from recon.estimator.fallback import HYSTERETIC_KINDS, admissible
 from shakerlab.run_data import Run
+from shakerlab.words import nrmse_text
 
 NOISE_FACTOR = 5.0     # validation NRMSE up to 5 x the noise floor is explained by noise and filter error
 NRMSE_FLOOR = 0.01     # below 1 % NRMSE a model is adequate whatever the noise floor
@@ -85,3 +86,60 @@ def one_line(adequacy: dict) -> str:
     if adequacy["verdict"] != "adequate":
         line += f": {'; '.join(adequacy['reasons'])}; run `shakerlab diagnose`"
     return line
+
+
+# the one sentence a person reads about a model, everywhere it is shown (command line, JSON key
+# ``verdict_text``, HTML report banner, demo, reprocess table, operator window); ``level`` picks
+# the banner colour: "good" (adequate), "warning" (adequate, but a simpler model stands in for the
+# full one), "bad" (inadequate)
+FALLBACK_WHY = {"inadmissible": "the full model was not physically admissible",
+                "inadequate": "the full model was admissible but predicted the held-out data worse"}
+
+
+def verdict_summary(adequacy: dict | None) -> dict:
+    """{"level", "label", "text"} of a model's adequacy (the ``adequacy`` of a reconstruction's JSON).
+
+    The text names, in this order and never contradicting itself: which model is the answer (the
+    full model, or the simpler model standing in for it and why), whether it is admissible,
+    whether it is adequate with the figures that decide it, and what to do next."""
+    if not adequacy:
+        return {"level": "warning", "label": "no verdict", "text": "No verdict: the model was not validated."}
+    good = adequacy.get("verdict") == "adequate"
+    fb = adequacy.get("fallback") or {}
+    v, limit = adequacy.get("validation_nrmse"), adequacy.get("nrmse_limit")
+    problems = []
+    if not adequacy.get("admissible", True):
+        problems.append("it is not physically admissible")
+    if v is None or not math.isfinite(float(v)):
+        problems.append("its validation simulation diverged")
+    elif limit is not None and float(v) > float(limit):
+        problems.append(f"its validation NRMSE {nrmse_text(v)} is above the {nrmse_text(limit)} limit")
+    if adequacy.get("fn_terms", 0) > MAX_FN_TERMS:
+        problems.append(f"it has {adequacy['fn_terms']} fn terms (more than {MAX_FN_TERMS})")
+    if fb.get("used") and fb.get("kind") not in HYSTERETIC_KINDS:
+        problems.append("a model without hysteresis cannot stand for the specimen")
+    if any("no validation stage" in r for r in adequacy.get("reasons", [])):
+        problems.append("there is no validation stage (its NRMSE is on the fitted stage)")
+    if fb.get("used"):
+        why = FALLBACK_WHY.get(fb.get("trigger"), "the full model was set aside")
+        subject = f"Fallback: {why}, so the answer is the simpler {fb.get('kind')} model; it"
+    else:
+        subject = "The model"
+    figs = f"validation NRMSE {nrmse_text(v)}" + (f", limit {nrmse_text(limit)}" if limit is not None else "")
+    if good:
+        text = f"{subject} is admissible and adequate ({figs})."
+        label = "adequate (simpler model)" if fb.get("used") else "adequate"
+        level = "warning" if fb.get("used") else "good"
+    else:
+        if adequacy.get("admissible", True):
+            text = f"{subject} is admissible but inadequate: {'; '.join(problems) or 'see adequacy.reasons'}."
+        else:
+            text = f"{subject} is inadequate: {'; '.join(problems)}."
+        text += " Run `shakerlab diagnose` to locate and name what it leaves out."
+        label, level = ("inadequate fallback" if fb.get("used") else "inadequate"), "bad"
+    return {"level": level, "label": label, "text": text[0].upper() + text[1:]}
+
+
+def verdict_text(adequacy: dict | None) -> str:
+    """The one sentence of :func:`verdict_summary`."""
+    return verdict_summary(adequacy)["text"]

@@ -12,6 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from recon import progress
 from recon.determinism import single_thread_blas
 from recon.estimator.adequacy import assess
 from recon.estimator.drive import fit_drive
@@ -35,6 +36,7 @@ from shakerlab.run_data import FORCE, Run
 FORMS = {"joint": reconstruct_pointwise, "ab": reconstruct_pointwise, "weak": reconstruct_weak}
 
 
+@progress.task("reconstruct")
 @single_thread_blas
 def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model: bool = True) -> ReconResult:
     """Identify the model.
@@ -60,8 +62,10 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
     if s.drive and run.excitation != FORCE:
         raise UserFacingError(f"--drive needs force excitation ({run.source or 'the run'} is {run.excitation} "
                               f"excitation): it models the exciter between a recorded drive and the force")
+    progress.step("the first estimate (equation error, then output-error polish)", share=0.45)
     result = _reconstruct_passes(run, s, validate_model)
     if s.drive:
+        progress.step("fitting the exciter (--drive)", share=0.1)
         result = fit_drive(result, run, s)
     if rule is not None:
         result.model.provenance["input_offset_rule"] = rule
@@ -83,6 +87,7 @@ def _reconstruct_passes(run: Run, s: ReconSettings, validate_model: bool) -> Rec
     if s.fallback_form and s.fallback_form != s.form:
         passes.append((f"form={s.fallback_form}", replace(s, form=s.fallback_form, linear_correction=False)))
     for name, ps in passes:
+        progress.step(f"another pass ({name}): the first was not admissible", share=0.1)
         r = _attempt(name, run, ps, validate_model, failures)
         if r is None:
             continue
@@ -134,7 +139,9 @@ def _finish(result: ReconResult, run: Run, failures: dict, fallback: dict | None
 def _conclude(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool, failures: dict) -> ReconResult:
     """An admissible result's end: its terms revised, both stages polished together, then checked
     against the simpler models."""
+    progress.step("revising the fn terms", share=0.15)
     result = _revise_terms(result, run, s, validate_model, failures)
+    progress.step("fitting the two stages together", share=0.25)
     result = _two_stage(result, run, s, validate_model)
     return _prefer_simpler(result, run, s, validate_model, failures)
 
@@ -170,6 +177,7 @@ def _prefer_simpler(result: ReconResult, run: Run, s: ReconSettings, validate_mo
     v, limit = first.adequacy["validation_nrmse"], first.adequacy["nrmse_limit"]
     if not (math.isfinite(v) and v > limit):
         return first            # inadequate for another reason (its term count): no held-out case
+    progress.step("comparing with the simpler models (the full model is inadequate)", share=0.1)
     full = score(result.model, run, names)
     try:
         fits = simpler_models(run, s, result.model, result.linear)
@@ -202,6 +210,7 @@ def _simpler(run: Run, s: ReconSettings, candidates: list, failures: dict, valid
     """No admissible model from any pass: the best admissible simpler model (fallback.py)."""
     estimate = candidates[0] if candidates else None
     lin = estimate.linear if estimate is not None else None
+    progress.step("fitting the simpler models (no admissible estimate)", share=0.3)
     fits = simpler_models(run, s, estimate.model if estimate is not None else None, lin)
     good = [f for f in fits if f.model is not None and np.isfinite(f.held_out_nrmse)]
     if not good:

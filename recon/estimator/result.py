@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+from recon.estimator.adequacy import verdict_text
 from recon.model import HystereticModel
 from recon.steps.linear import LinearFit
 from shakerlab import __version__
@@ -111,6 +112,7 @@ class ReconResult:
                          **({"simpler_model": self.adequacy["fallback"]["kind"]}
                             if (self.adequacy.get("fallback") or {}).get("used") else {})},
             "adequacy": self.adequacy,
+            "verdict_text": verdict_text(self.adequacy) if self.adequacy else None,
             "timings_s": self.timings,
             "software": {"shakerlab": __version__},
         }

@@ -7,6 +7,9 @@ lines are skipped; every bad value is reported with its file, line and column.
 """
 from __future__ import annotations
 
+import bz2
+import gzip
+import lzma
 from pathlib import Path
 
 import numpy as np
@@ -32,17 +35,30 @@ def printed_quantum(field: str) -> float:
     return 10.0 ** (e - decimals)
 
 
+# a CSV compressed whole (``run.csv.gz``) is read through its decompressor, streamed
+COMPRESSED = {".gz": gzip.open, ".bz2": bz2.open, ".xz": lzma.open}
+
+
+def data_suffix(path) -> str:
+    """The suffix that names the format, past a compression suffix: ".csv" for "a.csv.gz"."""
+    suffixes = [x.lower() for x in Path(path).suffixes]
+    if len(suffixes) >= 2 and suffixes[-1] in COMPRESSED:
+        return suffixes[-2]
+    return Path(path).suffix.lower()
+
+
 def _lines(path: Path):
     """(line number, stripped line) of every non-blank, non-comment line, streamed from the file."""
+    opener = COMPRESSED.get(Path(path).suffix.lower(), open)
     try:
-        with open(path, encoding="utf-8-sig", newline=None) as fh:
+        with opener(path, "rt", encoding="utf-8-sig", newline=None) as fh:
             for lineno, line in enumerate(fh, start=1):
                 stripped = line.strip()
                 if stripped and not stripped.startswith("#"):
                     yield lineno, stripped
     except FileNotFoundError:
         raise UserFacingError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except (OSError, EOFError, lzma.LZMAError, UnicodeDecodeError) as exc:
         raise UserFacingError(f"{path}: cannot read as a text CSV file ({exc})") from None
 
 
