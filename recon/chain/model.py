@@ -22,6 +22,7 @@ import numpy as np
 from numba import njit
 
 from recon.library import monomials
+from recon.simulation.powers import ipow
 from shakerlab.errors import UserFacingError
 
 
@@ -92,7 +93,7 @@ def _chain_forces(x, v, z, m, c, k, alpha, gamma, delta, coef, p, r, e, out_a, o
         out_z[i] = alpha[i] * dy - gamma[i] * abs(dy) * z[i] - delta[i] * dy * abs(z[i])
         for j in range(coef.size):
             if e[j] == i:
-                E[i] += coef[j] * y ** p[j] * dy ** r[j]
+                E[i] += coef[j] * ipow(y, p[j]) * ipow(dy, r[j])
     for i in range(n):
         prev = E[i - 1] if i > 0 else 0.0
         out_a[i] = (F[i] - E[i] + prev) / m[i]

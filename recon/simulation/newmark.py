@@ -28,6 +28,7 @@ from numba import njit
 
 from recon.library import monomials
 from recon.simulation import resampling
+from recon.simulation.powers import ipow
 from shakerlab.errors import UserFacingError
 
 __all__ = ["NewmarkParameters", "newmark_integrate", "simulate_chain"]
@@ -79,13 +80,13 @@ def _fn_and_grad(y, v, coef, pe, re):
     for j in range(coef.size):
         p = pe[j]
         r = re[j]
-        yp = y ** p
-        vr = v ** r
+        yp = ipow(y, p)
+        vr = ipow(v, r)
         f += coef[j] * yp * vr
         if p > 0:
-            dfy += coef[j] * p * y ** (p - 1) * vr
+            dfy += coef[j] * p * ipow(y, p - 1) * vr
         if r > 0:
-            dfv += coef[j] * r * yp * v ** (r - 1)
+            dfv += coef[j] * r * yp * ipow(v, r - 1)
     return f, dfy, dfv
 
 

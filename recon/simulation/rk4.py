@@ -37,6 +37,8 @@ import math
 import numpy as np
 from numba import njit
 
+from recon.simulation.powers import ipow
+
 # the layout of the parameter vector P of :func:`simulate_extended`
 P_NAMES = ("g", "c", "k", "alpha", "gamma", "delta", "mu", "v0", "c2", "kc", "gap", "side", "drift", "w2", "zeta2",
            "drive2", "gu2")
@@ -46,7 +48,7 @@ P_NAMES = ("g", "c", "k", "alpha", "gamma", "delta", "mu", "v0", "c2", "kc", "ga
 def _rhs(y, v, z, q, vq, t, u, P, coef, p, r):
     fn = 0.0
     for j in range(coef.size):
-        fn += coef[j] * y ** p[j] * v ** r[j]
+        fn += coef[j] * ipow(y, p[j]) * ipow(v, r[j])
     k = P[2]
     if P[12] != 0.0:
         k = P[2] * (1.0 + P[12] * t)
@@ -172,44 +174,39 @@ def substeps(dt: float, k_total: float, steps_per_period: int = 64) -> int:
 N_P = len(P_NAMES)
 
 
-@njit(cache=True, nogil=True)
-def _rhs_partials(y, v, z, q, w, t, u, P, coef, p, r, cols, Ba, Bz, Bq):
-    """The right side (acc, dz, aq) as :func:`_rhs` computes it, its partial derivatives with
-    respect to the states (a_y, a_v, dz_v, dz_z, aq_q, aq_w, aq_acc: aq depends on the states also
-    through acc) and, written into Ba, Bz, Bq, its partials with respect to theta[cols]."""
+@njit(cache=True, nogil=True, inline="always")
+def _rhs_partials(y, v, z, q, w, t, u, P, coef, p, r):
+    """The right side (acc, dz, aq) as :func:`_rhs` computes it and its partial derivatives with
+    respect to the states: a_y, a_v, dz_v, dz_z, aq_q, aq_w and aq_acc (aq depends on the states
+    also through acc)."""
     fn = 0.0
     fn_y = 0.0
     fn_v = 0.0
     for j in range(coef.size):
-        fn += coef[j] * y ** p[j] * v ** r[j]
+        fn += coef[j] * ipow(y, p[j]) * ipow(v, r[j])
         if p[j] > 0:
-            fn_y += coef[j] * p[j] * y ** (p[j] - 1) * v ** r[j]
+            fn_y += coef[j] * p[j] * ipow(y, p[j] - 1) * ipow(v, r[j])
         if r[j] > 0:
-            fn_v += coef[j] * r[j] * y ** p[j] * v ** (r[j] - 1)
+            fn_v += coef[j] * r[j] * ipow(y, p[j]) * ipow(v, r[j] - 1)
     k = P[2]
-    kt = 1.0
     if P[12] != 0.0:
-        kt = 1.0 + P[12] * t
-        k = P[2] * kt
+        k = P[2] * (1.0 + P[12] * t)
     gu = P[0] * u
     acc = gu - P[1] * v - k * y - fn - z
     a_y = -k - fn_y
     a_v = -P[1] - fn_v
-    th = 0.0
-    sech2 = 0.0
     if P[6] != 0.0:
         th = math.tanh(v / P[7])
         acc -= P[6] * th
-        sech2 = 1.0 - th * th
-        a_v -= P[6] * sech2 / P[7]
+        a_v -= P[6] * (1.0 - th * th) / P[7]
     if P[8] != 0.0:
         acc -= P[8] * v * abs(v)
         a_v -= 2.0 * P[8] * abs(v)
-    dc = P[11] * y - P[10]
-    contact = P[9] != 0.0 and dc > 0.0
-    if contact:
-        acc -= P[11] * P[9] * dc
-        a_y -= P[9] * P[11] * P[11]
+    if P[9] != 0.0:
+        d = P[11] * y - P[10]
+        if d > 0.0:
+            acc -= P[11] * P[9] * d
+            a_y -= P[9] * P[11] * P[11]
     sv = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else 0.0)
     sz = 1.0 if z > 0.0 else (-1.0 if z < 0.0 else 0.0)
     dz = P[3] * v - P[4] * abs(v) * z - P[5] * v * abs(z)
@@ -219,8 +216,7 @@ def _rhs_partials(y, v, z, q, w, t, u, P, coef, p, r, cols, Ba, Bz, Bq):
     aq_q = 0.0
     aq_w = 0.0
     aq_acc = 0.0
-    mode = P[13] > 0.0
-    if mode:
+    if P[13] > 0.0:
         drive = gu
         if P[15] != 0.0:
             drive = P[16] * gu - P[15] * acc
@@ -228,66 +224,72 @@ def _rhs_partials(y, v, z, q, w, t, u, P, coef, p, r, cols, Ba, Bz, Bq):
         aq = drive - 2.0 * P[14] * P[13] * w - P[13] * P[13] * q
         aq_q = -P[13] * P[13]
         aq_w = -2.0 * P[14] * P[13]
-    for i in range(cols.size):
-        c = cols[i]
-        ba = 0.0
-        bz = 0.0
-        bq = 0.0
-        if c >= N_P:
-            j = c - N_P
-            ba = -(y ** p[j] * v ** r[j])
-        elif c == 0:
-            ba = u
-            if mode:
-                bq = P[16] * u if P[15] != 0.0 else u
-        elif c == 1:
-            ba = -v
-        elif c == 2:
-            ba = -kt * y
-        elif c == 3:
-            bz = v
-        elif c == 4:
-            bz = -abs(v) * z
-        elif c == 5:
-            bz = -v * abs(z)
-        elif c == 6:
-            ba = -th if P[6] != 0.0 else -math.tanh(v / P[7])
-        elif c == 7:
-            if P[6] != 0.0:
-                ba = P[6] * sech2 * v / (P[7] * P[7])
-        elif c == 8:
-            ba = -v * abs(v)
-        elif c == 9:
-            if dc > 0.0:
-                ba = -P[11] * dc
-        elif c == 10:
-            if contact:
-                ba = P[11] * P[9]
-        elif c == 12:
-            ba = -P[2] * t * y
-        elif c == 13:
-            if mode:
-                bq = -2.0 * P[14] * w - 2.0 * P[13] * q
-        elif c == 14:
-            if mode:
-                bq = -2.0 * P[13] * w
-        elif c == 15:
-            if mode:
-                bq = -acc
-        elif c == 16:
-            if mode and P[15] != 0.0:
-                bq = gu
-        Ba[i] = ba
-        Bz[i] = bz
-        Bq[i] = bq
     return acc, dz, aq, a_y, a_v, dz_v, dz_z, aq_q, aq_w, aq_acc
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _source(c, y, v, z, q, w, t, u, acc, P, p, r):
+    """The partial derivatives of (acc, dz, aq) with respect to theta[c], theta = (P, coef), at a
+    state whose acceleration is ``acc`` (aq's dependence through acc is added by the caller)."""
+    if c >= N_P:
+        j = c - N_P
+        return -(ipow(y, p[j]) * ipow(v, r[j])), 0.0, 0.0
+    mode = P[13] > 0.0
+    if c == 0:
+        if mode:
+            return u, 0.0, (P[16] * u if P[15] != 0.0 else u)
+        return u, 0.0, 0.0
+    if c == 1:
+        return -v, 0.0, 0.0
+    if c == 2:
+        return -(1.0 + P[12] * t) * y if P[12] != 0.0 else -y, 0.0, 0.0
+    if c == 3:
+        return 0.0, v, 0.0
+    if c == 4:
+        return 0.0, -abs(v) * z, 0.0
+    if c == 5:
+        return 0.0, -v * abs(z), 0.0
+    if c == 6:
+        return -math.tanh(v / P[7]), 0.0, 0.0
+    if c == 7:
+        if P[6] != 0.0:
+            th = math.tanh(v / P[7])
+            return P[6] * (1.0 - th * th) * v / (P[7] * P[7]), 0.0, 0.0
+        return 0.0, 0.0, 0.0
+    if c == 8:
+        return -v * abs(v), 0.0, 0.0
+    if c == 9 or c == 10:
+        d = P[11] * y - P[10]
+        if d > 0.0:
+            if c == 9:
+                return -P[11] * d, 0.0, 0.0
+            if P[9] != 0.0:
+                return P[11] * P[9], 0.0, 0.0
+        return 0.0, 0.0, 0.0
+    if c == 12:
+        return -P[2] * t * y, 0.0, 0.0
+    if not mode:
+        return 0.0, 0.0, 0.0
+    if c == 13:
+        return 0.0, 0.0, -2.0 * P[14] * w - 2.0 * P[13] * q
+    if c == 14:
+        return 0.0, 0.0, -2.0 * P[13] * w
+    if c == 15:
+        return 0.0, 0.0, -acc
+    if c == 16 and P[15] != 0.0:
+        return 0.0, 0.0, P[0] * u
+    return 0.0, 0.0, 0.0
 
 
 @njit(cache=True, nogil=True)
 def simulate_sensitivities(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0, cols, S0):
     """:func:`simulate_extended` and the sensitivities of y and q to theta[cols], theta = (P, coef),
     from the initial sensitivities S0 (5 x len(cols): of y, y', z, q, q' at the first sample).
-    Returns (states (4, n), dy/dtheta (n, m), dq/dtheta (n, m)); NaN from the first non-finite step."""
+    Returns (states (4, n), dy/dtheta (n, m), dq/dtheta (n, m)); NaN from the first non-finite step.
+
+    The states' RK4 step does not depend on the sensitivities: each step computes the four stages'
+    states and Jacobians once, then advances every column's sensitivity through the same four
+    stages with the column's own source terms."""
     n = u.size
     m = cols.size
     out = np.zeros((4, n))
@@ -301,18 +303,12 @@ def simulate_sensitivities(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0, cols, S0
     out[2, 0] = z0
     q = 0.0
     w = 0.0
-    S = S0.copy()          # rows: y, y', z, q, q'
+    S = np.zeros((m, 5))          # per column: y, y', z, q, q'
     for c in range(m):
-        Sy_out[0, c] = S[0, c]
-        Sq_out[0, c] = S[3, c]
-    K1 = np.zeros((5, m))
-    K2 = np.zeros((5, m))
-    K3 = np.zeros((5, m))
-    K4 = np.zeros((5, m))
-    T = np.zeros((5, m))
-    Ba = np.zeros(m)
-    Bz = np.zeros(m)
-    Bq = np.zeros(m)
+        for e in range(5):
+            S[c, e] = S0[e, c]
+        Sy_out[0, c] = S[c, 0]
+        Sq_out[0, c] = S[c, 3]
     h = dt / n_sub
     mode = P[13] > 0.0
     W = cubic_weights(n_sub)
@@ -321,81 +317,93 @@ def simulate_sensitivities(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0, cols, S0
         up2 = u[i + 2] if i + 2 < n else 2.0 * u[n - 1] - u[n - 2]
         for sub in range(n_sub):
             ta = t0 + i * dt + sub * h
+            tm = ta + 0.5 * h
+            te = ta + h
             j = 2 * sub
             ua = W[j, 0] * um1 + W[j, 1] * u[i] + W[j, 2] * u[i + 1] + W[j, 3] * up2
             um = W[j + 1, 0] * um1 + W[j + 1, 1] * u[i] + W[j + 1, 2] * u[i + 1] + W[j + 1, 3] * up2
             ue = W[j + 2, 0] * um1 + W[j + 2, 1] * u[i] + W[j + 2, 2] * u[i + 1] + W[j + 2, 3] * up2
-            # stage 1
-            a1, z1, q1, ay, av, zv, zz, qq, qw, qa = _rhs_partials(y, v, z, q, w, ta, ua, P, coef, p, r, cols,
-                                                                   Ba, Bz, Bq)
-            for c in range(m):
-                K1[0, c] = S[1, c]
-                K1[1, c] = ay * S[0, c] + av * S[1, c] - S[2, c] + Ba[c]
-                K1[2, c] = zv * S[1, c] + zz * S[2, c] + Bz[c]
-                K1[3, c] = S[4, c]
-                K1[4, c] = qq * S[3, c] + qw * S[4, c] + qa * K1[1, c] + Bq[c]
-                for e in range(5):
-                    T[e, c] = S[e, c] + 0.5 * h * K1[e, c]
-            # stage 2
+            # the states' four stages, as simulate_extended takes them, with their Jacobians
+            a1, z1, q1, ay1, av1, zv1, zz1, qq1, qw1, qc1 = _rhs_partials(y, v, z, q, w, ta, ua, P, coef, p, r)
             y2 = y + 0.5 * h * v
             v2 = v + 0.5 * h * a1
-            zz2 = z + 0.5 * h * z1
+            zs2 = z + 0.5 * h * z1
             q2 = q + 0.5 * h * w
-            w2_ = w + 0.5 * h * q1
-            a2, z2, qa2, ay, av, zv, zz, qq, qw, qa = _rhs_partials(y2, v2, zz2, q2, w2_, ta + 0.5 * h, um, P, coef,
-                                                                    p, r, cols, Ba, Bz, Bq)
-            for c in range(m):
-                K2[0, c] = T[1, c]
-                K2[1, c] = ay * T[0, c] + av * T[1, c] - T[2, c] + Ba[c]
-                K2[2, c] = zv * T[1, c] + zz * T[2, c] + Bz[c]
-                K2[3, c] = T[4, c]
-                K2[4, c] = qq * T[3, c] + qw * T[4, c] + qa * K2[1, c] + Bq[c]
-            for c in range(m):
-                for e in range(5):
-                    T[e, c] = S[e, c] + 0.5 * h * K2[e, c]
-            # stage 3
+            w2 = w + 0.5 * h * q1
+            a2, z2, qa2, ay2, av2, zv2, zz2, qq2, qw2, qc2 = _rhs_partials(y2, v2, zs2, q2, w2, tm, um, P, coef, p, r)
             y3 = y + 0.5 * h * v2
             v3 = v + 0.5 * h * a2
-            zz3 = z + 0.5 * h * z2
+            zs3 = z + 0.5 * h * z2
             q3 = q + 0.5 * h * (w + 0.5 * h * q1)
-            w3_ = w + 0.5 * h * qa2
-            a3, z3, qa3, ay, av, zv, zz, qq, qw, qa = _rhs_partials(y3, v3, zz3, q3, w3_, ta + 0.5 * h, um, P, coef,
-                                                                    p, r, cols, Ba, Bz, Bq)
-            for c in range(m):
-                K3[0, c] = T[1, c]
-                K3[1, c] = ay * T[0, c] + av * T[1, c] - T[2, c] + Ba[c]
-                K3[2, c] = zv * T[1, c] + zz * T[2, c] + Bz[c]
-                K3[3, c] = T[4, c]
-                K3[4, c] = qq * T[3, c] + qw * T[4, c] + qa * K3[1, c] + Bq[c]
-            for c in range(m):
-                for e in range(5):
-                    T[e, c] = S[e, c] + h * K3[e, c]
-            # stage 4
+            w3 = w + 0.5 * h * qa2
+            a3, z3, qa3, ay3, av3, zv3, zz3, qq3, qw3, qc3 = _rhs_partials(y3, v3, zs3, q3, w3, tm, um, P, coef, p, r)
             y4 = y + h * v3
             v4 = v + h * a3
-            zz4 = z + h * z3
+            zs4 = z + h * z3
             q4 = q + h * (w + 0.5 * h * qa2)
-            w4_ = w + h * qa3
-            a4, z4, qa4, ay, av, zv, zz, qq, qw, qa = _rhs_partials(y4, v4, zz4, q4, w4_, ta + h, ue, P, coef, p, r,
-                                                                    cols, Ba, Bz, Bq)
+            w4 = w + h * qa3
+            a4, z4, qa4, ay4, av4, zv4, zz4, qq4, qw4, qc4 = _rhs_partials(y4, v4, zs4, q4, w4, te, ue, P, coef, p, r)
             for c in range(m):
-                K4[0, c] = T[1, c]
-                K4[1, c] = ay * T[0, c] + av * T[1, c] - T[2, c] + Ba[c]
-                K4[2, c] = zv * T[1, c] + zz * T[2, c] + Bz[c]
-                K4[3, c] = T[4, c]
-                K4[4, c] = qq * T[3, c] + qw * T[4, c] + qa * K4[1, c] + Bq[c]
+                col = cols[c]
+                s0 = S[c, 0]
+                s1 = S[c, 1]
+                s2 = S[c, 2]
+                s3 = S[c, 3]
+                s4 = S[c, 4]
+                ba, bz, bq = _source(col, y, v, z, q, w, ta, ua, a1, P, p, r)
+                k10 = s1
+                k11 = ay1 * s0 + av1 * s1 - s2 + ba
+                k12 = zv1 * s1 + zz1 * s2 + bz
+                ba, bz, bq2 = _source(col, y2, v2, zs2, q2, w2, tm, um, a2, P, p, r)
+                t0_ = s0 + 0.5 * h * k10
+                t1_ = s1 + 0.5 * h * k11
+                t2_ = s2 + 0.5 * h * k12
+                k20 = t1_
+                k21 = ay2 * t0_ + av2 * t1_ - t2_ + ba
+                k22 = zv2 * t1_ + zz2 * t2_ + bz
+                ba, bz, bq3 = _source(col, y3, v3, zs3, q3, w3, tm, um, a3, P, p, r)
+                t0_ = s0 + 0.5 * h * k20
+                t1_ = s1 + 0.5 * h * k21
+                t2_ = s2 + 0.5 * h * k22
+                k30 = t1_
+                k31 = ay3 * t0_ + av3 * t1_ - t2_ + ba
+                k32 = zv3 * t1_ + zz3 * t2_ + bz
+                ba, bz, bq4 = _source(col, y4, v4, zs4, q4, w4, te, ue, a4, P, p, r)
+                t0_ = s0 + h * k30
+                t1_ = s1 + h * k31
+                t2_ = s2 + h * k32
+                k40 = t1_
+                k41 = ay4 * t0_ + av4 * t1_ - t2_ + ba
+                k42 = zv4 * t1_ + zz4 * t2_ + bz
+                S[c, 0] = s0 + h / 6.0 * (k10 + 2.0 * k20 + 2.0 * k30 + k40)
+                S[c, 1] = s1 + h / 6.0 * (k11 + 2.0 * k21 + 2.0 * k31 + k41)
+                S[c, 2] = s2 + h / 6.0 * (k12 + 2.0 * k22 + 2.0 * k32 + k42)
+                if mode:
+                    k13 = s4
+                    k14 = qq1 * s3 + qw1 * s4 + qc1 * k11 + bq
+                    t3_ = s3 + 0.5 * h * k13
+                    t4_ = s4 + 0.5 * h * k14
+                    k23 = t4_
+                    k24 = qq2 * t3_ + qw2 * t4_ + qc2 * k21 + bq2
+                    t3_ = s3 + 0.5 * h * k23
+                    t4_ = s4 + 0.5 * h * k24
+                    k33 = t4_
+                    k34 = qq3 * t3_ + qw3 * t4_ + qc3 * k31 + bq3
+                    t3_ = s3 + h * k33
+                    t4_ = s4 + h * k34
+                    k43 = t4_
+                    k44 = qq4 * t3_ + qw4 * t4_ + qc4 * k41 + bq4
+                    S[c, 3] = s3 + h / 6.0 * (k13 + 2.0 * k23 + 2.0 * k33 + k43)
+                    S[c, 4] = s4 + h / 6.0 * (k14 + 2.0 * k24 + 2.0 * k34 + k44)
             y += h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
             v += h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
             z += h / 6.0 * (z1 + 2.0 * z2 + 2.0 * z3 + z4)
-            if mode:
-                w2 = w + 0.5 * h * q1
-                w3 = w + 0.5 * h * qa2
-                w4 = w + h * qa3
-                q += h / 6.0 * (w + 2.0 * w2 + 2.0 * w3 + w4)
+            if mode:   # the higher mode's own RK4 stages (q' = w, w' = aq)
+                w2m = w + 0.5 * h * q1
+                w3m = w + 0.5 * h * qa2
+                w4m = w + h * qa3
+                q += h / 6.0 * (w + 2.0 * w2m + 2.0 * w3m + w4m)
                 w += h / 6.0 * (q1 + 2.0 * qa2 + 2.0 * qa3 + qa4)
-            for c in range(m):
-                for e in range(5):
-                    S[e, c] += h / 6.0 * (K1[e, c] + 2.0 * K2[e, c] + 2.0 * K3[e, c] + K4[e, c])
         if not (math.isfinite(y) and math.isfinite(v) and math.isfinite(z) and math.isfinite(q)):
             out[:, i + 1:] = np.nan
             Sy_out[i + 1:, :] = np.nan
@@ -406,6 +414,6 @@ def simulate_sensitivities(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0, cols, S0
         out[2, i + 1] = z
         out[3, i + 1] = q
         for c in range(m):
-            Sy_out[i + 1, c] = S[0, c]
-            Sq_out[i + 1, c] = S[3, c]
+            Sy_out[i + 1, c] = S[c, 0]
+            Sq_out[i + 1, c] = S[c, 3]
     return out, Sy_out, Sq_out

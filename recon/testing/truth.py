@@ -16,6 +16,7 @@ import numpy as np
 from numba import njit
 
 from recon.model import HystereticModel
+from recon.simulation.powers import ipow
 from shakerlab.run_data import BASE, FORCE, Run, Stage
 
 # the extra effects of :func:`integrate` (zero: the plain model), in the order of its P vector
@@ -50,7 +51,7 @@ def integrate(n, dt, fine, t0, amp, omega, phase, ramp, base, P, coef, p, r):
         z = x[2]
         fn = 0.0
         for j in range(coef.size):
-            fn += coef[j] * y ** p[j] * v ** r[j]
+            fn += coef[j] * ipow(y, p[j]) * ipow(v, r[j])
         force = c * v + k * (1.0 + drift * tt) * y + fn + z
         if mu != 0.0:
             force += mu * np.tanh(v / 1e-4)

@@ -29,6 +29,7 @@ import numpy as np
 from numba import njit
 
 from recon.chain.model import ChainModel, ChainRun, ChainStage
+from recon.simulation.powers import ipow
 from recon.testing.truth import Multisine
 from shakerlab.run_data import BASE, Run, Stage
 
@@ -46,7 +47,7 @@ def _truth_derivative(s, F, n, m, c, k, alpha, gamma, delta, coef, p, r, e):
         f = c[i] * dy + k[i] * y + zi
         for j in range(coef.size):
             if e[j] == i:
-                f += coef[j] * y ** p[j] * dy ** r[j]
+                f += coef[j] * ipow(y, p[j]) * ipow(dy, r[j])
         elem[i] = f
         ds[2 * n + i] = alpha[i] * dy - gamma[i] * abs(dy) * zi - delta[i] * dy * abs(zi)
     for i in range(n):
