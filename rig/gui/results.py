@@ -81,14 +81,16 @@ def verdict_line(adequacy: dict | None) -> tuple[str, str]:
 
 
 def nrmse_text(v) -> str:
-    """An NRMSE as the window shows it: a percentage with three significant digits."""
+    """An NRMSE as the window shows it: a percentage with three significant digits ("0.470 %",
+    "12.3 %"), "diverged" for a simulation that left the record. The command line's one format
+    (shakerlab.words.nrmse_text, once it lands) is the same; this one is then replaced by it."""
     try:
         v = float(v)
     except (TypeError, ValueError):
-        return "—"
+        return "diverged"
     if v != v or v in (float("inf"), float("-inf")):
-        return "diverges"
-    return f"{v * 100:.3g} %"
+        return "diverged"
+    return f"{100.0 * v:#.3g} %".replace(". %", " %")
 
 
 def fn_unit(term: str, component: bool = False) -> str:
