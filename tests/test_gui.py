@@ -573,6 +573,7 @@ def test_diagnose_from_the_window_names_the_friction_with_its_size(qtbot, window
     # the augmented model follows the held-out record better than the baseline
     rec, base, aug = d.c_rec.yData, d.c_base.yData, d.c_aug.yData
     assert np.sqrt(np.mean((aug - rec) ** 2)) < 0.5 * np.sqrt(np.mean((base - rec) ** 2))
+    assert np.std(d.r_aug.yData) < 0.5 * np.std(d.r_base.yData)          # the residuals drawn say the same
     assert not d.cancel_button.isEnabled() and d.start_button.isEnabled()
     assert any(n.startswith("diagnosis_") for n in read_results(path))   # written back into the run file
 

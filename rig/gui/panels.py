@@ -436,7 +436,8 @@ class ResultsPanel(QtWidgets.QWidget):
         elif math.isinf(view.nrmse):
             nrmse = f"; <b>the model diverges</b> when simulated on stage '{view.validation_stage}'"
         else:
-            nrmse = f"; validation NRMSE {nrmse_text(view.nrmse)} on stage '{view.validation_stage}'"
+            nrmse = (f"; the overlay below (the model simulated here from rest on stage "
+                     f"'{view.validation_stage}'): NRMSE {nrmse_text(view.nrmse)}")
         notes = "".join(f"<br><i>{n}</i>" for n in view.notes)
         self.header.setText(f"<b>{view.source}</b> (run {view.status}): {view.origin}{nrmse}{notes}")
         self.banner.set_verdict(view.verdict)
@@ -563,6 +564,14 @@ class DiagnosisPanel(QtWidgets.QWidget):
         self.c_rec = _curve(self.p_overlay, "#555555", "recorded")
         self.c_base = _curve(self.p_overlay, "#1f77b4", "baseline")
         self.c_aug = _curve(self.p_overlay, "#d62728", "augmented (named physics added)")
+        self.p_resid = self.plots.addPlot(row=1, col=0, title="held-out residual: recorded − model")
+        self.p_resid.addLegend(offset=(5, 5))
+        self.p_resid.setLabel("left", "residual", units="m")
+        time_axis(self.p_resid, "time in the held-out part")
+        self.p_resid.showGrid(x=True, y=True, alpha=0.2)
+        self.p_resid.setXLink(self.p_overlay)
+        self.r_base = _curve(self.p_resid, "#1f77b4", "baseline")
+        self.r_aug = _curve(self.p_resid, "#d62728", "augmented")
         split.addWidget(self.plots)
         split.setSizes([520, 700])
         lay.addWidget(split, 1)
@@ -577,7 +586,7 @@ class DiagnosisPanel(QtWidgets.QWidget):
         self.named.setRowCount(0)
         self.stages.setRowCount(0)
         self.details.setPlainText("")
-        for c in (self.c_rec, self.c_base, self.c_aug):
+        for c in (self.c_rec, self.c_base, self.c_aug, self.r_base, self.r_aug):
             c.setData([], [])
 
     def show_progress(self, progress) -> None:
@@ -619,7 +628,8 @@ class DiagnosisPanel(QtWidgets.QWidget):
             lines.append("augmented model:\n" + view.equation)
         self.details.setPlainText("\n".join(lines))
         t, rec, base, aug = overlay_arrays(view)
-        for c, y in ((self.c_rec, rec), (self.c_base, base), (self.c_aug, aug)):
+        for c, y in ((self.c_rec, rec), (self.c_base, base), (self.c_aug, aug), (self.r_base, rec - base),
+                     (self.r_aug, rec - aug)):
             set_series(c, t, y)
         if view.overlay is not None:
             self.p_overlay.setTitle(f"held-out samples of stage '{view.overlay[0]}': held-out NRMSE "
