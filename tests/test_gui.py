@@ -360,3 +360,238 @@ def test_sigterm_to_shakerlab_gui_mid_run_aborts_safely(tmp_path):
     assert info["stages"]["linear"]["n_samples"] > 1000
     assert any("window closed" in e["message"] for e in read_events(path))
     assert any("ramping" in e["message"] and "to zero" in e["message"] for e in read_events(path))
+
+
+# -- what the operator sees: verdict banner, the run tab at rest, units, the equation, diagnose ---------------
+
+OPEN_LOOP = PROTOCOL
+CLOSED_LOOP = PROTOCOL.replace("amplitude_vpp = 0.4\nduration_s = 1.0", "base_amplitude_mm = 0.05\nduration_s = 1.0")
+
+
+def test_idle_run_tab_counts_no_stages_and_shows_sine_control_only_for_a_closed_loop_protocol(qtbot, window):
+    w = window
+    qtbot.wait(50)
+    assert w.protocol_panel.progress.text() == "no run yet"          # not "0 / 1 stages" before any run
+    plots = w.plots
+    assert not plots.control_visible()                               # open loop: no empty sine-control row
+    h_open = plots.p_traces.geometry().height()
+    w.set_protocol_text(CLOSED_LOOP, "closed loop")
+    qtbot.waitUntil(lambda: plots.p_traces.geometry().height() < 0.9 * h_open, timeout=2000)
+    assert plots.control_visible()
+    w.set_protocol_text(OPEN_LOOP, "open loop")
+    qtbot.waitUntil(lambda: plots.p_traces.geometry().height() > 0.95 * h_open, timeout=2000)
+    assert not plots.control_visible()
+    # every time axis reads seconds, also over a span pyqtgraph would have shown in ms
+    for p in (plots.p_traces, plots.p_rel, plots.p_amp, plots.p_ctrl, w.results.p_overlay, w.diagnosis.p_overlay):
+        p.setXRange(0.0, 0.004, padding=0)
+        ax = p.getAxis("bottom")
+        assert ax.labelUnits == "s" and ax.autoSIPrefixScale == 1.0 and "(s)" in ax.labelString()
+
+
+def test_equation_wraps_only_between_terms():
+    from rig.gui.panels import wrap_terms
+
+    eq = "y'' + 3.5 y' + 6000 y + 2e+05 y^2 + z = -x_base''\nz' = 2000 y' - 300 |y'| z - 200 y' |z|"
+    assert wrap_terms(eq, 200) == eq
+    text = wrap_terms(eq, 22)
+    assert text.split("\n") == ["y'' + 3.5 y' + 6000 y", "    + 2e+05 y^2 + z", "    = -x_base''",
+                                 "z' = 2000 y'", "    - 300 |y'| z", "    - 200 y' |z|"]
+    assert " ".join(text.split()) == " ".join(eq.split())
+
+
+def test_fn_units():
+    from rig.gui.results import fn_unit
+
+    assert fn_unit("y^2") == "1/(m s^2)"
+    assert fn_unit("y^3") == "1/(m^2 s^2)"
+    assert fn_unit("dy^2") == "1/m"
+    assert fn_unit("y^2*dy") == "1/(m^2 s)"
+    assert fn_unit("y") == "1/s^2"
+    assert fn_unit("y^3", component=True) == "N/m^3"
+    assert fn_unit("dy^2", component=True) == "N s^2/m^2"
+    assert fn_unit("not a term") == ""
+
+
+@pytest.mark.parametrize("adequacy, level, words", [
+    ({"verdict": "adequate", "admissible": True, "validation_nrmse": 0.0047, "nrmse_limit": 0.01, "reasons": []},
+     "green", ["adequate", "0.470 %", "1.00 %"]),
+    ({"verdict": "adequate", "admissible": True, "validation_nrmse": 0.006, "nrmse_limit": 0.01, "reasons": [],
+      "fallback": {"used": True, "kind": "bouc_wen", "trigger": "inadequate"}},
+     "amber", ["fallback", "bouc_wen", "predicted the held-out stages worse", "adequate"]),
+    ({"verdict": "inadequate", "admissible": True, "validation_nrmse": 0.2, "nrmse_limit": 0.01,
+      "reasons": ["validation NRMSE 0.2 is above 0.01"], "fallback": {"used": True, "kind": "linear",
+                                                                       "trigger": "inadmissible"}},
+     "red", ["fallback", "not physically admissible", "linear", "inadequate", "diagnose"]),
+    ({"verdict": "inadequate", "admissible": False, "validation_nrmse": 0.02, "nrmse_limit": 0.01,
+      "reasons": ["the model is not physically admissible"]}, "red", ["inadequate", "not physically admissible"]),
+    (None, "grey", ["no verdict"]),
+])
+def test_verdict_sentence(adequacy, level, words):
+    from rig.gui.results import verdict_line
+
+    got_level, sentence = verdict_line(adequacy)
+    assert got_level == level
+    assert all(w in sentence.lower() for w in words), sentence
+
+
+def test_result_view_shows_the_verdict_banner_units_and_an_unbroken_equation(qtbot, window, recorded_run, tmp_path):
+    import shutil
+
+    from rig.gui.panels import BANNER_STYLES
+
+    w = window
+    src, model, truth = recorded_run
+    path = tmp_path / "run.h5"
+    shutil.copy(src, path)
+    good = {"verdict": "adequate", "admissible": True, "validation_nrmse": 0.004, "noise_floor_nrmse": 0.001,
+            "nrmse_limit": 0.01, "fn_terms": 3, "reasons": []}
+    add_result(path, "reconstruction", {**model.to_dict(), "validation": {"stage": "validation"}, "adequacy": good},
+               text=str(model))
+    w.resize(700, 800)                                     # narrow: the equation has to wrap
+    assert w.open_run(path)
+    qtbot.waitUntil(lambda: w.last_view is not None, timeout=15000)
+    r = w.results
+    assert r.banner.isVisibleTo(w) and r.banner.level == "green" and "adequate" in r.banner.text().lower()
+    assert BANNER_STYLES["green"][0] in r.banner.styleSheet()
+    units = {r.table.item(i, 0).text(): r.table.item(i, 2).text() for i in range(r.table.rowCount())}
+    assert units["fn_m[y^2]"] == "1/(m s^2)" and units["k_m"] == "1/s^2"
+    assert all(units[n] for n in units)                    # every row has its unit
+    # the equation, wrapped to the narrow view, breaks only between terms
+    lines = r.equation.toPlainText().split("\n")
+    assert len(lines) > 2 and r.equation.lineWrapMode() == r.equation.LineWrapMode.NoWrap
+    assert all(line.startswith(("y''", "z'")) or line.lstrip()[:2] in ("+ ", "- ", "= ") for line in lines), lines
+    assert " ".join(r.equation.toPlainText().split()) == " ".join(w.last_view.equation.split())
+    assert max(len(line) for line in lines) <= r.equation.columns()
+    # an inadequate stored result: red, with the way forward
+    bad = dict(good, verdict="inadequate", validation_nrmse=0.2, reasons=["validation NRMSE 0.2 is above 0.01"])
+    add_result(path, "reconstruction", {**model.to_dict(), "validation": {"stage": "validation"}, "adequacy": bad},
+               text=str(model))
+    w.last_view = None
+    assert w.open_run(path)
+    qtbot.waitUntil(lambda: w.last_view is not None, timeout=15000)
+    assert r.banner.level == "red" and "inadequate" in r.banner.text().lower() and "diagnose" in r.banner.text().lower()
+    assert r.diagnose_button.isEnabled()
+
+
+def test_a_result_stored_without_a_verdict_is_judged_here(qtbot, window, recorded_run, tmp_path):
+    import shutil
+
+    w = window
+    src, model, truth = recorded_run
+    path = tmp_path / "run.h5"
+    shutil.copy(src, path)
+    add_result(path, "reconstruction", {**model.to_dict(), "validation": {"stage": "validation"}}, text=str(model))
+    assert w.open_run(path)       # the simulator's true model, stored without adequacy
+    qtbot.waitUntil(lambda: w.last_view is not None, timeout=15000)
+    assert w.last_view.verdict[0] in ("green", "red") and w.results.banner.isVisibleTo(w)
+    assert "no verdict" not in w.results.banner.text().lower()
+
+
+def test_force_run_loop_legend_names_the_force(qtbot, window, tmp_path):
+    """A force-excited run: the data-implied loop is inv_m F - ..., never -x_base''."""
+    from recon.model import HystereticModel
+    from recon.testing.concealed import concealed_run
+
+    run, truth, _, baseline = concealed_run(None, excitation="force", duration=1.0, seed=3)
+    path = _run_file(tmp_path / "force.h5", run)
+    add_result(path, "reconstruction", {**baseline.to_dict(), "validation": {"stage": "validation"}},
+               text=str(baseline))
+    w = window
+    assert w.open_run(path)
+    qtbot.waitUntil(lambda: w.last_view is not None or bool(w.last_error), timeout=20000)
+    assert not w.last_error
+    labels = [label.text for _, label in w.results.p_loop.legend.items]
+    assert any("inv_m F" in t for t in labels), labels
+    assert not any("x_base" in t for t in labels), labels
+    assert w.results.c_zmeas.xData.size > 100
+    assert isinstance(HystereticModel.from_dict(baseline.to_dict()), HystereticModel)
+
+
+def _run_file(path, run):
+    """``run`` (a Run in memory) as a real HDF5 run file, through `shakerlab import` of CSV files."""
+    from shakerlab.import_command import import_csv
+
+    files = {}
+    for name, st in run.stages.items():
+        cols = ["t"] + list(st.channels)
+        csv = path.with_name(f"{path.stem}-{name}.csv")
+        np.savetxt(csv, np.column_stack([st.t] + [st.channels[c] for c in st.channels]),
+                   delimiter=",", header=",".join(cols), comments="")
+        files[name] = csv
+    return import_csv(path, files)
+
+
+@pytest.fixture(scope="module")
+def friction_run(tmp_path_factory):
+    """A short synthetic run with Coulomb friction its baseline model leaves out, as a run file, and
+    that baseline as a model JSON."""
+    from recon.testing.concealed import concealed_run
+
+    d = tmp_path_factory.mktemp("diag")
+    run, truth, extras, baseline = concealed_run("coulomb_friction", duration=1.0, seed=2)
+    path = _run_file(d / "friction.h5", run)
+    model = d / "baseline.json"
+    baseline.save(model)
+    add_result(path, "reconstruction", {**baseline.to_dict(), "validation": {"stage": "validation"}},
+               text=str(baseline))
+    return path, model, extras
+
+
+def test_diagnose_from_the_window_names_the_friction_with_its_size(qtbot, window, friction_run, tmp_path):
+    import shutil
+
+    src, model, extras = friction_run
+    path = tmp_path / "run.h5"
+    shutil.copy(src, path)
+    w = window
+    assert w.open_run(path)
+    qtbot.waitUntil(lambda: w.last_view is not None, timeout=15000)
+    assert w.results.diagnose_button.isEnabled()
+    seen = []
+    w.signals.diagnosis_progress.connect(lambda p: seen.append((p.fraction, p.step)))
+    frames = w.frames
+    assert w.diagnose_run(baseline=str(model), candidates=["coulomb_friction", "quadratic_damping"])
+    assert w.tabs.currentWidget() is w.diagnosis and w.diagnosis.cancel_button.isEnabled()
+    qtbot.waitUntil(lambda: w.diagnosis_state != "running", timeout=120000)
+    assert w.diagnosis_state == "done", w.last_error
+    assert w.frames > frames + 10                                      # the window kept redrawing
+    steps = [s for _, s in seen]
+    assert any("fitting candidate coulomb_friction" in s for s in steps), steps
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    v = w.last_diagnosis
+    assert v.named and v.named[0][0] == "coulomb_friction"
+    size = dict((k, (val, u)) for k, val, u in v.named[0][2])
+    assert size["mu"][0] == pytest.approx(extras["mu"], rel=0.15) and size["mu"][1] == "m/s^2"
+    assert v.held_after < 0.5 * v.held_before
+    d = w.diagnosis
+    assert d.banner.isVisibleTo(w) and d.banner.level == "green" and "coulomb_friction" in d.banner.text()
+    assert d.named.item(0, 0).text() == "coulomb_friction" and "mu = " in d.named.item(0, 1).text()
+    assert "→" in d.named.item(0, 2).text()
+    assert d.stages.rowCount() == 3 and d.stages.item(2, 0).text() == "validation"
+    assert d.c_rec.yData.size > 100 and d.c_aug.yData.size == d.c_rec.yData.size == d.c_base.yData.size
+    # the augmented model follows the held-out record better than the baseline
+    rec, base, aug = d.c_rec.yData, d.c_base.yData, d.c_aug.yData
+    assert np.sqrt(np.mean((aug - rec) ** 2)) < 0.5 * np.sqrt(np.mean((base - rec) ** 2))
+    assert np.std(d.r_aug.yData) < 0.5 * np.std(d.r_base.yData)          # the residuals drawn say the same
+    assert not d.cancel_button.isEnabled() and d.start_button.isEnabled()
+    assert any(n.startswith("diagnosis_") for n in read_results(path))   # written back into the run file
+
+
+def test_diagnosis_cancel_stops_the_child_at_once(qtbot, window, friction_run, tmp_path):
+    import shutil
+
+    src, model, _ = friction_run
+    path = tmp_path / "run.h5"
+    shutil.copy(src, path)
+    w = window
+    assert w.diagnose_run(path, baseline="paper")                       # the slow default: reconstruct first
+    qtbot.waitUntil(lambda: w._diag_job.process is not None and w._diag_job.process.is_alive(), timeout=10000)
+    process = w._diag_job.process
+    qtbot.mouseClick(w.diagnosis.cancel_button, QtCore.Qt.LeftButton)
+    qtbot.waitUntil(lambda: w.diagnosis_state == "cancelled", timeout=10000)
+    assert not process.is_alive()
+    assert "cancelled" in w.diagnosis.step_label.text()
+    assert w.diagnosis.start_button.isEnabled() and not w.diagnosis.cancel_button.isEnabled()
+    assert not any(n.startswith("diagnosis_") for n in read_results(path))
+    assert w.last_diagnosis is None

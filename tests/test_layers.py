@@ -22,6 +22,7 @@ ENTRY_POINTS = {
     "shakerlab.cli": set(PACKAGES),
     "rig.gui.window": {"sim_backend", "recon"},
     "rig.gui.results": {"recon"},
+    "rig.gui.diagnosis": {"recon"},
     "rig.session": {"sim_backend"},
 }
 # a function-local import is allowed only with a one-line reason on the same line ("# heavy: ..." or

@@ -1,10 +1,14 @@
-"""Render the operator window offscreen during a run and after it; write the PNGs shown in README.md.
+"""Render the operator window offscreen during a run, after it and with a diagnosis; write the PNGs
+shown in README.md and docs/gui.md.
 
-    QT_QPA_PLATFORM=offscreen python docs/screenshots/make_screenshots.py [--speed 1] [--out docs/screenshots]
+    QT_QPA_PLATFORM=offscreen .venv/bin/python docs/screenshots/make_screenshots.py [--speed 1] [--out docs/screenshots]
 
 Runs the shipped protocol (rig/default_protocol.toml) on the simulated rig at ``--speed`` times real
 time through the window (same code path as ``shakerlab gui``), grabs the Run tab during the nonlinear
-stage, waits for the end of the run and the reconstruction, and grabs the Results tab.
+stage, waits for the end of the run and the reconstruction, and grabs the Results tab (with its
+verdict banner). Then it writes a short synthetic record with Coulomb friction that its baseline
+model leaves out (recon.testing.concealed, imported as a run file), opens it, presses *Diagnose*
+and grabs the Diagnosis tab.
 """
 from __future__ import annotations
 
@@ -66,8 +70,48 @@ def main(argv=None) -> int:
     after = args.out / "gui-after-run.png"
     w.grab().save(str(after))
     print(f"wrote {after} ({w.last_view.origin}; NRMSE {w.last_view.nrmse:.4f} on {w.last_view.validation_stage})")
+
+    path, baseline = friction_record(workdir)
+    w.last_view = None
+    w.open_run(path)
+    spin_until(lambda: w.last_view is not None or bool(w.last_error), "the friction record's result")
+    if not w.diagnose_run(baseline=str(baseline)):
+        raise SystemExit(f"the diagnosis did not start: {w.last_error}")
+    spin_until(lambda: w.diagnosis_state != "running", "the diagnosis")
+    if w.diagnosis_state != "done":
+        raise SystemExit(f"diagnosis {w.diagnosis_state}: {w.last_error}")
+    for _ in range(20):
+        app.processEvents()
+        time.sleep(0.02)
+    diag = args.out / "gui-diagnosis.png"
+    w.grab().save(str(diag))
+    print(f"wrote {diag} ({w.last_diagnosis.sentence()})")
     w.close()
     return 0
+
+
+def friction_record(workdir: Path):
+    """A 3-stage synthetic record (1 s each) with Coulomb friction, as a run file, and its baseline
+    model (the same structure without the friction) as a model JSON."""
+    import numpy as np
+
+    from recon.testing.concealed import concealed_run
+    from shakerlab.import_command import import_csv
+    from shakerlab.runfile.results import add_result
+
+    run, _, _, baseline = concealed_run("coulomb_friction", duration=1.0, seed=2)
+    files = {}
+    for name, st in run.stages.items():
+        csv = workdir / f"friction-{name}.csv"
+        np.savetxt(csv, np.column_stack([st.t] + [st.channels[c] for c in st.channels]), delimiter=",",
+                   header=",".join(["t", *st.channels]), comments="")
+        files[name] = csv
+    path = import_csv(workdir / "friction.h5", files)
+    add_result(path, "reconstruction", {**baseline.to_dict(), "validation": {"stage": "validation"}},
+               text=str(baseline))
+    model = workdir / "baseline.json"
+    baseline.save(model)
+    return path, model
 
 
 if __name__ == "__main__":

@@ -38,15 +38,77 @@ class ResultView:
     notes: list = field(default_factory=list)
     # axis labels and legends (a component test shows forces): keys of STRUCTURE_LABELS
     labels: dict = field(default_factory=dict)
+    verdict: tuple | None = None     # (level green/amber/red/grey, the one sentence): verdict_line(adequacy)
 
 
 # the labels of a structure's view; a component test's view (constitutive mode) overrides them
 STRUCTURE_LABELS = {"overlay": ("y", "m"), "loop_left": ("z", "m/s²"), "loop_bottom": ("y", "m"),
                     "loop_title": "hysteresis loop z vs y", "loop_last_third": True,
                     "measured_name": "data: −x_base'' − y'' − c_m y' − k_m y − fn"}
+FORCE_LABELS = {"measured_name": "data: inv_m F − y'' − c_m y' − k_m y − fn"}
 COMPONENT_LABELS = {"overlay": ("F", "N"), "loop_left": ("F", "N"), "loop_bottom": ("x", "m"),
                     "loop_title": "force-displacement loop", "loop_last_third": False,
                     "measured_name": "recorded force"}
+
+
+def verdict_line(adequacy: dict | None) -> tuple[str, str]:
+    """(level, sentence) of a reconstruction's adequacy (``result.adequacy``): green adequate,
+    amber a fallback to a simpler model that is adequate, red inadequate, grey no verdict.
+
+    To be replaced by the shared verdict sentence of the command line (the function that builds it
+    from a reconstruct result) once it lands, so that the window and the commands say the same words.
+    """
+    if not adequacy:
+        return "grey", "No verdict: this result does not say whether the model is adequate."
+    v = adequacy.get("validation_nrmse")
+    limit = adequacy.get("nrmse_limit")
+    figs = f"validation NRMSE {nrmse_text(v)}" + (f", limit {nrmse_text(limit)}" if limit is not None else "")
+    fb = adequacy.get("fallback") or {}
+    simpler = ""
+    if fb.get("used"):
+        why = {"inadmissible": "was not physically admissible",
+               "inadequate": "predicted the held-out stages worse"}.get(fb.get("trigger"), "was set aside")
+        simpler = f"Fallback: the full model {why}, so this is the simpler {fb.get('kind', '')} model. "
+    if adequacy.get("verdict") == "adequate":
+        if simpler:
+            return "amber", f"{simpler}It is adequate ({figs})."
+        return "green", f"Adequate: the model predicts the validation record within its noise ({figs})."
+    reasons = [r for r in adequacy.get("reasons", []) if not r.startswith("the full model was not admissible")]
+    why = "; ".join(reasons) if reasons else figs
+    return "red", (f"{simpler}Inadequate: {why}. Diagnose the run to locate and name what the model leaves out."
+                   if simpler else f"Inadequate: {why}. Diagnose the run to locate and name what the model "
+                                   "leaves out.")
+
+
+def nrmse_text(v) -> str:
+    """An NRMSE as the window shows it: a percentage with three significant digits ("0.470 %",
+    "12.3 %"), "diverged" for a simulation that left the record. The command line's one format
+    (shakerlab.words.nrmse_text, once it lands) is the same; this one is then replaced by it."""
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        return "diverged"
+    if v != v or v in (float("inf"), float("-inf")):
+        return "diverged"
+    return f"{100.0 * v:#.3g} %".replace(". %", " %")
+
+
+def fn_unit(term: str, component: bool = False) -> str:
+    """The unit of an fn coefficient: per unit mass a term y^p y'^r has m^(1-p-r) s^(r-2); in a
+    component test's force law (N) N m^(-p-r) s^r. "" for a name that is not a monomial."""
+    from recon.library import monomials  # heavy: recon, loaded when a result is shown
+
+    try:
+        p, r = monomials.parse(term)
+    except Exception:  # noqa: BLE001 - any name that is not a monomial has no unit here
+        return ""
+    powers = [("N", 1 if component else 0), ("m", -p - r if component else 1 - p - r), ("s", r if component else r - 2)]
+    num = " ".join(u if e == 1 else f"{u}^{e}" for u, e in powers if e > 0)
+    den = [u if e == -1 else f"{u}^{-e}" for u, e in powers if e < 0]
+    if not den:
+        return num or "1"
+    den_text = den[0] if len(den) == 1 else "(" + " ".join(den) + ")"
+    return f"{num or '1'}/{den_text}"
 
 
 def _latest(results: dict, kind: str):
@@ -76,10 +138,10 @@ def _rows(params: dict, units: dict, truth: dict | None) -> list:
                          float(truth[name]) if name in truth else None))
     tfn = truth.get("fn_m", {}) or {}
     for name, value in (params.get("fn_m") or {}).items():
-        rows.append((f"fn_m[{name}]", float(value), "", float(tfn[name]) if name in tfn else None))
+        rows.append((f"fn_m[{name}]", float(value), fn_unit(name), float(tfn[name]) if name in tfn else None))
     for name in tfn:
         if name not in (params.get("fn_m") or {}):
-            rows.append((f"fn_m[{name}]", 0.0, "", float(tfn[name])))
+            rows.append((f"fn_m[{name}]", 0.0, fn_unit(name), float(tfn[name])))
     return rows
 
 
@@ -91,11 +153,22 @@ def _diagnosis_text(payload: dict) -> str:
 
 
 def data_loop(model, stage):
-    """(y, z) implied by a base-excitation stage's data and the model's other terms, last third:
-    ``z = -x_base'' - y'' - c_m y' - k_m y - fn(y, y')`` with Savitzky-Golay derivatives."""
+    """(y, z) implied by a stage's data and the model's other terms, last third:
+    ``z = -x_base'' - y'' - c_m y' - k_m y - fn(y, y')`` (base excitation) or
+    ``z = inv_m F - y'' - c_m y' - k_m y - fn(y, y')`` (force excitation, F the model's input), with
+    Savitzky-Golay derivatives."""
     from recon.differentiation import choose_window, derivatives  # heavy: recon, loaded when a result is shown
 
     n = stage.t.size
+    if model.excitation != "base":
+        x = stage.y[2 * n // 3:]
+        ch = choose_window({"x": x}, stage.dt, deriv=2, for_regression=False)
+        y = derivatives(x, stage.dt, ch.window, ch.order, 2)
+        u = model.stage_input(stage)[2 * n // 3:]
+        force = (model.inv_m or 0.0) * (u - (model.input_offset or 0.0))
+        z = force - y[2] - model.c_m * y[1] - model.k_m * y[0] - model.fn(y[0], y[1])
+        keep = slice(ch.window, max(ch.window, y[0].size - ch.window))
+        return y[0][keep], z[keep]
     xb, xt = stage.channels["x_base"][2 * n // 3:], stage.channels["x_tip"][2 * n // 3:]
     dt = stage.dt
     ch = choose_window({"x_tip": xt, "x_base": xb}, dt, deriv=2, for_regression=False)
@@ -179,16 +252,24 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
         st = run.stage("nonlinear")
         y_nl, _, z_nl = model.simulate(st.t - st.t[0], model.stage_input(st))
         loop, loop_stage = (y_nl, z_nl), "nonlinear"
-    if loop_stage is not None and model.excitation == "base":
+    if loop_stage is not None and not model.has_drive:
         measured_loop = data_loop(model, run.stage(loop_stage))
+    adequacy = payload.get("adequacy")
+    if adequacy is None and law is None:
+        # a result stored without a verdict (a model given, not reconstructed): judged here by the
+        # same rule on the same validation stage
+        from recon.estimator.adequacy import assess  # heavy: recon, loaded when a result is shown
+
+        adequacy = assess(model, {"stage": vstage, "nrmse": error, "fitted_on_validation_stage": vstage is None}, run)
     truth = payload.get("truth") or truth
     _, diag = _latest(results, "diagnosis")
     return ResultView(
         source=str(path), status=info.get("status", ""), equation=str(model),
         parameters=_rows(payload["parameters"], payload.get("units", {}), truth),
         nrmse=error, validation_stage=vstage, overlay=overlay, loop=loop,
-        measured_loop=measured_loop, loop_stage=loop_stage if loop is not None else None, diagnosis=_diagnosis_text(diag) if diag is not None else None,
-        origin=origin, notes=notes,
+        measured_loop=measured_loop, loop_stage=loop_stage if loop is not None else None,
+        diagnosis=_diagnosis_text(diag) if diag is not None else None, origin=origin, notes=notes,
+        labels={} if model.excitation == "base" else dict(FORCE_LABELS), verdict=verdict_line(adequacy),
     )
 
 
@@ -227,8 +308,9 @@ def component_view(path: Path, run, info: dict, results: dict, reconstruct: bool
     units = payload.get("units", {})
     params = payload["parameters"]
     rows = [(k, float(v), str(units.get(k, "")), None) for k, v in params.items() if isinstance(v, (int, float))]
-    rows += [(f"fn[{k}]", float(v), "", None) for k, v in (params.get("fn") or {}).items()]
+    rows += [(f"fn[{k}]", float(v), fn_unit(k, component=True), None) for k, v in (params.get("fn") or {}).items()]
     notes.append("component test (constitutive mode): forces in N, the law in SI units")
     return ResultView(source=str(path), status=info.get("status", ""), equation=str(law), parameters=rows,
                       nrmse=error, validation_stage=vstage, overlay=overlay, loop=loop, measured_loop=measured,
-                      loop_stage=loop_stage, origin=origin, notes=notes, labels=dict(COMPONENT_LABELS))
+                      loop_stage=loop_stage, origin=origin, notes=notes, labels=dict(COMPONENT_LABELS),
+                      verdict=verdict_line(payload.get("adequacy")))

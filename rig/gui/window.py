@@ -28,7 +28,9 @@ import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from rig.gui.live_state import LiveData
-from rig.gui.panels import LOOP_TITLE, ConnectionPanel, LivePlots, ProtocolPanel, ResultsPanel, set_series
+from rig.gui.diagnosis import Cancelled, DiagnosisJob
+from rig.gui.panels import (LOOP_TITLE, ConnectionPanel, DiagnosisPanel, LivePlots, ProtocolPanel, ResultsPanel,
+                            set_series)
 from shakerlab.errors import UserFacingError
 
 FPS = 25
@@ -54,6 +56,10 @@ class _Signals(QtCore.QObject):
     connect_failed = QtCore.Signal(str)
     result_ready = QtCore.Signal(object)         # ResultView
     result_failed = QtCore.Signal(str)
+    diagnosis_progress = QtCore.Signal(object)   # rig.gui.diagnosis.Progress
+    diagnosis_ready = QtCore.Signal(object)      # DiagnosisView
+    diagnosis_failed = QtCore.Signal(str)
+    diagnosis_cancelled = QtCore.Signal()
 
 
 class _Bridge:
@@ -95,6 +101,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self._runner = None
         self._run_thread: threading.Thread | None = None
         self._recon_thread: threading.Thread | None = None
+        self._diag_thread: threading.Thread | None = None
+        self._diag_job: DiagnosisJob | None = None
+        self.last_diagnosis = None          # DiagnosisView of the last diagnosis finished here
+        self.diagnosis_state = "idle"       # idle, running, done, cancelled, failed
         self._abort_presses = 0
         self._close_pending = False
         self._stage_t0 = None
@@ -142,6 +152,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.tabs.addTab(run_tab, "Run")
         self.results = ResultsPanel()
         self.tabs.addTab(self.results, "Results")
+        self.diagnosis = DiagnosisPanel()
+        self.tabs.addTab(self.diagnosis, "Diagnosis")
         self.statusBar().showMessage("ready")
         menu = self.menuBar().addMenu("&File")
         self.open_action = menu.addAction("&Open run file…")
@@ -171,6 +183,10 @@ class MainWindow(QtWidgets.QMainWindow):
         s.connect_failed.connect(self._on_connect_failed)
         s.result_ready.connect(self._on_result)
         s.result_failed.connect(self._on_result_failed)
+        s.diagnosis_progress.connect(self.diagnosis.show_progress)
+        s.diagnosis_ready.connect(self._on_diagnosis)
+        s.diagnosis_failed.connect(self._on_diagnosis_failed)
+        s.diagnosis_cancelled.connect(self._on_diagnosis_cancelled)
         p = self.protocol_panel
         p.start_button.clicked.connect(self.start_run)
         p.pause_button.toggled.connect(self._pause_toggled)
@@ -185,6 +201,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.results.open_button.clicked.connect(self._choose_run)
         self.results.reconstruct_button.clicked.connect(lambda: self.open_run(self.results_path, reconstruct=True))
         self.results.law_button.clicked.connect(self._choose_law)
+        self.results.diagnose_button.clicked.connect(lambda: self.diagnose_run())
+        self.diagnosis.start_button.clicked.connect(lambda: self.diagnose_run())
+        self.diagnosis.cancel_button.clicked.connect(self.cancel_diagnosis)
         self.open_action.triggered.connect(self._choose_run)
         self.results_path = None
 
@@ -230,11 +249,24 @@ class MainWindow(QtWidgets.QMainWindow):
         self._protocol_source, self._protocol_text = str(p), text
         self.protocol_panel.editor.setPlainText(text)
         self.protocol_panel.source.setText(str(p))
+        self._show_control_plot()
 
     def set_protocol_text(self, text: str, source: str = "protocol (typed in)") -> None:
         self._protocol_source, self._protocol_text = source, text
         self.protocol_panel.editor.setPlainText(text)
         self.protocol_panel.source.setText(source)
+        self._show_control_plot()
+
+    def _show_control_plot(self, protocol=None) -> None:
+        """The sine-control plot is shown only for a closed-loop protocol (one giving base targets)."""
+        from rig.control_plans import base_targets  # lazy: loaded when the operator uses it (window start-up time)
+
+        if protocol is None:
+            try:
+                protocol = self.protocol()
+            except UserFacingError:
+                return             # an editor that does not parse yet: the plot stays as it is
+        self.plots.set_control_visible(bool(base_targets(protocol)))
 
     def _show_config(self, config) -> None:
         self.protocol_panel.show_limits(config.limits)
@@ -398,10 +430,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.plots.reset()
         self.protocol_panel.linear_label.setText("linear step: not yet known")
         self._show_config(config)
+        self._show_control_plot(protocol)
         self._n_stages = 2 + int(protocol["resonance_search"]["enabled"]) + len(protocol.validation)
         p = self.protocol_panel
-        p.progress.setRange(0, self._n_stages)
-        p.progress.setValue(0)
+        p.set_stages(self._n_stages)
         p.set_abort_armed(False)
         p.start_button.setEnabled(False)
         p.pause_button.setEnabled(True)
@@ -569,6 +601,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.results.reconstruct_button.setEnabled(False)
         self.results.open_button.setEnabled(False)
         self.results.law_button.setEnabled(False)
+        self.results.diagnose_button.setEnabled(False)
         self.tabs.setCurrentWidget(self.results)
 
         def work():
@@ -594,7 +627,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.results.show_view(view)
         self.results.reconstruct_button.setEnabled(True)
         self.results.open_button.setEnabled(True)
-        self.results.law_button.setEnabled(not view.labels)       # a structure's run (not a component test)
+        self.results.law_button.setEnabled("loop_title" not in view.labels)   # a structure's run (not a component test)
+        can = "loop_title" not in view.labels and not self._diagnosing()
+        self.results.diagnose_button.setEnabled(can)
+        self.diagnosis.start_button.setEnabled(can)
         self.log("info", f"result of {view.source}: {view.origin}")
 
     def _on_result_failed(self, message: str) -> None:
@@ -603,6 +639,78 @@ class MainWindow(QtWidgets.QMainWindow):
         self.results.open_button.setEnabled(True)
         self.results.law_button.setEnabled(self.results_path is not None)
         self._error_box(message)
+
+    # -- diagnosis ------------------------------------------------------------------------------------------
+    def _diagnosing(self) -> bool:
+        return self._diag_thread is not None and self._diag_thread.is_alive()
+
+    def diagnose_run(self, path=None, baseline=None, candidates=None) -> bool:
+        """Diagnose a recorded run (default: the one shown in the Results tab) in the ``gui-diagnose``
+        worker thread, which runs ``recon.diagnose`` in a child process (rig.gui.diagnosis): progress in
+        the Diagnosis tab, *Cancel* stops it at once. ``baseline``: "paper", "linear" or a model JSON
+        (default: the tab's choice); ``candidates``: catalog ids (default: the whole catalog)."""
+        path = Path(path) if path is not None else self.results_path
+        if path is None:
+            self._error_box("diagnose: open a recorded run first")
+            return False
+        if self._diagnosing():
+            self.log("warning", "a diagnosis is already running")
+            return False
+        baseline = baseline or self.diagnosis.baseline.currentText()
+        self.diagnosis_state = "running"
+        self.diagnosis.set_running(str(path), str(baseline))
+        self.results.diagnose_button.setEnabled(False)
+        self.tabs.setCurrentWidget(self.diagnosis)
+        s = self.signals
+        job = DiagnosisJob(path, baseline, candidates, on_progress=s.diagnosis_progress.emit)
+        self._diag_job = job
+
+        def work():
+            try:
+                s.diagnosis_ready.emit(job.run())
+            except Cancelled:
+                s.diagnosis_cancelled.emit()
+            except Exception as exc:  # noqa: BLE001 - shown to the operator
+                if job.cancelled:
+                    s.diagnosis_cancelled.emit()
+                else:
+                    s.diagnosis_failed.emit(str(exc) if isinstance(exc, UserFacingError) else
+                                            f"{type(exc).__name__}: {exc}")
+
+        self._diag_thread = threading.Thread(target=work, name="gui-diagnose", daemon=True)
+        self._diag_thread.start()
+        self.log("info", f"diagnosing {path} against the {baseline} baseline")
+        return True
+
+    def cancel_diagnosis(self) -> None:
+        if self._diag_job is not None and self._diagnosing():
+            self.diagnosis.step_label.setText("cancelling…")
+            self._diag_job.cancel()
+
+    def _diagnosis_ended(self) -> None:
+        if self._diag_thread is not None:
+            self._diag_thread.join(timeout=5)
+        self.results.diagnose_button.setEnabled(self.results_path is not None)
+
+    def _on_diagnosis(self, view) -> None:
+        self._diagnosis_ended()
+        self.last_diagnosis = view
+        self.diagnosis_state = "done"
+        self.diagnosis.show_view(view)
+        self.diagnosis.set_stopped(f"done in {view.seconds:.0f} s", True)
+        self.log("info", f"diagnosis of {view.source}: {view.sentence()}")
+
+    def _on_diagnosis_failed(self, message: str) -> None:
+        self._diagnosis_ended()
+        self.diagnosis_state = "failed"
+        self.diagnosis.set_stopped(f"failed: {message}", True)
+        self._error_box(message)
+
+    def _on_diagnosis_cancelled(self) -> None:
+        self._diagnosis_ended()
+        self.diagnosis_state = "cancelled"
+        self.diagnosis.set_stopped("cancelled: nothing was stored", True)
+        self.log("info", "diagnosis cancelled")
 
     # -- live redraw (GUI thread, FPS per second) ---------------------------------------------------------
     def _redraw(self) -> None:
@@ -689,6 +797,7 @@ class MainWindow(QtWidgets.QMainWindow):
             event.ignore()
             return
         self.timer.stop()
+        self.cancel_diagnosis()
         self.stop_sim()
         event.accept()
 
@@ -700,4 +809,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 self._runner.abort("application quit during the run")
             self._run_thread.join(timeout)
         self.timer.stop()
+        self.cancel_diagnosis()
+        if self._diag_thread is not None:
+            self._diag_thread.join(timeout)
         self.stop_sim()
