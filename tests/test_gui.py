@@ -417,7 +417,7 @@ def test_fn_units():
      "green", ["adequate", "0.470 %", "1.00 %"]),
     ({"verdict": "adequate", "admissible": True, "validation_nrmse": 0.006, "nrmse_limit": 0.01, "reasons": [],
       "fallback": {"used": True, "kind": "bouc_wen", "trigger": "inadequate"}},
-     "amber", ["fallback", "bouc_wen", "predicted the held-out stages worse", "adequate"]),
+     "amber", ["fallback", "bouc_wen", "predicted the held-out data worse", "adequate"]),
     ({"verdict": "inadequate", "admissible": True, "validation_nrmse": 0.2, "nrmse_limit": 0.01,
       "reasons": ["validation NRMSE 0.2 is above 0.01"], "fallback": {"used": True, "kind": "linear",
                                                                        "trigger": "inadmissible"}},

@@ -5,12 +5,11 @@ Only the parsers live here, so ``shakerlab --help`` stays instant; the handlers 
 imported when a command runs."""
 from __future__ import annotations
 
-import argparse
 import importlib
-import sys
 from pathlib import Path
 
 from shakerlab import progress_view
+from shakerlab.options import output_option
 
 
 def _handler(name: str, module: str = "workflows.handlers", progress: bool = False):
@@ -195,22 +194,6 @@ def register_demo(subparsers) -> None:
     d.add_argument("--force", action="store_true", help="replace the files of an existing output folder")
     d.add_argument("--quiet", action="store_true", help="print only warnings, errors and the results")
     d.set_defaults(handler=_handler("demo_command"))
-
-
-def output_option(p, old: str, help: str) -> None:
-    """``-o/--output DIR``, the one spelling of an output folder; ``old`` stays as a deprecated alias
-    (same destination; :func:`note_deprecated` says so when it is used)."""
-    p.add_argument("-o", "--output", metavar="DIR", dest=old.lstrip("-").replace("-", "_"), help=help)
-    p.add_argument(old, metavar="DIR", dest=old.lstrip("-").replace("-", "_"), action=DeprecatedAlias,
-                   help=f"deprecated spelling of -o/--output")
-
-
-class DeprecatedAlias(argparse.Action):
-    """Stores the value like the new option and says once, on stderr, which spelling replaces it."""
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        setattr(namespace, self.dest, values)
-        print(f"{parser.prog}: {option_string} is deprecated; use -o/--output", file=sys.stderr)
 
 
 def quiet_option(p) -> None:

@@ -76,6 +76,8 @@ def register_gui(subparsers) -> None:
     """Add ``shakerlab gui`` (called from rig/commands.py; import-light)."""
     from pathlib import Path  # heavy: Qt and pyqtgraph; loaded when the window opens
 
+    from shakerlab.options import output_option  # lazy: the parser only, when commands are registered
+
     g = subparsers.add_parser(
         "gui",
         help="the operator window: run the protocol, watch it live, see the reconstructed equation",
@@ -91,8 +93,8 @@ def register_gui(subparsers) -> None:
                    help="with --config: use its limits on a simulated rig instead of its addresses")
     g.add_argument("--protocol", type=Path, metavar="PROTOCOL.toml",
                    help="protocol loaded into the editor (default: rig/default_protocol.toml)")
-    g.add_argument("--output-dir", type=Path, default=Path("shakerlab-runs"), metavar="DIR",
-                   help="run files are written here as run-YYYYmmdd-HHMMSS.h5 (default ./shakerlab-runs)")
+    output_option(g, "--output-dir", "run files are written here as run-YYYYmmdd-HHMMSS.h5 (default ./shakerlab-runs)",
+                  type=Path, default=Path("shakerlab-runs"))
     g.add_argument("--sim-speed", type=float, default=1.0, metavar="X",
                    help="simulated time per wall time (1 = real time, 0 = as fast as possible)")
     g.add_argument("--seed", type=int, default=0, help="the simulated rig's noise seed")

@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.gui.results import fn_unit, nrmse_text
+from rig.gui.results import fn_unit
+from shakerlab.words import nrmse_text
 
 # the diagnosis's steps as the child sees them called: (file, function, share of the run where the
 # step starts, message). One fit per catalog candidate fills CANDIDATES_SPAN (their count is known).

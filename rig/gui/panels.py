@@ -9,7 +9,8 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from rig.gui.diagnosis import overlay_arrays
-from rig.gui.results import STRUCTURE_LABELS, nrmse_text
+from rig.gui.results import STRUCTURE_LABELS
+from shakerlab.words import nrmse_text
 
 STAGE_COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#17becf"]
 LIGHT_COLORS = {"off": "#9a9a9a", "ok": "#21a336", "warn": "#e0a800", "bad": "#d62020"}

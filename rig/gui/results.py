@@ -52,45 +52,15 @@ COMPONENT_LABELS = {"overlay": ("F", "N"), "loop_left": ("F", "N"), "loop_bottom
 
 
 def verdict_line(adequacy: dict | None) -> tuple[str, str]:
-    """(level, sentence) of a reconstruction's adequacy (``result.adequacy``): green adequate,
-    amber a fallback to a simpler model that is adequate, red inadequate, grey no verdict.
-
-    To be replaced by the shared verdict sentence of the command line (the function that builds it
-    from a reconstruct result) once it lands, so that the window and the commands say the same words.
-    """
+    """(colour, sentence) of a reconstruction's adequacy (``result.adequacy``): the command line's
+    one sentence (recon.estimator.adequacy.verdict_summary) with its level as the banner's colour:
+    green adequate, amber a simpler model standing in or no verdict, red inadequate."""
+    from recon.estimator.adequacy import verdict_summary  # lazy: recon, loaded when a result is shown
+    summary = verdict_summary(adequacy)
+    colour = {"good": "green", "warning": "amber", "bad": "red"}[summary["level"]]
     if not adequacy:
-        return "grey", "No verdict: this result does not say whether the model is adequate."
-    v = adequacy.get("validation_nrmse")
-    limit = adequacy.get("nrmse_limit")
-    figs = f"validation NRMSE {nrmse_text(v)}" + (f", limit {nrmse_text(limit)}" if limit is not None else "")
-    fb = adequacy.get("fallback") or {}
-    simpler = ""
-    if fb.get("used"):
-        why = {"inadmissible": "was not physically admissible",
-               "inadequate": "predicted the held-out stages worse"}.get(fb.get("trigger"), "was set aside")
-        simpler = f"Fallback: the full model {why}, so this is the simpler {fb.get('kind', '')} model. "
-    if adequacy.get("verdict") == "adequate":
-        if simpler:
-            return "amber", f"{simpler}It is adequate ({figs})."
-        return "green", f"Adequate: the model predicts the validation record within its noise ({figs})."
-    reasons = [r for r in adequacy.get("reasons", []) if not r.startswith("the full model was not admissible")]
-    why = "; ".join(reasons) if reasons else figs
-    return "red", (f"{simpler}Inadequate: {why}. Diagnose the run to locate and name what the model leaves out."
-                   if simpler else f"Inadequate: {why}. Diagnose the run to locate and name what the model "
-                                   "leaves out.")
-
-
-def nrmse_text(v) -> str:
-    """An NRMSE as the window shows it: a percentage with three significant digits ("0.470 %",
-    "12.3 %"), "diverged" for a simulation that left the record. The command line's one format
-    (shakerlab.words.nrmse_text, once it lands) is the same; this one is then replaced by it."""
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        return "diverged"
-    if v != v or v in (float("inf"), float("-inf")):
-        return "diverged"
-    return f"{100.0 * v:#.3g} %".replace(". %", " %")
+        colour = "grey"
+    return colour, summary["text"]
 
 
 def fn_unit(term: str, component: bool = False) -> str:
