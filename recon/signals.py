@@ -220,11 +220,14 @@ def edge_crossfade(n: int, window: int, start_level: bool = False, end_level: bo
 
 def input_filter(stage: Stage, band: bool = True) -> InputFilter:
     """The :class:`InputFilter` of ``stage`` (its input channel, window and noise level, and, with
-    ``band``, the channel's own band where it can be told from the noise: recon.input_band)."""
-    f = _savitzky_golay_filter(stage)
-    if band:
-        f.band = BandLimit.of(f.raw, f.noise_std, f.window, f.order)
-    return f
+    ``band``, the channel's own band where it can be told from the noise: recon.input_band); made
+    once per stage (Stage.derived)."""
+    def make():
+        f = _savitzky_golay_filter(stage)
+        if band:
+            f.band = BandLimit.of(f.raw, f.noise_std, f.window, f.order)
+        return f
+    return stage.derived(("input_filter", band), make)
 
 
 def _savitzky_golay_filter(stage: Stage) -> InputFilter:
@@ -247,8 +250,10 @@ def _savitzky_golay_filter(stage: Stage) -> InputFilter:
 
 def stage_input(stage: Stage, band: bool = True) -> np.ndarray:
     """The model input u of ``stage`` (:class:`InputFilter`; ``band``: see :func:`input_filter`)."""
-    f = input_filter(stage, band)
-    return f(f.raw)
+    def make():
+        f = input_filter(stage, band)
+        return f(f.raw)
+    return stage.derived(("stage_input", band), make)
 
 
 def edge_fit(size: int, window: int, order: int) -> tuple[int, int, np.ndarray]:
@@ -264,7 +269,12 @@ def edge_fit(size: int, window: int, order: int) -> tuple[int, int, np.ndarray]:
 def start_derivatives(stage: Stage) -> tuple[float, float, float, float, float, float]:
     """y, y', y'' at the stage's first sample, from a Savitzky-Golay fit over its first
     samples (at most four windows), with the noise of y, the noise of that edge estimate of y',
-    and the stage's rms y' (for the model's start state, HystereticModel.stage_start)."""
+    and the stage's rms y' (for the model's start state, HystereticModel.stage_start); made once
+    per stage (Stage.derived)."""
+    return stage.derived("start_derivatives", lambda: _start_derivatives(stage))
+
+
+def _start_derivatives(stage: Stage) -> tuple[float, float, float, float, float, float]:
     y = stage.y
     ch = choose_window({"y": y}, stage.dt, deriv=2, for_regression=False)
     n, w, P = edge_fit(y.size, ch.window, ch.order)
@@ -277,6 +287,11 @@ def start_derivatives(stage: Stage) -> tuple[float, float, float, float, float, 
 
 
 def continuous_velocity_start(stage: Stage):
+    """Made once per stage (Stage.derived) by :func:`_continuous_velocity_start`."""
+    return stage.derived("continuous_velocity_start", lambda: _continuous_velocity_start(stage))
+
+
+def _continuous_velocity_start(stage: Stage):
     """(y0, y'0, y''0, at_rest) at the first sample of a stage whose motion the rig recorded as
     velocity and integrated continuously (``integration = "continuous"``,
     :mod:`shakerlab.quantities`); None for any other stage.

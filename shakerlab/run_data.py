@@ -133,9 +133,25 @@ class Stage:
                 values if q == DISPLACEMENT else self.measured[channel_name(name, q)])
         return out
 
+    def derived(self, what, make):
+        """``make()``, a quantity derived from this stage's recorded samples alone (a filter, an
+        input, a start estimate), made once and kept while ``t`` and every channel are the same
+        arrays. A stage's samples are not changed in place after it is made; an array that is
+        replaced (a new ``t`` or channel) makes the quantity again. Arrays kept are read-only."""
+        arrays = (self.t, *self.channels.values(), *self.measured.values())
+        cache = self.__dict__.setdefault("_derived", {})
+        hit = cache.get(what)
+        if hit is not None and len(hit[0]) == len(arrays) and all(a is b for a, b in zip(hit[0], arrays)):
+            return hit[1]
+        value = make()
+        if isinstance(value, np.ndarray):
+            value.flags.writeable = False
+        cache[what] = (arrays, value)
+        return value
+
     @property
     def dt(self) -> float:
-        return float(np.median(np.diff(self.t)))
+        return self.derived("dt", lambda: float(np.median(np.diff(self.t))))
 
     @property
     def fs(self) -> float:

@@ -30,12 +30,9 @@ import importlib.util
 import json
 import logging
 import os
-import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-
-from dask.distributed import Client, LocalCluster, as_completed, get_worker
 
 from recon import ReconSettings, reconstruct
 from recon import progress as recon_progress
@@ -178,6 +175,7 @@ def process_run(path: str, job: dict) -> dict:
 
 def _worker():
     """The Dask worker running this task, None outside one."""
+    from dask.distributed import get_worker  # heavy: Dask, loaded in a batch only (1-2 s of start-up)
     try:
         return get_worker()
     except ValueError:
@@ -339,6 +337,8 @@ def run_batch(paths: list[str], settings: BatchSettings | None = None, progress:
     paths = list(dict.fromkeys(str(p) for p in paths))
     if s.workers < 1:
         raise UserFacingError(f"--workers must be at least 1, got {s.workers}")
+
+    from dask.distributed import Client, LocalCluster, as_completed  # heavy: Dask, loaded in a batch only
 
     cluster = None
     try:

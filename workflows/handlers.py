@@ -16,15 +16,10 @@ from shakerlab.jsonsafe import clean
 from shakerlab.output_files import check_directory, check_output, is_hdf5
 from shakerlab.modes import CONSTITUTIVE, run_mode
 from shakerlab.runfile.reader import load_run, read_info
-from workflows import constitutive
 from workflows.batch import (BatchSettings, TextProgress, diagnosis_available, expand, format_table,
                              refuse_drive_for_component_test, run_batch, run_loop, write_csv)
-from workflows.demo import run_demo
-from workflows.diagnosis_report import write_report
-from workflows.figures import write_validation_plots
 from workflows.plausibility import warnings_for
 from workflows.progress_line import progress_line
-from workflows.report import interval_lines, make_report
 from shakerlab.words import nrmse_text
 
 
@@ -36,6 +31,7 @@ def reconstruct_command(args) -> int:
     run = load_run(args.run)
     if run_mode(run) == CONSTITUTIVE:       # a component test: the force law (docs/constitutive.md)
         refuse_drive_for_component_test(getattr(args, "drive", False), args.run)
+        from workflows import constitutive  # heavy: matplotlib, for component tests only
         return constitutive.reconstruct_command(args, run)
     if getattr(args, "inertia", "none") != "none":
         raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
@@ -53,6 +49,7 @@ def reconstruct_command(args) -> int:
             out["uncertainty"] = parameter_intervals(result.model, run)
         if plots:
             progress.step("figures", share=0.1)
+            from workflows.figures import write_validation_plots  # heavy: matplotlib, with -o only
             out["plots"] = [str(p) for p in write_validation_plots(result, run, Path(args.plots))]
     if args.save_model:
         result.model.save(args.save_model, overwrite=getattr(args, "force", False))
@@ -91,7 +88,7 @@ def reconstruct_command(args) -> int:
         print(f"sparse regression: {result.sparse['n_terms']} library terms, threshold "
               f"{result.sparse['threshold']:.3g}; linear step condition number {result.linear.condition_number:.3g}")
     if "uncertainty" in out:
-
+        from workflows.report import interval_lines  # heavy: matplotlib, with --uncertainty only
         print(*interval_lines(out), sep="\n")
     for p in out.get("plots", []):
         print(f"plot: {p}")
@@ -132,9 +129,12 @@ def report_command(args) -> int:
     rs = _recon_settings(args)
     if is_hdf5(args.run) and read_info(args.run)["mode"] == CONSTITUTIVE:
         refuse_drive_for_component_test(rs.get("drive", False), args.run)
+        from workflows import constitutive  # heavy: matplotlib, for component tests only
         return constitutive.report_command(args, load_run(args.run))
     if getattr(args, "inertia", "none") != "none":
         raise UserFacingError(f"--inertia is for component tests (constitutive mode); {args.run} is a structure's run")
+    from workflows.report import interval_lines, make_report  # heavy: matplotlib, the report's figures
+
     with progress_line(quiet=getattr(args, "quiet", False)):
         d = make_report(args.run, args.output, settings=ReconSettings(**rs), uncertainty=not args.no_uncertainty,
                         uncertainty_settings=UncertaintySettings(n_resamples=args.resamples),
@@ -194,6 +194,7 @@ def diagnose_command(args) -> int:
     check_outputs(args)
     run = load_run(args.run)
     if run_mode(run) == CONSTITUTIVE:       # a component test: what its force law leaves out
+        from workflows import constitutive  # heavy: matplotlib, for component tests only
         return constitutive.diagnose_command(args, run)
     with progress_line(quiet=getattr(args, "quiet", False)):
         progress.step("diagnosing", share=0.95 if args.report else 1.0)
@@ -203,6 +204,7 @@ def diagnose_command(args) -> int:
         out["result_text"] = diagnosis_text(out)
         if args.report:
             progress.step("figures", share=0.05)
+            from workflows.diagnosis_report import write_report  # heavy: matplotlib, with -o only
             out["report"] = [str(p) for p in write_report(d, run, Path(args.report))]
     if args.save_model:
         d.best.save(args.save_model, overwrite=getattr(args, "force", False))
@@ -243,5 +245,6 @@ def diagnose_command(args) -> int:
 
 
 def demo_command(args) -> int:
+    from workflows.demo import run_demo  # heavy: the simulated rig and matplotlib
     return run_demo(args.output, realtime=args.realtime, protocol_path=args.protocol, seed=args.seed,
                     quiet=args.quiet, force=args.force)
