@@ -20,19 +20,23 @@ Three steps, each kept only on the evidence of the joint fit:
    of squares, each stage's share divided by the residual's :func:`colour` where the loss changes
    the fit: the white-noise price is too low for a residual coloured by the input's noise at
    resonance.
-3. :func:`restart`: when the joint fit stays above ``FLOOR_RATIO`` times the record's floor, or
-   step 1 finds the stages in disagreement, the fit may be in another basin: it restarts from the
-   stiffness terms alone (y^2, y^3), and from the generic Bouc-Wen starts of the nonlinear stage's
-   polish when that is not at the floor either, and keeps the restart when it fits the two stages
-   better (and, after a disagreement, agrees with the nonlinear stage).
+3. :func:`restart`: when the joint fit is not at its floor, or step 1 finds the stages in
+   disagreement, the fit may be in another basin: it restarts from the stiffness terms alone
+   (y^2, y^3), and from the generic Bouc-Wen starts of the nonlinear stage's polish when that is
+   not at its floor either, and keeps the restart when it fits the two stages better (and, after a
+   disagreement, agrees with the nonlinear stage).
 
 The floor (:meth:`TwoStages.floor`) is the mean square per sample, in output noise variances, that
-the record's noise leaves in the residual of a model that is right: the output's white noise (1)
-plus the input sensor's noise carried through the model (the input u is made from a measured
-channel, so its noise drives the simulation; near a resonance that is a coloured residual well
-above the white level). It is measured, not assumed: the stage's own input filter applied to white
-noise at the input channel's noise level (the draws the uncertainty ensemble uses), simulated
-through the model, and compared with the same simulation without it.
+the record's noise leaves in the residual of a model if that model is right: the output's white
+noise (1) plus the input sensor's noise carried through the model (the input u is made from a
+measured channel, so its noise drives the simulation; near a resonance that is a coloured residual
+well above the white level). It is measured, not assumed: the stage's own input filter applied to
+white noise at the input channel's noise level (the draws the uncertainty ensemble uses), simulated
+through the model, and compared with the same simulation without it. A fit is at its floor when
+its mean square is within ``FLOOR_RATIO`` of that floor either way (:func:`at_floor`): above it the
+residual holds model error; below it the model carries the record's noise in a way the record
+does not show (its dynamics amplify the input noise more than the residual allows), which a right
+model cannot do either.
 
 Measured on the independent generator (bench/recon_accuracy.py --stress, docs/method.md).
 """
@@ -55,9 +59,10 @@ from recon.signals import input_filter
 from shakerlab.run_data import BASE, Run, Stage
 
 JOINT_FALSE_ALARM = 0.01
-# the joint fit's mean square per sample over the record's floor (TwoStages.floor) above which it is
-# taken to be in another basin: the mean square's sampling spread is sqrt(2/n), under 0.01 for
-# n > 20000, and the floor's own estimate is good to a few per cent, so 10 % above it is model error
+# how far (as a ratio, either way) the joint fit's mean square per sample may be from its floor
+# (TwoStages.floor) for the fit to be taken as at its floor: the mean square's sampling spread is
+# sqrt(2/n), under 0.01 for n > 20000, and the floor's own estimate is good to a few per cent, so
+# 10 % off it is model error
 FLOOR_RATIO = 1.1
 FLOOR_DRAWS = 2          # noise draws per stage of the floor's estimate (each: one simulation)
 FLOOR_SEED = 20261205    # the draws are fixed: the same record gives the same floor
@@ -300,14 +305,10 @@ def restart(model: HystereticModel, two: TwoStages, force: bool = False, known: 
             sse, n = two.sse(model, two.items(model))
         except NUMERICAL_ERRORS as exc:
             return model, {"failed": f"{type(exc).__name__}: {exc}"}
-    try:
-        floor = two.floor(model, two.items(model))
-    except NUMERICAL_ERRORS:
-        floor = 1.0
-    floor = floor if np.isfinite(floor) else 1.0
+    at, floor = at_floor(model, two, sse / n)
     record = {"mean_square_noise_variances": sse / n, "floor_noise_variances": floor,
-              "limit": FLOOR_RATIO * floor, "applied": False}
-    if sse / n <= FLOOR_RATIO * floor and not force:
+              "limit": [floor / FLOOR_RATIO, FLOOR_RATIO * floor], "applied": False}
+    if at and not force:
         return model, record
     trial = HystereticModel.from_dict(model.to_dict())
     trial.provenance = model.provenance
@@ -315,7 +316,7 @@ def restart(model: HystereticModel, two: TwoStages, force: bool = False, known: 
     trial = with_term_scales(trial, two.items(trial))
     fit = _joint_fit(trial, two)
     record["start"] = "stiffness_terms"
-    if fit is None or fit[1] / n > FLOOR_RATIO * floor:
+    if fit is None or not at_floor(fit[0], two, fit[1] / n)[0]:
         # not at the floor from the model's own Bouc-Wen law either: the generic starts, screened
         fit = _generic_fit(model, two, record) or fit
     if fit is None:
@@ -329,6 +330,19 @@ def restart(model: HystereticModel, two: TwoStages, force: bool = False, known: 
         record["applied"] = True
         return new, record
     return model, record
+
+
+def at_floor(model: HystereticModel, two: TwoStages, mean_square: float) -> tuple[bool, float]:
+    """(whether ``model``'s joint mean square per sample is within FLOOR_RATIO of its floor either
+    way, the floor): the module doc's test of a fit's basin. A floor that cannot be simulated
+    (the model diverges under the input's noise) is no floor: the fit is not at it."""
+    try:
+        floor = two.floor(model, two.items(model))
+    except NUMERICAL_ERRORS:
+        return False, float("inf")
+    if not np.isfinite(floor):
+        return False, float("inf")
+    return floor / FLOOR_RATIO <= mean_square <= FLOOR_RATIO * floor, floor
 
 
 def _generic_fit(model: HystereticModel, two: TwoStages, record: dict):
