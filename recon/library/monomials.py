@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import re
+from functools import lru_cache
 
 import numpy as np
 
@@ -22,6 +23,12 @@ _TERM = re.compile(r"^(y|dy)(?:\^(\d+))?$")
 
 def parse(text: str) -> tuple[int, int]:
     """Inverse of :func:`name`: "y^2*dy" -> (2, 1)."""
+    return _parse(str(text))
+
+
+@lru_cache(maxsize=4096)
+def _parse(text: str) -> tuple[int, int]:
+    """:func:`parse`, read once per name (every simulation of a model reads its term names)."""
     p = r = 0
     for part in text.replace(" ", "").split("*"):
         m = _TERM.match(part)

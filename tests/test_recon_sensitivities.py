@@ -1,0 +1,67 @@
+"""The forward sensitivities of the RK4 kernel (recon.simulation.rk4.simulate_sensitivities) against
+forward differences of the same kernel, for every parameter of the extended model and every fn
+coefficient: the sensitivities are the derivatives of the discrete simulation, so the two agree to
+the differences' own truncation error. The states are the plain kernel's, to the bit."""
+import numpy as np
+import pytest
+
+from recon.simulation.rk4 import P_NAMES, simulate_extended, simulate_sensitivities
+
+N_P = len(P_NAMES)
+
+
+def record(n=3000, dt=1e-3, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * dt
+    return 40.0 * np.sin(2 * np.pi * 7 * t) + 4.0 * rng.standard_normal(n), dt
+
+
+# every extra switched on (friction, quadratic damping, a contact that the motion reaches, a stiffness
+# drift and a higher mode driven through the measured point's acceleration), two fn terms
+P = np.array([1.0, 2.0, 2000.0, 1500.0, 300.0, 100.0, 0.3, 0.01, 5.0, 3000.0, 0.003, 1.0, 0.01, 400.0, 0.03,
+              0.2, 1.0])
+COEF, PE, RE = np.array([1e6, 50.0]), np.array([3, 2]), np.array([0, 1])
+
+
+@pytest.mark.parametrize("n_sub", [1, 2])
+def test_sensitivities_are_the_derivatives_of_the_simulation(n_sub):
+    u, dt = record()
+    cols = np.array([c for c in range(N_P + COEF.size) if c != P_NAMES.index("side")])   # side: a sign, no derivative
+    S0 = np.zeros((5, cols.size))
+    states, sy, sq = simulate_sensitivities(u, 0.0, dt, n_sub, P, COEF, PE, RE, 0.0, 0.0, 0.0, cols, S0)
+    plain = simulate_extended(u, 0.0, dt, n_sub, P, COEF, PE, RE, 0.0, 0.0, 0.0)
+    assert np.array_equal(states, plain)
+    theta = np.concatenate([P, COEF])
+    for i, c in enumerate(cols):
+        h = 1e-6 * max(abs(theta[c]), 1e-3)
+        moved = theta.copy()
+        moved[c] += h
+        other = simulate_extended(u, 0.0, dt, n_sub, moved[:N_P], moved[N_P:], PE, RE, 0.0, 0.0, 0.0)
+        name = P_NAMES[c] if c < N_P else f"coef[{c - N_P}]"
+        for got, fd in ((sy[:, i], (other[0] - plain[0]) / h), (sq[:, i], (other[3] - plain[3]) / h)):
+            scale = np.max(np.abs(fd))
+            if scale == 0.0:
+                assert np.max(np.abs(got)) < 1e-9, name
+                continue
+            assert np.max(np.abs(got - fd)) < 1e-4 * scale, name
+
+
+def test_initial_sensitivities_are_carried():
+    """A start state that depends on a parameter (z0 from the equation of motion) enters through S0:
+    d/dc of a run started at z0 = -c v0 equals the run's sensitivity with S0[z] = -v0."""
+    u, dt = record(n=1500)
+    P1 = P.copy()
+    P1[6:] = 0.0
+    P1[7], P1[11] = 1.0, 1.0
+    v0 = 0.02
+    cols = np.array([1])
+    S0 = np.zeros((5, 1))
+    S0[2, 0] = -v0
+    _, sy, _ = simulate_sensitivities(u, 0.0, dt, 1, P1, COEF, PE, RE, 0.0, v0, -P1[1] * v0, cols, S0)
+    h = 1e-6 * P1[1]
+    P2 = P1.copy()
+    P2[1] += h
+    a = simulate_extended(u, 0.0, dt, 1, P1, COEF, PE, RE, 0.0, v0, -P1[1] * v0)[0]
+    b = simulate_extended(u, 0.0, dt, 1, P2, COEF, PE, RE, 0.0, v0, -P2[1] * v0)[0]
+    fd = (b - a) / h
+    assert np.max(np.abs(sy[:, 0] - fd)) < 1e-4 * np.max(np.abs(fd))
