@@ -304,6 +304,23 @@ def test_issue69_4_full_disk_write_back_and_figures(small_fs, run_file, capsys):
     assert tree(small_fs) == before and leftovers(small_fs) == []
 
 
+def test_issue69_4_full_disk_report_write_back_is_a_failure(small_fs, run_file, tmp_path):
+    """`report` whose write-back meets a full disk: the report is written (its folder is on another
+    file system), then one line naming the full disk, exit 2, the run file and its disk unchanged."""
+    path = small_fs / "run.h5"
+    path.write_bytes(run_file.read_bytes())
+    _fill(small_fs, 20_000)
+    before = tree(small_fs)
+    out = tmp_path / "report"
+    r = subprocess.run([sys.executable, "-m", "shakerlab.cli", "report", str(path), "-o", str(out), "--no-polish",
+                        "--no-uncertainty", "--quiet"], capture_output=True, text=True, env=_env(), timeout=300)
+    assert r.returncode == 2, r.stdout + r.stderr
+    line = one_line(r.stderr)
+    assert f"no space left on {small_fs}" in line and "the run file is unchanged" in line
+    assert (out / "index.html").is_file()
+    assert tree(small_fs) == before and leftovers(small_fs) == []
+
+
 def test_issue69_4_full_disk_acquire_stops_safely_and_keeps_the_partial(small_fs, tmp_path, capsys):
     proto = tmp_path / "p.toml"
     proto.write_text(SMALL_PROTOCOL)

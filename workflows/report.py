@@ -454,7 +454,12 @@ def make_report(run_path, outdir, settings=None, uncertainty: bool = True, uncer
     if not write_back:
         return clean(d)
     written, note = store_result(run_path, RESULT_KIND, clean(d), text=str(result.model), settings_hash=digest)
-    return _write_report_files(outdir, run, d, figures, info, outdir, written, f"Result {note}.")
+    out = _write_report_files(outdir, run, d, figures, info, outdir, written, f"Result {note}.")
+    if written is None and "no space left" in note:
+        # a full disk is a failure of the command, not a remark in the report: one line, exit 2
+        raise UserFacingError(f"{note.removeprefix('not written back: ')}; the report in {outdir} was written, "
+                              f"the run file is unchanged")
+    return out
 
 
 def _write_report_files(where: Path, run, d: dict, figures: dict, info: dict, outdir: Path, written, note: str) -> dict:
