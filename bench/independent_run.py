@@ -22,6 +22,8 @@ def to_run(rec: dict) -> Run:
     for name, st in rec["stages"].items():
         t = np.asarray(st["t"], float)
         chans = ("x_base", "x_tip") if st["excitation"] == "base" else ("force", "x")
+        # a response recorded as velocity or acceleration (add_noise quantity) goes in as v_tip / a_tip
+        chans = tuple(next((p + c[1:] for p in "va" if p + c[1:] in st), c) if c not in st else c for c in chans)
         stages[name] = Stage(name, t - t[0], {c: np.asarray(st[c], float) for c in chans}, st["excitation"],
                              settings={"source_t0": float(t[0]), "sampling_jitter": 0.0})
     src = f"independent:seed={rec.get('system_seed', rec.get('seed'))},{rec['protocol']},{rec['effect']}"

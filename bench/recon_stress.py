@@ -60,7 +60,7 @@ def identifiability(rec: dict) -> dict:
 
 def run_seed(task) -> list[dict]:
     """Every SNR of one seed: simulate once, add noise (noise seed = seed), reconstruct, score."""
-    seed, snrs, protocols = task
+    seed, snrs, protocols, quantity = task if len(task) > 3 else (*task, "displacement")
     warnings.filterwarnings("ignore")
     system, protocol, fs = stress_system(seed, protocols)
     t0 = time.perf_counter()
@@ -75,9 +75,10 @@ def run_seed(task) -> list[dict]:
     rows = []
     for snr in snrs:
         row = {"seed": seed, "noise_seed": seed, "snr": snr, "protocol": protocol, "fs": fs, "system": system,
+               **({"quantity": quantity} if quantity != "displacement" else {}),
                "truth": rec["truth"], "samples": n_samples, "sim_seconds": t_sim,
                "identifiability": ident}
-        run = to_run(ind.add_noise(rec, snr, seed))
+        run = to_run(ind.add_noise(rec, snr, seed, quantity=quantity))
         t1 = time.perf_counter()
         # a reconstruct that runs for minutes: dump where it is (stderr), once
         faulthandler.dump_traceback_later(STUCK_S, exit=False, file=sys.stderr)
@@ -207,7 +208,7 @@ def main(a) -> int:
     seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else \
         list(range(a.first_seed, a.first_seed + (a.seeds or 50)))
     n = len(seeds)
-    tasks = [(s, snrs, protocols) for s in seeds]
+    tasks = [(s, snrs, protocols, getattr(a, "quantity", "displacement")) for s in seeds]
     rows = []
     t0 = time.perf_counter()
     out = open(a.jsonl, "w") if a.jsonl else None

@@ -11,6 +11,7 @@ import argparse
 import atexit
 import contextlib
 import importlib
+import json
 import os
 import sys
 
@@ -86,7 +87,16 @@ def _main(argv: list[str] | None) -> int:
         return 130
     except UserFacingError as exc:
         print(f"shakerlab {args.command}: error: {exc}", file=sys.stderr)
+        if getattr(args, "json", False):
+            # A command asked for JSON answers in JSON even when it refuses: a script reading stdout gets one
+            # object whatever happened (the exit status, 2, and the message on stderr are as without --json).
+            print(json.dumps(refusal_json(args.command, exc)))
         return 2
+
+
+def refusal_json(command: str, exc: UserFacingError) -> dict:
+    """The one JSON object a --json command prints when it refuses: the error and its kind."""
+    return {"error": str(exc), "error_kind": type(exc).__name__, "command": command, "exit_code": 2}
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -200,7 +200,7 @@ def diagnose_command(args) -> int:
         progress.step("diagnosing", share=0.95 if args.report else 1.0)
         d = diagnose(run, baseline=args.baseline)
         out = d.to_dict()
-        out["warnings"] = warnings_for(run)
+        out["warnings"] = warnings_for(run) + out.get("baseline_warnings", [])
         out["result_text"] = diagnosis_text(out)
         if args.report:
             progress.step("figures", share=0.05)

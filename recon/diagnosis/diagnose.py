@@ -32,14 +32,12 @@ from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.catalog import CATALOG, MODE_APART, MODE_ZETA_MAX, ZETA2_RANGE
 from recon.diagnosis.locate import locate, stage_derivatives
 from recon.diagnosis.sensitivity import detection_limits
-from recon.differentiation import estimate_spectrum
 from recon.estimator.adequacy import NOISE_FACTOR, NRMSE_FLOOR
+from recon.estimator.linear_start import linear_step
 from recon.estimator.pipeline import reconstruct
 from recon.library import monomials
 from recon.model import HystereticModel
 from recon.output_error.problem import get_parameter, set_parameter
-from recon.signals import stage_signals
-from recon.steps.linear import count_lines, fit_linear
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import BASE, Run
 
@@ -65,16 +63,13 @@ def linear_baseline(run: Run) -> HystereticModel:
 
     name = "linear" if "linear" in run.stages else next(iter(run.stages))
     st = run.stage(name)
-    s = stage_signals(st, deriv=2, for_regression=False)
-    lines = None
-    if st.excitation != BASE:
-
-        spec = estimate_spectrum(st.channels["force"], st.dt)
-        lines = count_lines(spec.freqs, 1.0 / (st.t.size * st.dt), spec.power)
-    lf = fit_linear(s.y[0], s.y[1], s.y[2], s.u[0], st.excitation, s.column_noise, name, lines)
+    # a linear stage too noisy for c and K: the least noisy fitted stage (recon.estimator.linear_start)
+    lf, _, used = linear_step(run, name, "nonlinear" if "nonlinear" in run.stages else None)
     return HystereticModel(excitation=st.excitation, c_m=lf.c_m, k_m=lf.K_m, alpha_m=0.0, gamma=0.0, delta=0.0,
                            inv_m=None if st.excitation == BASE else lf.inv_m,
-                           provenance={"method": "linear step of recon (diagnosis baseline 'linear')"})
+                           provenance={"method": "linear step of recon (diagnosis baseline 'linear')",
+                                       **({"linear_step_stage": used, "warnings": list(lf.warnings)}
+                                          if used != name else {})})
 
 
 def resolve_baseline(run: Run, baseline, whole: bool = False) -> tuple[AugmentedModel, str]:
@@ -89,6 +84,8 @@ def resolve_baseline(run: Run, baseline, whole: bool = False) -> tuple[Augmented
         # stages do not cover has its end held out), so the baseline's held-out score is out of sample
         res = reconstruct(run if whole else rank.fitting_part(run))
         model = res.model
+        if res.linear is not None and res.linear.warnings:
+            model.provenance["warnings"] = list(res.linear.warnings)
         fb = res.adequacy.get("fallback") or {}
         if fb.get("used"):
             # reconstruct answered with a simpler model: kept with the baseline, so the diagnosis can
@@ -151,6 +148,8 @@ class Diagnosis:
             "separating_stage": self.ambiguity,
             "unexplained_mismatch": self.unexplained,
             "baseline_note": baseline_note(self.baseline.baseline),
+            # what the baseline's own fit had to say (a linear stage too noisy for c and K)
+            "baseline_warnings": list(self.baseline.baseline.provenance.get("warnings", [])),
             "seconds": self.seconds,
         }
 

@@ -5,8 +5,8 @@ import time
 
 import numpy as np
 
-from recon.differentiation import estimate_spectrum
 from recon.estimator.finish import polish_and_validate
+from recon.estimator.linear_start import linear_step
 from recon.estimator.result import ReconResult, ReconSettings
 from recon.library.agent import AgentLibrary
 from recon.library.clustering import cluster
@@ -15,7 +15,6 @@ from recon.regression.criteria import filter_correlation_length
 from recon.regression.sparse import GroupedSparseSelector
 from recon.signals import stage_signals
 from recon.steps.bouc_wen import estimate_delta, extract, refit
-from recon.steps.linear import count_lines, fit_linear
 from shakerlab import __version__
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import BASE, Run
@@ -27,15 +26,10 @@ def reconstruct_pointwise(run: Run, s: ReconSettings, validate_model: bool = Tru
     timings = {}
     t0 = time.perf_counter()
     # the linear step regresses on noisy columns (y', y): errors-in-variables, so the
-    # pointwise-optimal filter is used there; the nonlinear step uses the regression criterion
-    lin = stage_signals(run.stage(s.linear_stage), deriv=2, for_regression=False)
-    lst = run.stage(s.linear_stage)
-    lines = None
-    if exc != BASE:
-        spec = estimate_spectrum(lst.channels["force"], lst.dt)
-        lines = count_lines(spec.freqs, 1.0 / (lst.t.size * lst.dt), spec.power)
-    lf = fit_linear(lin.y[0], lin.y[1], lin.y[2], lin.u[0], exc, lin.column_noise, s.linear_stage, lines,
-                    offset=s.input_offset is True)
+    # pointwise-optimal filter is used there; the nonlinear step uses the regression criterion.
+    # A linear stage too noisy for c and K hands the step to the least noisy fitted stage
+    # (recon.estimator.linear_start)
+    lf, lin, _ = linear_step(run, s.linear_stage, s.nonlinear_stage, offset=s.input_offset is True)
     timings["linear"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()

@@ -14,8 +14,18 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy.signal import find_peaks
 
-from shakerlab.errors import UserFacingError
+from shakerlab.errors import EstimateRefused, UserFacingError
 from shakerlab.run_data import BASE
+
+
+class NoisyLinearStage(EstimateRefused):
+    """The linear stage's regression columns carry so much noise, judged by the stage's own noise level,
+    that c and K are not determined there, although the excitation is not rank-deficient: another stage
+    with less noise against its motion can give them (:func:`recon.estimator.linear_start.linear_step`)."""
+
+    def __init__(self, message: str, stage: str, noise: float):
+        super().__init__(message)
+        self.stage, self.noise = stage, float(noise)
 
 
 @dataclass
@@ -31,6 +41,8 @@ class LinearFit:
     warnings: list = field(default_factory=list)    # plausibility: see :func:`plausibility_warnings`
     # the constant b of the input, y'' = -c_m y' - K_m y + g (u - b), when fitted (``offset=True``)
     offset: float | None = None
+    # the stage the fit was made on when it is not the linear stage (recon.estimator.linear_start)
+    stage: str | None = None
 
     def __post_init__(self):
         self.warnings = list(self.warnings) + [w for w in plausibility_warnings(self.c_m, self.K_m)
@@ -130,10 +142,16 @@ def fit_linear(y, dy, ddy, u, excitation: str, column_noise: dict | None = None,
                    + ("excite with a non-zero tone" if excitation == BASE else "the input does not move the structure "
                       "independently of its response (check the force channel)"))
         else:
-            why = (f"its weakest direction ({sv[-1] / sv[0]:.2g} of the largest) is within 10 times the noise the "
-                   f"columns carry ({eps:.2g}): the motion of this stage is too small against the sensor noise for "
-                   "c and K, or the noise estimate is off (averaged or band-limited records): record a larger "
-                   "linear stage")
+            # not a rank deficiency: the columns span their directions, but the weakest is within 10 times
+            # the noise they carry, so the regression on noisy columns (errors in variables) does not
+            # determine c and K on this stage; a stage with less noise against its motion can
+            raise NoisyLinearStage(
+                f"stage {stage_name!r}: the linear step cannot determine c and K: the stage is too noisy (the "
+                f"noise its columns carry is {eps:.2g} of their rms, about {-20 * np.log10(max(eps, 1e-12)):.0f} dB, "
+                f"and buries their weakest direction, {sv[-1] / sv[0]:.2g} of the largest; condition number "
+                f"{cond:.3g}): the motion of this stage is too small against the sensor noise, or the noise "
+                f"estimate is off (averaged or band-limited records): record a larger linear stage",
+                stage_name, eps)
         raise UserFacingError(f"stage {stage_name!r}: the linear step cannot determine c and K, the excitation is "
                               f"rank-deficient ({figures}): {why}")
     x, *_ = np.linalg.lstsq(An, b, rcond=None)

@@ -62,6 +62,7 @@ STRUCTURAL_EFFECTS = ("cubic_stiffness", "quadratic_stiffness", "hysteresis")
 MORE_PHYSICAL_EFFECTS = ("amplitude_damping",)
 EFFECTS = ("none",) + PHYSICAL_EFFECTS + STRUCTURAL_EFFECTS + MORE_PHYSICAL_EFFECTS
 SETTLE_S = 1.0
+QUANTITIES = ("displacement", "velocity", "acceleration")    # how the response may be recorded (add_noise)
 # the rig protocol's nonlinear levels are judged once steady: two 0.75 s windows in a row agree on
 # the complex gain of y over the base to SETTLE_TOLERANCE, waiting at most SETTLE_MAX_S more
 SETTLE_TOLERANCE = 0.005
@@ -452,10 +453,20 @@ class _Sim:
             dr_tip = dr
         phi2, e = self.eff.get("phi2", 0.0), self.eff.get("tip_scale", 0.0)
         disp = st_tip[0] + phi2 * st_tip[3]
+        vel = st_tip[1] + phi2 * st_tip[4]
+        # the response's acceleration: a central difference of the dense solution (h = 1e-4 / fs: the
+        # DOP853 interpolant is smooth within a step, so the difference is exact to ~1e-8 relative)
+        h = 1e-4 / self.fs
+        (sp, drp), (sm, drm) = (_evaluate(segs, sols, t - tau + hh) for hh in (h, -h))
+        acc = ((sp[1] + phi2 * sp[4]) - (sm[1] + phi2 * sm[4])) / (2 * h)
         if self.exc == "base":
             ch = {"x_base": dr[0], "x_tip": (1 + e) * (dr_tip[0] + disp)}
+            # the tip's absolute velocity and acceleration, for a recording made with a vibrometer or an
+            # accelerometer (add_noise quantity)
+            ch["v_tip"] = (1 + e) * (dr_tip[1] + vel)
+            ch["a_tip"] = (1 + e) * (dr_tip[2] + acc)
         else:
-            ch = {"force": dr[0], "x": (1 + e) * disp}
+            ch = {"force": dr[0], "x": (1 + e) * disp, "v": (1 + e) * vel, "a": (1 + e) * acc}
         self.stages[name] = {"t": t, **ch, "excitation": self.exc, "description": excitation_desc,
                              "truth_states": {"y": st[0], "dy": st[1], "z": st[2]}}
         self.x = x_end
@@ -729,24 +740,55 @@ def simulate(system: dict, protocol: str = "paper", fs: float = 2000.0, effect: 
     return rec
 
 
-def add_noise(rec: dict, snr_db: float | None, seed: int, quantisation: float | None = None) -> dict:
+def add_noise(rec: dict, snr_db: float | None, seed: int, quantisation: float | None = None,
+              quantity: str = "displacement", flicker_share: float = 0.5) -> dict:
     """A copy with white sensor noise at ``snr_db`` of each channel's rms (per stage) and an
-    optional quantisation step ``quantisation`` (as a fraction of the noise std)."""
+    optional quantisation step ``quantisation`` (as a fraction of the noise std).
+
+    ``quantity``: how the response (x_tip, or x under force excitation) is recorded: "displacement",
+    "velocity" (a laser vibrometer: v_tip, v) or "acceleration" (a_tip, a; white noise), at ``snr_db``
+    of its own rms. A velocity channel's
+    noise has a low-frequency part, as a vibrometer's has (demodulator and speckle noise rising as 1/f
+    below a few Hz): ``flicker_share`` of the noise power is 1/f noise (a power spectrum falling as 1/f
+    from the record's lowest bin to Nyquist, no DC), the rest white; the total stays at ``snr_db``.
+    Displacement records are unchanged (the same draws as before the option existed)."""
+    if quantity not in QUANTITIES:
+        raise ValueError(f"unknown quantity {quantity!r} (known: {', '.join(QUANTITIES)})")
     rng = np.random.default_rng(seed)
-    out = dict(rec, stages={}, snr_db=snr_db, noise_seed=int(seed), quantisation=quantisation)
+    flicker_rng = np.random.default_rng([seed, 1])
+    out = dict(rec, stages={}, snr_db=snr_db, noise_seed=int(seed), quantisation=quantisation, quantity=quantity)
+    response = "x_tip" if rec["excitation"] == "base" else "x"
+    velocity = "v" + response[1:]
+    recorded = {"displacement": response, "velocity": velocity, "acceleration": "a" + response[1:]}[quantity]
     for name, st in rec["stages"].items():
-        new = dict(st)
-        for ch in ("x_base", "x_tip") if rec["excitation"] == "base" else ("force", "x"):
+        new = {k: v for k, v in st.items() if k not in (response, velocity, "a" + response[1:]) or k == recorded}
+        chans = ("x_base", "x_tip") if rec["excitation"] == "base" else ("force", "x")
+        chans = tuple(recorded if c == response else c for c in chans)
+        for ch in chans:
             x = st[ch]
             if snr_db is not None:
                 sd = float(np.sqrt(np.mean(x ** 2))) / 10 ** (snr_db / 20)
-                x = x + rng.normal(0.0, sd, x.size)
+                if ch == velocity:
+                    x = (x + rng.normal(0.0, sd * math.sqrt(1.0 - flicker_share), x.size)
+                         + flicker_noise(flicker_rng, x.size, sd * math.sqrt(flicker_share)))
+                else:
+                    x = x + rng.normal(0.0, sd, x.size)
                 if quantisation:
                     q = quantisation * sd
                     x = q * np.round(x / q)
             new[ch] = x
         out["stages"][name] = new
     return out
+
+
+def flicker_noise(rng, n: int, rms: float) -> np.ndarray:
+    """1/f (pink) noise of ``rms``: white Gaussian spectrum shaped by 1/sqrt(f), no DC."""
+    spec = rng.normal(size=n // 2 + 1) + 1j * rng.normal(size=n // 2 + 1)
+    k = np.arange(n // 2 + 1, dtype=float)
+    spec[0] = 0.0
+    spec[1:] /= np.sqrt(k[1:])
+    x = np.fft.irfft(spec, n)
+    return x * (rms / max(float(np.std(x)), 1e-300))
 
 
 def random_recording(seed: int, snr_db: float | None = None, protocol: str | None = None,
