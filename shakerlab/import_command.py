@@ -56,6 +56,7 @@ def register(subparsers) -> None:
                         "(v a measured velocity, cmd an extra input such as an MR damper's command); the run file "
                         "records the mode and reconstruct identifies the force law (docs/constitutive.md)")
     p.add_argument("--force", action="store_true", help="overwrite the output file")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(handler=_handle)
 
 
@@ -179,13 +180,15 @@ def _time_base(stage: str, roles: dict, time_sig, fs, resample):
 
 
 def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False, mapping: dict | None = None,
-               fs: float | None = None, resample: bool = False, constitutive: bool = False) -> Path:
+               fs: float | None = None, resample: bool = False, constitutive: bool = False,
+               progress=None) -> Path:
     """Write a run file from ``{stage name: file path or list of paths}``; return the output path.
 
     Without ``mapping`` every file is a shakerlab CSV (header names the roles); with it, the
     files of a stage (any supported format) are pooled and the map picks the roles.
     ``constitutive``: component-test files (``t,x,force[,v][,cmd]``, or a map with x and force);
-    the run file's ``mode`` attribute says so (shakerlab.modes)."""
+    the run file's ``mode`` attribute says so (shakerlab.modes). ``progress(text, fraction)`` is told
+    each stage as it is read and written (the command line shows it on stderr)."""
     import numpy as np  # heavy: numpy, h5py; loaded when the command runs
 
     from shakerlab.errors import UserFacingError  # heavy: numpy, h5py; loaded when the command runs
@@ -198,8 +201,10 @@ def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False
     if fs is not None and not (np.isfinite(fs) and fs > 0):
         raise UserFacingError(f"--fs {fs!r}: the sampling rate must be a positive number of Hz")
     parsed = {}
-    for stage, files in stage_files.items():
+    say = progress or (lambda text, fraction: None)
+    for i, (stage, files) in enumerate(stage_files.items()):
         files = [Path(f) for f in (files if isinstance(files, (list, tuple)) else [files])]
+        say(f"reading stage {stage} from {', '.join(f.name for f in files)}", i / (2 * len(stage_files)))
         if mapping:
             kind, roles, quantities, time_sig = _stage_from_map(files, mapping)
             if constitutive:
@@ -254,7 +259,7 @@ def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False
         with signals_deferred(), RunWriter(output, overwrite=overwrite, attrs=attrs) as writer:
             if writer.removed_stale:
                 print(writer.removed_stale)
-            _write_stages(writer, parsed, mapping, constitutive, check_signals)
+            _write_stages(writer, parsed, mapping, constitutive, check_signals, say)
             check_signals()
     except (OSError, RuntimeError, ValueError) as exc:
         if disk_full(exc):
@@ -267,10 +272,11 @@ def import_csv(output: str | Path, stage_files: dict, *, overwrite: bool = False
 APPEND_BLOCK = 1 << 20
 
 
-def _write_stages(writer, parsed: dict, mapping, constitutive: bool, between) -> None:
+def _write_stages(writer, parsed: dict, mapping, constitutive: bool, between, say) -> None:
     writer.log("info", f"imported with shakerlab import from {len(parsed)} stage file set(s)"
                if mapping else f"imported with shakerlab import from {len(parsed)} CSV file(s)")
-    for stage, (files, kind, t, rate, info, values, quantities) in parsed.items():
+    for j, (stage, (files, kind, t, rate, info, values, quantities)) in enumerate(parsed.items()):
+        say(f"writing stage {stage} ({t.size} samples)", 0.5 + j / (2 * len(parsed)))
         src = [str(Path(f).resolve()) for f in files]
         settings = {"source_file": src[0] if len(src) == 1 else src, "source_t0": info.pop("source_t0", None)}
         if settings["source_t0"] is None:
@@ -354,8 +360,18 @@ def _handle(args) -> int:
 
     files = {s: getattr(args, s) for s in STAGE_OPTIONS if getattr(args, s) is not None}
     cmap = mapping.parse(args.map, args.map_file)
-    out = import_csv(args.output, files, overwrite=args.force, mapping=cmap or None, fs=args.fs,
-                     resample=args.resample, constitutive=args.constitutive)
+    from shakerlab import progress_view  # heavy: loaded when the command runs
+
+    live = progress_view.start("importing", quiet=args.quiet)
+    ok = False
+    try:
+        out = import_csv(args.output, files, overwrite=args.force, mapping=cmap or None, fs=args.fs,
+                         resample=args.resample, constitutive=args.constitutive,
+                         progress=None if live is None else
+                         lambda text, f: live.line.update(progress_view.Status(text, f, 0.0, None)))
+        ok = True
+    finally:
+        progress_view.stop("imported in {elapsed}" if ok else None)
     info = read_info(out)
     for name, st in info["stages"].items():
         print(f"{name}: {st['n_samples']} samples at {st['fs']:.6g} Hz")

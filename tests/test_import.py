@@ -82,3 +82,27 @@ def test_import_compressed_csv(tmp_path, capsys, suffix, opener):
     assert main(["import", "-o", str(tmp_path / "bad.h5"), "--nonlinear", str(bad)]) == 2
     err = capsys.readouterr().err
     assert f"bad{suffix}: cannot read as a text CSV file" in err and len(err.strip().splitlines()) == 1
+
+
+def test_import_shows_its_progress_on_stderr_and_keeps_stdout(tmp_path):
+    """`import` tells each stage as it reads and writes it on stderr (a large file takes a while);
+    stdout keeps its lines; --quiet shows nothing."""
+    import subprocess
+    import sys
+
+    t = np.arange(20000) / 1000.0
+    csv = tmp_path / "lin.csv"
+    np.savetxt(csv, np.column_stack([t, 1e-3 * np.sin(7 * t), 2e-3 * np.sin(7 * t)]), delimiter=",",
+               header="t,x_base,x_tip", comments="")
+    for quiet in (False, True):
+        out = tmp_path / f"run{int(quiet)}.h5"
+        r = subprocess.run([sys.executable, "-m", "shakerlab.cli", "import", "-o", str(out), "--linear", str(csv)]
+                           + (["--quiet"] if quiet else []), capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.splitlines() == ["linear: 20000 samples at 1000 Hz", f"wrote {out}"]
+        if quiet:
+            assert r.stderr == ""
+        else:
+            assert "reading stage linear from lin.csv" in r.stderr
+            assert "writing stage linear (20000 samples)" in r.stderr
+            assert r.stderr.rstrip().splitlines()[-1].startswith("imported in ")
