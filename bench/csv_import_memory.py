@@ -14,17 +14,8 @@ import time
 import tracemalloc
 from pathlib import Path
 
-import numpy as np
-
-
-def write_csv(path: Path, rows: int) -> None:
-    t = np.arange(rows) / 10000.0
-    with open(path, "w") as fh:
-        fh.write("t,x_base,x_tip\n")
-        for i in range(0, rows, 100_000):
-            j = min(i + 100_000, rows)
-            block = np.column_stack([t[i:j], 1e-3 * np.sin(t[i:j]), 2e-3 * np.sin(t[i:j])])
-            np.savetxt(fh, block, delimiter=",", fmt=["%.10g", "%.9e", "%.9e"])
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from helpers import write_csv  # noqa: E402  (tests/helpers.py: the same file the import-memory test reads)
 
 
 def measure(rows: int) -> dict:

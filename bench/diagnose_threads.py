@@ -1,5 +1,5 @@
 """`python bench/diagnose_threads.py [ROWS...] [--threads N]`: the diagnosis of independent stress
-recordings (bench/diagnose_stress.py) run serially (SHAKERLAB_THREADS=1) and with N threads for the
+recordings (recon.testing.stress) run serially (SHAKERLAB_THREADS=1) and with N threads for the
 output-error fits' finite differences (recon/threads.py), each in its own process.
 
 Prints a table: the recording, its protocol and sample count, the wall-clock seconds of each run,
@@ -21,12 +21,12 @@ ROOT = os.path.dirname(HERE)
 CHILD = r"""
 import json, sys, time, warnings
 warnings.filterwarnings("ignore")
-sys.path[:0] = [{root!r}, {here!r}]
-import diagnose_stress as ds
-from independent_run import to_run
+sys.path[:0] = [{root!r}]
 from recon import diagnose
-d = ds.draw({row})
-rec = ds.recording(d)
+from recon.testing.runs import to_run
+from recon.testing.stress import draw, recording
+d = draw({row})
+rec = recording(d)
 run = to_run(rec)
 t0 = time.perf_counter()
 out = diagnose(run, baseline="paper").to_dict()
@@ -47,7 +47,7 @@ def run_row(row: int, threads: int) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "out.json")
         env = dict(os.environ, SHAKERLAB_THREADS=str(threads))
-        subprocess.run([sys.executable, "-c", CHILD.format(root=ROOT, here=HERE, row=row, path=path)],
+        subprocess.run([sys.executable, "-c", CHILD.format(root=ROOT, row=row, path=path)],
                        check=True, env=env)
         with open(path) as f:
             return json.load(f)

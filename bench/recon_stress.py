@@ -13,23 +13,16 @@ import warnings
 
 import numpy as np
 
-from independent_run import model_of, score, to_run
 from recon import ReconSettings, reconstruct
 from recon.estimator.two_stage import two_stage_polish
 from recon.output_error.polish import polish
 from recon.library import monomials
 from recon.testing import independent as ind
+from recon.testing.runs import model_of, score, to_run
+from recon.testing.stress import stress_system
 
 SNRS = (80.0, 60.0, 50.0, 40.0)
 STUCK_S = 240.0
-
-
-def stress_system(seed: int, protocols=("paper", "rig")) -> tuple[dict, str, float]:
-    """System, protocol and sample rate of stress seed ``seed`` (reproducible)."""
-    rng = np.random.default_rng([seed, 18])
-    system = ind.random_system(rng, hysteresis=True)
-    fs = float(np.round(math.exp(rng.uniform(math.log(1000.0), math.log(10000.0)))))
-    return system, protocols[seed % len(protocols)], fs
 
 
 # a draw is "identifiable" when its nonlinear stage drives the Bouc-Wen loop past its knee

@@ -356,8 +356,7 @@ def test_issue69_5_write_back_through_a_symlink_goes_into_its_target(run_copy, t
 def test_issue69_7_csv_import_memory_is_at_most_twice_the_file(tmp_path):
     from shakerlab.import_command import import_csv
 
-    sys.path.insert(0, str(ROOT / "bench"))
-    from csv_import_memory import write_csv
+    from helpers import write_csv
 
     csv = tmp_path / "big.csv"
     write_csv(csv, 40_000)

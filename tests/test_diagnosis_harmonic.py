@@ -11,17 +11,12 @@ One test per catalog id (every effect the generator makes: the eight physical on
 structural ones and amplitude-dependent damping), and a clean recording that reports nothing."""
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from recon.diagnosis.diagnose import diagnose
 from recon.testing import independent as ind
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from independent_run import model_of, to_run  # noqa: E402
+from recon.testing.runs import model_of, to_run
 
 # one TMP-like system for every effect: f_n drawn in 8-20 Hz, hysteresis, y^2 and y^3
 SYSTEM = ind.random_system(np.random.default_rng(2026), hysteresis=True, quadratic=True, cubic=True,
@@ -100,7 +95,7 @@ def test_a_tip_resonance_far_above_the_fundamental_is_not_fitted_beside_it():
     # the point-driven start was never fitted and the sensor scale was named. Each drive is now
     # fitted, a plausible fit kept before a cheaper refused one, and the mode's frequency is kept on
     # its start's side of the refused band
-    from diagnose_stress import draw, recording
+    from recon.testing.stress import draw, recording
     rec = recording(draw(460))
     out = diagnose(to_run(rec), "paper", candidates=["higher_mode"]).to_dict()
     assert [m["id"] for m in out["missing_physics"]] == ["higher_mode"], out["candidates_tested"]

@@ -10,7 +10,6 @@ plausible effects with intervals.
 """
 import dataclasses
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +19,6 @@ from recon.diagnosis import rank
 from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.diagnose import diagnose, implausible, unexplained_mismatch
 from recon.testing.concealed import concealed_run
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))   # the independent generator's run helpers
 
 
 # ----------------------------------------------------------------- before / after
@@ -417,8 +414,8 @@ def test_a_candidate_starts_stages_in_motion_from_its_own_force_balance():
 def _stress6():
     """Independent stress recording #6 (a stiffness drift of -0.074 %/s, sweeps, 57.7 dB) as a run,
     the paper baseline reconstructed from it (its figures, stored), and the generator's record."""
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run
 
     rec = recording(draw(6))
     base = model_of({"c_m": 1.7967713009469042, "k_m": 1141.9717984012016, "alpha_m": 29.3597336404073,
@@ -433,7 +430,7 @@ def test_a_held_out_stage_in_motion_starts_from_its_edge_even_when_the_baseline_
     # from rest than from the edge estimate; the start must not be judged by it, or every model, the
     # truth too, scores 0.36-0.39 there
     run, base, rec = _stress6()
-    from independent_run import true_model
+    from recon.testing.runs import true_model
 
     data = rank.prepare(run, base)
     val = next(x for x in data if x.name == "validation")
@@ -452,8 +449,8 @@ def test_a_held_out_start_finds_a_hysteretic_state_far_from_the_edge_and_from_ze
     # model's z at -0.209; the edge estimate puts it at +0.048, and a start fit from there or from 0
     # stays near 0 (-0.0023), where the truth scores 0.10 on that stage against 0.0043 from its
     # true state. The start scans z0 across the law's reach first.
-    from diagnose_stress import draw, recording
-    from independent_run import to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import to_run, true_model
 
     rec = recording(draw(617))
     truth, _ = true_model(rec)
@@ -492,7 +489,7 @@ def test_a_candidate_whose_term_does_nothing_gets_no_credit_for_where_its_fit_en
     # beside a restoring force of 28 m/s^2) was named for the better baseline parameters its own fit
     # reached. Here: a clean independent recording, a baseline 4 % stiff as the reference, and a
     # "friction" fit whose mu is nil but whose c and k are the truth's
-    from independent_run import model_of, to_run
+    from recon.testing.runs import model_of, to_run
     from recon.diagnosis.diagnose import nested_null
     from recon.testing import independent as ind
 
@@ -519,7 +516,7 @@ def test_a_candidate_keeps_its_score_from_before_its_nested_null(monkeypatch):
     # candidate is scored against again): kept in the entry, so a change of the rule can be judged on
     # stored rows. A real offset, with a nested null that is the truth itself (better than the
     # reference): the candidate is significant before and not after
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.runs import model_of, to_run, true_model
     from recon.diagnosis import diagnose as D
     from recon.testing import independent as ind
 
@@ -549,7 +546,7 @@ def test_friction_fits_its_smoothing_velocity_where_a_small_stage_moves_in_pre_s
     # independent sweeps whose small stage moves at about the generator's v_eps: there the friction acts
     # as a viscous damper mu / v0, and a v0 held at one of the starts (1-20 % of that stage's rms
     # velocity) cannot fit it (stress #119: that stage stayed at NRMSE 0.50). v0 is fitted with mu
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.runs import model_of, to_run, true_model
     from recon.testing import independent as ind
 
     system = ind.random_system(np.random.default_rng(2), hysteresis=False, quadratic=False, cubic=True)
@@ -572,8 +569,8 @@ def test_a_contact_starts_on_the_side_whose_step_stiffens():
     # (two sides, three gaps) differ by 3 % at most; the lowest was the wrong side, stepped to a
     # negative kc, and the fit from there ended worse than no contact. A start whose step stays
     # inside kc >= 0 is taken first
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run, true_model
 
     rec = recording(draw(60))
     base = model_of({"c_m": 6.76807713542047, "k_m": 54444.32164214024, "alpha_m": 34110.598553708565,
@@ -594,8 +591,8 @@ def test_a_contact_the_baseline_took_up_as_even_stiffness_is_fitted_without_it()
     # baseline, whose y^4 took up the stop's asymmetry: it fits the fitting stages better than the
     # truth and predicts the held-out stage worse. The contact fitted beside the y^4 stayed near 0;
     # from the baseline without its even stiffness terms it is named, against that core as a null
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run, true_model
     from recon.diagnosis.diagnose import even_stiffness_terms
 
     rec = recording(draw(801))
@@ -627,8 +624,8 @@ def test_a_sensor_scale_the_baseline_took_up_as_hysteresis_is_fitted_without_it(
     # Fitted from that baseline (as given, refitted, or with the scale alone free) the scale ended
     # at held-out 0.0073 or worse against 0.0035 as given and was not named; from the baseline
     # without its law it reaches the truth's scale and held-out figure
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run, true_model
 
     rec = recording(draw(813))
     base = model_of({"c_m": 4.291391800363192, "k_m": 16973.194851877826, "alpha_m": 820.0482406801569,
@@ -653,8 +650,8 @@ def test_hysteresis_is_fitted_inside_the_admissible_bouc_wen_range():
     # hysteresis fit started at alpha = 0 without a bound went to alpha = -414 beside a stiffer k
     # (inadmissible, never reported, and cubic_stiffness was named instead). alpha is bounded at 0 and
     # starts inside the bound
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run, true_model
 
     rec = recording(draw(194))
     dg = diagnose(to_run(rec), baseline=model_of(rec["baseline"]), candidates=["hysteresis"])
@@ -671,8 +668,8 @@ def test_hysteresis_starts_with_part_of_the_baselines_stiffness_in_its_loop():
     # alpha = 0 beside that k the fit ended in a narrow loop (gamma 5219, held-out 0.228 against
     # the truth's 0.00068) and quadratic damping was named first; from a start with 10 % of K in
     # the loop and k lowered by as much it reaches the truth
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run, true_model
 
     rec = recording(draw(1247))
     base = model_of(rec["baseline"])
@@ -692,8 +689,8 @@ def test_a_fitting_stage_at_rest_off_centre_starts_where_each_model_puts_it():
     # as badly from rest as from the edge estimate (1.374 against 1.378) and chose rest for every
     # model: the truth scored 0.357 there, and the offset fitted from rest ended worse than the null
     # model. Each fit now judges the start with its own model
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run, true_model
 
     rec = recording(draw(191))
     run = to_run(rec)
@@ -725,8 +722,8 @@ def test_friction_is_found_where_the_paper_baseline_misses_the_response():
     # starts now include v0 above the small stage's velocity, where its equation step moves c and mu
     # together, and candidates also start from the baseline's linear core (fn terms at 0, c and k
     # refitted)
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run, true_model
 
     rec = recording(draw(171))
     run = to_run(rec)
@@ -753,8 +750,8 @@ def test_two_effects_neither_enough_alone_are_named_together(monkeypatch):
     # neither passed alone, fitted together (the contact on top of the y^2 fit, each side of the stop
     # fitted) they reach the truth's figure (the pair over y^2 alone: 31 % lower, 9 of 10 pieces)
     monkeypatch.setattr(rank, "STEADY_REL_GAIN", 0.25)
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run, true_model
 
     rec = recording(draw(99))
     run = to_run(rec)
@@ -814,8 +811,8 @@ def test_friction_found_with_every_parameter_where_c_and_k_alone_predict_a_littl
     # 3 x worse on the held-out stage than the baseline as given (0.0219 against 0.0067); friction
     # fitted with c and k free took 93 % of the fitting cost and reached 0.00639, not significant.
     # Refitted from there with every parameter free it reaches the truth's figure (0.00232)
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run, true_model
 
     rec = recording(draw(353))
     run = to_run(rec)
@@ -839,8 +836,8 @@ def test_a_sensor_error_on_the_rig_protocol_is_found_with_its_size_once_the_star
     # resonance search's start transient, and the scale was found only fitted alone, at 0.3-1.5 x its
     # size. With that transient out of the fit the refit costs less than 2 x, and the scale is found
     # with c and k free, its size within 2 %
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run, true_model
 
     rec = recording(draw(7))
     run = to_run(rec)
@@ -860,8 +857,8 @@ def test_a_mode_above_the_input_band_is_found_from_a_start_above_it():
     # stress #213 (a 104.6 Hz second mode, sweeps that end at 42 Hz, 68.9 dB) against its paper baseline:
     # the mode answers the sweep quasi-statically, with no peak in the residual, and the scan's starts
     # (49-54 Hz, the hardening baseline's misfit) never reached it. A start twice above the input's band does
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run, true_model
 
     rec = recording(draw(213))
     run = to_run(rec)
@@ -886,8 +883,8 @@ def test_friction_beside_a_stiffness_the_linear_baseline_lacks():
     # (truth 8.0) and no y^3 (truth 4.87e9): friction alone ends at held-out 1.41 (k takes the
     # hardening), y^3 alone at 0.96, the reference 0.95. Far above the noise floor, every candidate
     # is also fitted on top of the one that lowers the fitting cost most (friction)
-    from diagnose_stress import draw, recording
-    from independent_run import model_of, to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import model_of, to_run, true_model
 
     rec = recording(draw(80))
     run = to_run(rec)
@@ -1018,8 +1015,8 @@ def test_a_fitting_stage_in_motion_may_start_with_the_law_at_rest():
     # force's static deflection with z = 0. prepare() takes the edge's z0 from the force balance of
     # a baseline without the force, which puts the force into z0 (-0.43): from there the true model
     # scored 0.48 on that stage, and the offset candidate's fit traded the offset against it
-    from diagnose_stress import draw, recording
-    from independent_run import to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import to_run, true_model
     from recon.diagnosis.diagnose import without_terms
 
     rec = recording(draw(542))
@@ -1047,8 +1044,8 @@ def test_starts_that_differ_in_the_contact_gap_are_ranked_by_where_a_short_fit_l
     # 0.0042 against 0.0032). A short fit of kc and the gap from each start ranks them by where they lead
     import json
 
-    from diagnose_stress import draw, recording
-    from independent_run import to_run
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import to_run
     from recon.model import HystereticModel
 
     rec = recording(draw(658))
@@ -1067,8 +1064,8 @@ def test_a_fitting_stage_recorded_in_motion_leaves_its_start_transient_out_of_th
     # linear stage's ringing with a Bouc-Wen state no fit's start knows. The truth, started as the
     # fits start it, erred most in that stage's first seconds, and that transient held most of its
     # fitting cost (29.25); without the first 3 decay times of the mode the cost is the model's
-    from diagnose_stress import draw, recording
-    from independent_run import to_run, true_model
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import to_run, true_model
 
     rec = recording(draw(641))
     run = to_run(rec)

@@ -4,7 +4,7 @@ has, and a displacement record is the one it was before the option existed."""
 import numpy as np
 import pytest
 
-from bench.independent_run import to_run
+from recon.testing.runs import to_run
 from recon.testing import independent as ind
 
 

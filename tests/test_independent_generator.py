@@ -14,7 +14,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 GEN = ROOT / "recon" / "testing" / "independent.py"
 ALLOWED_TOP = {"__future__", "math", "numpy", "scipy"}
-sys.path.insert(0, str(ROOT / "bench"))   # the stress bench's run helpers and report
 
 
 def _load():
@@ -107,7 +106,7 @@ def test_noise_is_at_the_requested_snr_of_each_channel():
 
 def _rig_draw(seed: int):
     """(system, recording) of recon stress seed ``seed`` under the rig protocol, as
-    bench/recon_stress.py draws it."""
+    recon.testing.stress.stress_system draws it."""
     gen = _load()
     rng = np.random.default_rng([seed, 18])
     system = gen.random_system(rng, hysteresis=True)
@@ -164,11 +163,11 @@ def test_the_truth_simulates_every_stage_of_a_noise_free_rig_recording():
     # simulated the resonance search from the recorded base at NRMSE 0.018 (stress #112); with a
     # velocity-continuous glide between the steps, at noise level. recon's own integrator and input
     # (Savitzky-Golay x_base'') against the generator's solve_ivp
-    from independent_run import model_of, to_run
+    from recon.testing.runs import model_of, to_run
     from recon.diagnosis import rank
     from recon.diagnosis.augmented import AugmentedModel
 
-    from diagnose_stress import draw
+    from recon.testing.stress import draw
 
     gen = _load()
     d = draw(112)
@@ -183,7 +182,7 @@ def test_the_truth_simulates_every_stage_of_a_noise_free_rig_recording():
 def test_stress_report_tells_a_lacking_term_named_before_the_effect_from_a_wrong_name():
     # the strict count stays strict: a record whose baseline lacks y^2 and that holds quadratic damping
     # is a miss when y^2 is named first, but the report says when every name is true (stress #757)
-    from diagnose_stress import report
+    from recon.testing.diagnosis_stress import report
 
     def row(i, named, lacks, effect="quadratic_damping"):
         return {"index": i, "status": "ok", "protocol": "sweep", "effect": effect, "named": named,
@@ -204,7 +203,7 @@ def test_stress_report_says_which_misses_the_fitting_samples_do_not_show():
     # a miss where the truth passes the rule is a fit's failure, unless the effect never acts on
     # the samples the fit sees (stress #1061: a contact reached only in the held-out end of the
     # nonlinear stage); the report tells the two apart, and gives the count per SNR band
-    from diagnose_stress import report
+    from recon.testing.diagnosis_stress import report
 
     def row(i, first, sig, snr):
         return {"index": i, "status": "ok", "protocol": "rig", "effect": "contact_stiffness", "named": [],
@@ -235,7 +234,7 @@ def test_rescore_lists_the_verdicts_the_current_rule_changes_and_the_rows_to_run
     # their verdicts; a score from before a nested null is judged too
     import json
 
-    from diagnose_stress import rescore
+    from recon.testing.diagnosis_stress import rescore
 
     def cand(cid, sig, explained, gain, rel, blocks, **kw):
         return {"id": cid, "significant": sig, "explained": explained, "gain_over_noise": gain,
@@ -286,10 +285,11 @@ def test_effect_signature_sees_a_contact_the_fitting_samples_never_reach(monkeyp
     # on the paper protocol) is reached in both parts. Since 2026-12-05 (rank.hold_cut) #1061's top
     # level, which begins in the stage's last 30 %, is half fitted, and its fitting samples reach the
     # stop too; the 70/30 split is taken here by asking no top level to be reached (TOP_REACH 0)
-    from independent_run import to_run, true_model
+    from recon.testing.runs import to_run, true_model
     from recon.diagnosis import rank
 
-    from diagnose_stress import draw, effect_signature, recording
+    from recon.testing.diagnosis_stress import effect_signature
+    from recon.testing.stress import draw, recording
 
     def signature(i):
         rec = recording(draw(i))

@@ -166,3 +166,30 @@ def test_importing_recon_loads_no_application_code():
             "{'workflows', 'rig', 'drivers', 'matplotlib', 'dask', 'distributed', 'PySide6', 'pyqtgraph'}))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
     assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_no_test_imports_bench():
+    """The tests import the library (recon.testing holds the stress recordings and rows) and their
+    own helpers, never a bench script: nothing under tests/ imports a module of bench/ or puts
+    bench/ on sys.path. (Running a bench script as a command, to test its command line, is fine.)"""
+    bench = {p.stem for p in (ROOT / "bench").glob("*.py")} | {"bench"}
+    bad = []
+    for path in sorted((ROOT / "tests").rglob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        rel = path.relative_to(ROOT)
+        for node in ast.walk(ast.parse(text)):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module]
+            for name in names:
+                if name.split(".")[0] in bench:
+                    bad.append(f"{rel}:{node.lineno} imports {name}")
+            # sys.path.insert(..., <anything naming "bench">) / sys.path.append(...)
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                    and node.func.attr in ("insert", "append", "extend")
+                    and isinstance(node.func.value, ast.Attribute) and node.func.value.attr == "path"
+                    and "bench" in ast.unparse(node)):
+                bad.append(f"{rel}:{node.lineno} puts bench/ on sys.path")
+    assert not bad, "\n".join(bad)

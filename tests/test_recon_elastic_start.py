@@ -10,23 +10,18 @@ paper baseline, on which the diagnosis named a sensor scale instead of the mode.
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 
 from recon import reconstruct
 from recon.diagnosis import rank
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))   # the independent generator's run helpers
 
 ROW = 1175
 
 
 @pytest.mark.slow
 def test_the_elastic_kind_from_zero_finds_the_stiffness_terms_the_estimate_start_missed():
-    from diagnose_stress import draw, recording
-    from independent_run import to_run
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import to_run
 
     d = draw(ROW)
     assert d["effect"] == "higher_mode" and d["protocol"] == "sweep"

@@ -105,11 +105,8 @@ def test_independent_recording_seed_0_at_60_db_is_fitted_within_2_percent_from_t
     # fit of the nonlinear stage started at the truth ended with delta 6.9 % off while the base
     # sensor's noise went into the simulation through a Savitzky-Golay second derivative; with a
     # noise-free base channel it was 0.8 %. With the input cleared above its band: 1.7 %.
-    import sys
-    from pathlib import Path
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    from independent_run import model_of, score, to_run
-    from recon_stress import stress_system
+    from recon.testing.runs import model_of, score, to_run
+    from recon.testing.stress import stress_system
     from recon.output_error.polish import polish
     from recon.testing import independent as ind
 
@@ -127,11 +124,8 @@ def test_independent_recording_seed_6_at_60_db_reconstructs_within_2_percent():
     # Stress seed 6 (paper protocol, fs 2201 Hz) at 60 dB: the polish started from an
     # equation-error estimate with k = 15 against 1200 and stopped at its budget of 60
     # evaluations, alpha 5.9 % off; continued from there (finish.continue_polish) it ends 0.27 % off
-    import sys
-    from pathlib import Path
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    from independent_run import score, to_run
-    from recon_stress import stress_system
+    from recon.testing.runs import score, to_run
+    from recon.testing.stress import stress_system
     from recon import ReconSettings, reconstruct
     from recon.testing import independent as ind
 

@@ -103,12 +103,9 @@ def test_constant_force_on_an_independent_record_is_fitted_and_left_to_the_diagn
     """Diagnosis stress recording #9 (independent generator: multisine, 3193 Hz, 50.5 dB, a constant
     force). Without the offset reconstruct returned 15 terms with k at 7 % of the truth; with the
     rule on, the exact law, and the diagnosis's paper baseline leaves the offset for `offset` to name."""
-    import sys
-    from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    from diagnose_stress import draw
-    from independent_run import to_run
+    from recon.testing.stress import draw
+    from recon.testing.runs import to_run
     from recon.testing import independent as ind
 
     d = draw(9)

@@ -14,8 +14,6 @@ model; on the stage's held-out end it then left the record (NRMSE 1.47).
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import pytest
 
@@ -28,15 +26,13 @@ from recon.estimator.result import ReconResult
 from recon.model import HystereticModel
 from shakerlab.run_data import Run
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))   # the independent generator's run helpers
-
 ROW = 1018
 
 
 def _stress_record(i: int) -> tuple[Run, dict]:
-    """Stress recording ``i`` as the bench draws it (bench/diagnose_stress.py), as a run."""
-    from diagnose_stress import draw, recording
-    from independent_run import to_run
+    """Stress recording ``i`` as the bench draws it (recon.testing.stress), as a run."""
+    from recon.testing.stress import draw, recording
+    from recon.testing.runs import to_run
 
     d = draw(i)
     assert d["effect"] == "channel_delay"

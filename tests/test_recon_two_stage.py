@@ -1,21 +1,16 @@
 """The two-stage polish (recon.estimator.finish.two_stage_polish): the linear and nonlinear stages
 fitted together, each weighted by its own noise, kept only when the stages agree."""
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-
-from independent_run import score, to_run  # noqa: E402
-from recon_stress import stress_system  # noqa: E402
-
-from recon import ReconSettings, reconstruct  # noqa: E402
-from recon.estimator.two_stage import two_stage_polish  # noqa: E402
-from recon.testing import independent as ind  # noqa: E402
-from shakerlab.run_data import Run, Stage  # noqa: E402
+from recon import ReconSettings, reconstruct
+from recon.estimator.two_stage import two_stage_polish
+from recon.testing import independent as ind
+from recon.testing.runs import score, to_run
+from recon.testing.stress import stress_system
+from shakerlab.run_data import Run, Stage
 
 
 def _record(seed: int, snr: float) -> tuple[dict, Run]:

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from bench.independent_run import score, to_run
+from recon.testing.runs import score, to_run
 from recon.estimator.linear_start import stage_linear_fit
 from recon.steps.linear import NoisyLinearStage
 from recon.testing import independent as ind

@@ -29,7 +29,8 @@ from shakerlab.run_data import BASE
 # table is unchanged by the choice: docs/architecture.md.)
 DIVERGED_RESIDUAL = 1e3
 # The relative finite-difference step of every output-error fit's Jacobian (scipy's
-# least_squares ``diff_step``). Measured by bench/diff_step.py at the truth of a base and a
+# least_squares ``diff_step``). Measured once (bench/diff_step.py, kept in git history:
+# ``git show 104a713:bench/diff_step.py``) at the truth of a base and a
 # force run (RK4) and of the Bouc-Wen benchmark chain (Newmark): the forward-difference
 # Jacobian's error is about 6 h down to h = 1e-8, where rounding takes over; 1e-6 puts it at
 # 3e-6 to 9e-6 for both simulators, far below what moves a trust-region step.

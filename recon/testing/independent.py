@@ -3,7 +3,7 @@
 It shares no code with shakerlab: it imports only numpy, scipy and the standard library
 (``tests/test_independent_generator.py`` asserts it), integrates its own equations with
 ``scipy.integrate.solve_ivp`` and returns plain dicts of arrays. The benches convert them
-to shakerlab runs (``bench/independent_run.py``).
+to shakerlab runs (``recon/testing/runs.py``).
 
 Physics (SI units, not per unit mass). Base excitation, relative coordinate y = x_tip - x_base::
 
@@ -58,7 +58,7 @@ PHYSICAL_EFFECTS = ("coulomb_friction", "quadratic_damping", "channel_delay", "h
 # ... and model terms a given baseline lacks (the recording states the baseline without them)
 STRUCTURAL_EFFECTS = ("cubic_stiffness", "quadratic_stiffness", "hysteresis")
 # physics added after the diagnosis stress benchmark fixed its effect cycle on the two lists above
-# (bench/diagnose_stress.py): damping that grows with the amplitude, as micro-slip in a bolted joint
+# (recon/testing/stress.py): damping that grows with the amplitude, as micro-slip in a bolted joint
 MORE_PHYSICAL_EFFECTS = ("amplitude_damping",)
 EFFECTS = ("none",) + PHYSICAL_EFFECTS + STRUCTURAL_EFFECTS + MORE_PHYSICAL_EFFECTS
 SETTLE_S = 1.0
