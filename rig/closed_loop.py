@@ -463,6 +463,7 @@ class ClosedLoop:
                 self._check()
                 if self.confirm is not None and not self.confirm(plan):
                     rounds.append(entry)
+                    self._check()
                     stop, why = "declined", f"{STOPS['declined']}; the plan:\n{plan.text()}"
                     break
                 self._check()

@@ -325,3 +325,50 @@ def test_acquire_diagnose_auto_json_end_to_end(tmp_path, capsys):
         assert set(r["stages_added"]) <= set(info["stages"])
     print(json.dumps({"stop": doc["stop"], "result": doc["diagnosis"]["result"],
                       "rounds": [(r["why"], r["stages_added"]) for r in doc["rounds"]]}), file=__import__("sys").stderr)
+
+
+# ---- in the operator window ---------------------------------------------------------------------------
+
+@pytest.fixture
+def window(qtbot, tmp_path):
+    from rig.gui.window import MainWindow
+    from tests.test_rig_acquisition import SMALL_PROTOCOL
+
+    w = MainWindow(output_dir=tmp_path / "runs", speed=0.0, seed=2, auto_reconstruct=False)
+    qtbot.addWidget(w)
+    w.show()
+    w.set_protocol_text(SMALL_PROTOCOL, "test protocol")
+    yield w
+    w.shutdown()
+
+
+def test_gui_runs_the_loop_after_the_run_and_shows_it(qtbot, window):
+    w = window
+    w.loop_panel.enabled.setChecked(True)
+    w.loop_panel.confirm.setChecked(False)
+    w.loop_diagnose = Script(AMBIGUOUS, RESOLVED)
+    assert w.start_run(), w.last_error
+    qtbot.waitUntil(lambda: w.loop is not None and w.loop.result is not None, timeout=120000)
+    p = w.loop_panel
+    assert w.loop.result.stop == "resolved"
+    assert p.step.text().startswith("stopped (resolved)")
+    assert "validation_amplitude_r1" in p.plan.toPlainText() and "ambiguous" in p.plan.toPlainText()
+    assert "quadratic_damping: x:c2 = 0.5" in p.named.text()
+    assert "0.02" in p.nrmse.text() and "0.004" in p.nrmse.text()
+    assert "validation_amplitude_r1" in read_info(w.last_outcome.path)["stages"]
+    assert p.diagnose_button.isEnabled() and not p.cancel_button.isEnabled()
+
+
+def test_gui_cancel_while_a_plan_waits_records_nothing(qtbot, window):
+    w = window
+    w.loop_panel.confirm.setChecked(True)
+    w.loop_diagnose = Script(AMBIGUOUS)
+    assert w.start_run(), w.last_error
+    qtbot.waitUntil(lambda: w.last_outcome is not None, timeout=120000)
+    n = len(read_info(w.last_outcome.path)["stages"])
+    assert w.start_loop()
+    qtbot.waitUntil(lambda: w.loop_panel.record_button.isEnabled(), timeout=30000)
+    assert "REFUSED" not in w.loop_panel.plan.toPlainText()
+    qtbot.mouseClick(w.loop_panel.cancel_button, __import__("PySide6").QtCore.Qt.LeftButton)
+    qtbot.waitUntil(lambda: w.loop.result is not None, timeout=30000)
+    assert w.loop.result.stop == "cancelled" and len(read_info(w.last_outcome.path)["stages"]) == n
