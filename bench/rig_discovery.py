@@ -176,10 +176,15 @@ def main(argv=None) -> int:
     ap.add_argument("--protocol", type=Path, help="protocol TOML (default: a short one)")
     ap.add_argument("--rate", type=float, default=1000.0, help="acquisition sample rate, Hz (default 1000)")
     ap.add_argument("--max-rounds", type=int, default=2)
+    ap.add_argument("--sizes", default="", metavar="EFFECT=SIZE,...",
+                    help="sizes instead of the drawn ones (e.g. near a detection limit: coulomb_friction=0.008)")
     ap.add_argument("--jsonl", type=Path, help="append one JSON row per case")
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     sizes = {e: float(np.exp(rng.uniform(np.log(lo), np.log(hi)))) for e, (_, _, _, (lo, hi), _) in EFFECTS.items()}
+    for item in filter(None, args.sizes.split(",")):
+        name, value = item.split("=")
+        sizes[name.strip()] = float(value)
     effects = [e.strip() for e in args.effects.split(",") if e.strip()]
     unknown = [e for e in effects if e != "clean" and e not in EFFECTS]
     if unknown:
