@@ -147,6 +147,12 @@ def _acquire(args) -> int:
                 return EXIT_CODES.get(outcome.status, 1)
             if outcome.status != "complete":
                 print(f"not diagnosed: the run ended {outcome.status}", file=stream)
+                if args.json:
+                    import json  # heavy: numpy, h5py, Qt; loaded when the command runs
+
+                    print(json.dumps({"diagnosis": None, "rounds": [], "stop": "run_failed",
+                                      "stop_reason": f"the run ended {outcome.status}: {outcome.reason}",
+                                      "run_file": str(outcome.path) if outcome.path else None}))
                 return EXIT_CODES.get(outcome.status, 1)
             return _closed_loop(args, config, protocol, lockstep, progress, hook, stream)
 

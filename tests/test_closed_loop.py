@@ -372,3 +372,21 @@ def test_gui_cancel_while_a_plan_waits_records_nothing(qtbot, window):
     qtbot.mouseClick(w.loop_panel.cancel_button, __import__("PySide6").QtCore.Qt.LeftButton)
     qtbot.waitUntil(lambda: w.loop.result is not None, timeout=30000)
     assert w.loop.result.stop == "cancelled" and len(read_info(w.last_outcome.path)["stages"]) == n
+
+
+def test_acquire_options_and_sim_config(tmp_path, capsys):
+    from tests.test_rig_acquisition import SMALL_PROTOCOL
+
+    proto = tmp_path / "p.toml"
+    proto.write_text(SMALL_PROTOCOL)
+    out = tmp_path / "run.h5"
+    assert main(["acquire", "--sim-speed", "0", "--protocol", str(proto), "-o", str(out), "--auto"]) == 2
+    assert "--auto applies to --diagnose" in capsys.readouterr().err
+    assert main(["acquire", "--config", str(tmp_path / "x.toml"), "--sim-config", str(tmp_path / "s.toml"),
+                 "--protocol", str(proto), "-o", str(out)]) == 2
+    sim = tmp_path / "sim.toml"
+    sim.write_text("[effects]\noffset = 0.5\n")
+    assert main(["acquire", "--sim-speed", "0", "--protocol", str(proto), "-o", str(out), "--quiet",
+                 "--sim-config", str(sim)]) == 0
+    assert "with " + str(sim) in capsys.readouterr().out
+    assert read_info(out)["config"]["simulator_toml"] == sim.read_text()
