@@ -58,7 +58,7 @@ RESULT_KIND = "closed_loop"
 # why the loop stopped (the ``stop`` of the JSON and of the run file's history)
 STOPS = {
     "resolved": "the answer is unambiguous and significant",
-    "clean": "nothing named, and every candidate's fitted size is below its detection limit on this record",
+    "clean": "nothing named, and no candidate near its detection limit on this record (none undecided)",
     "max_rounds": "the configured number of added rounds was reached",
     "refused": "every planned stage is beyond a limit of the rig or a ceiling of the specimen",
     "declined": "the plan was not confirmed",
@@ -163,10 +163,13 @@ def decide(d: dict) -> Decision:
         lim = u["limit"] or {}
         limit = (f" (detection limit on this record: {lim['parameter']} {lim['value']:.3g})"
                  if lim.get("value") is not None else "")
+        how = ("a second amplitude at the same frequency (the effect changes with amplitude)"
+               if proposal["stages"] == ["validation_amplitude"] else
+               "a frequency step at the same level (the effect trades off with the model's terms at one frequency)")
         return Decision("add", reason=f"nothing named, but {u['id']} takes {100 * (u['explained'] or 0):.0f} % of the "
                                       f"held-out mismatch without passing the significance rule{limit}: this record "
-                                      f"cannot show whether it is there; adding {proposal['reason']}",
-                        proposal={**proposal, "ids": [u["id"]]})
+                                      f"cannot show whether it is there; adding {how}",
+                        proposal={**proposal, "ids": [u["id"]], "reason": how})
     return Decision("stop", "clean", STOPS["clean"])
 
 
