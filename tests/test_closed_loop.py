@@ -396,3 +396,38 @@ def test_acquire_options_and_sim_config(tmp_path, capsys):
                  "--sim-config", str(sim)]) == 0
     assert "with " + str(sim) in capsys.readouterr().out
     assert read_info(out)["config"]["simulator_toml"] == sim.read_text()
+
+
+def test_acquire_diagnose_prints_the_loop_and_asks_only_on_a_terminal(tmp_path, capsys, monkeypatch):
+    """The command's text output with a scripted diagnosis (a real `diagnose --json` answer of a clean
+    short run, made ambiguous for the first round): the plan, the rounds, why it stopped, the final
+    diagnosis as `diagnose` prints it. Not on a terminal and without --auto, the plan is printed and
+    nothing is recorded."""
+    import rig.closed_loop
+    from pathlib import Path
+
+    from tests.test_rig_acquisition import SMALL_PROTOCOL
+
+    real = json.loads((Path(__file__).parent / "data" / "diagnosis_short_clean.json").read_text())
+    first = {**real, "ambiguous": AMBIGUOUS["ambiguous"], "separating_stage": AMBIGUOUS["separating_stage"]}
+    script = Script(first, real)
+    monkeypatch.setattr(rig.closed_loop, "diagnose_file", lambda path, extra=None: script(path))
+    proto = tmp_path / "p.toml"
+    proto.write_text(SMALL_PROTOCOL)
+    out = tmp_path / "run.h5"
+    assert main(["acquire", "--sim-speed", "0", "--protocol", str(proto), "-o", str(out), "--quiet",
+                 "--diagnose", "--auto"]) == 0
+    text = capsys.readouterr().out
+    assert "round 1: ambiguous: quadratic_damping and coulomb_friction" in text
+    assert "validation_amplitude_r1" in text and "added stages: complete" in text
+    assert "nothing found" in text and "not seen above (detection limits on this record)" in text
+    assert "closed loop stopped (clean)" in text
+    assert "validation_amplitude_r1" in read_info(out)["stages"]
+
+    script = Script(first)
+    out2 = tmp_path / "run2.h5"
+    assert main(["acquire", "--sim-speed", "0", "--protocol", str(proto), "-o", str(out2), "--quiet",
+                 "--diagnose"]) == 0
+    text = capsys.readouterr().out
+    assert "closed loop stopped (declined)" in text and "validation_amplitude_r1: " in text
+    assert list(read_info(out2)["stages"])[-1] == "validation"

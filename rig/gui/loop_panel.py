@@ -218,6 +218,8 @@ class LoopController(QtCore.QObject):
         self.result = result
         self.panel.busy(False)
         self.panel.step.setText(f"stopped ({result.stop}): {result.stop_reason}")
+        if not result.rounds:
+            self.panel.plan.setPlainText("no stage added: the first diagnosis decided")
         self.finished.emit(result)
 
     def _failed(self, message: str) -> None:
