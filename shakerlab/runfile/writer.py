@@ -114,6 +114,10 @@ class RunWriter:
     :meth:`discard`, deletes the partial file and keeps ``path`` as it was. A
     crash leaves ``path.partial`` (recover it with ``shakerlab import
     --recover``).
+
+    ``append=True`` adds stages to the cleanly closed run file ``path`` the same way: a copy is
+    recorded into and renamed over it (:meth:`_open_for_append`); ``overwrite`` and ``attrs`` do
+    not apply.
     """
 
     def __init__(self, path: str | Path, *, overwrite: bool = False, flush_interval: float = 0.5,
