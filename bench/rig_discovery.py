@@ -145,6 +145,9 @@ def run_case(effect: str, size: float | None, workdir: Path, protocol: Path, rig
         row["error"] = (p.stderr.strip().splitlines() or ["no output"])[-1]
         return row
     d = doc["diagnosis"]
+    if d is None:       # the protocol itself did not complete (a trip, an error): not diagnosed
+        row["error"] = doc["stop_reason"]
+        return row
     named = d.get("missing_physics", [])
     row.update(named=[m["id"] for m in named], stop=doc["stop"], rounds=len(doc["rounds"]),
                stages_added=[s for r in doc["rounds"] for s in r["stages_added"]],
