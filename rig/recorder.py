@@ -27,10 +27,12 @@ class Recorder:
     """
 
     def __init__(self, path, *, overwrite: bool = False, flush_interval: float = 0.5, fs: float,
-                 quantities: dict | None = None):
-        self.writer = RunWriter(path, overwrite=overwrite, flush_interval=flush_interval)
+                 quantities: dict | None = None, append: bool = False):
+        self.writer = RunWriter(path, overwrite=overwrite, flush_interval=flush_interval, append=append)
         self.path = self.writer.path
         self.fs = fs
+        # added stages (append) continue the file's sample count: their indices follow its last sample
+        self.offset = self.writer.end_index() if append else 0
         quantities = quantities or {}
         self.quantities = {f"x_{p}": q for p, q in quantities.items() if q != "displacement"}
         # channel written per point: (name in the file, where the block holds it)
@@ -46,7 +48,7 @@ class Recorder:
 
     def on_run_start(self, info: dict) -> None:
         w = self.writer
-        for key in ("rig_toml", "protocol_toml", "simulator_toml"):
+        for key in [k for k in info if k.endswith("_toml")]:
             if info.get(key):
                 w.set_text(key, info[key])
         for name, identity in info.get("identities", {}).items():
@@ -61,7 +63,7 @@ class Recorder:
             # the velocity is integrated from the start value this recorder keeps (shakerlab.quantities)
             settings = {**settings, "integration": CONTINUOUS}
         self._starts_pending = bool(self.quantities)
-        self.stage = self.writer.begin_stage(name, fs=self.fs, start_index=index, settings=settings,
+        self.stage = self.writer.begin_stage(name, fs=self.fs, start_index=index + self.offset, settings=settings,
                                              quantities=self.quantities)
 
     def on_block(self, block) -> None:
@@ -75,7 +77,7 @@ class Recorder:
         values = {"x_base": block.x_base, "x_tip": block.x_tip, **block.measured}
         flags = {"x_base": block.flags_base, "x_tip": block.flags_tip}
         try:
-            self.stage.append(block.index0, {name: values[name] for name, _ in self.channels},
+            self.stage.append(block.index0 + self.offset, {name: values[name] for name, _ in self.channels},
                               flags={name: flags[role] for name, role in self.channels})
         except NoSpace as exc:
             # the run stops (the runner ramps down on an observer's error); the file stays whole to
@@ -102,7 +104,7 @@ class Recorder:
 
     def on_setpoint(self, index: int, vpp: float, hz: float, label: str) -> None:
         if self.stage is not None:
-            self.stage.add_step(index, vpp, hz, label)
+            self.stage.add_step(index + self.offset, vpp, hz, label)
 
     def on_control(self, record: dict) -> None:
         """A closed-loop window: append a row to the stage's ``control`` dataset (created on first use)."""
@@ -117,6 +119,7 @@ class Recorder:
         ds = g["control"]
         n = ds.shape[0]
         ds.resize((n + 1,))
+        record = {**record, "sample_index": record.get("sample_index", 0) + self.offset}
         ds[n] = tuple(record.get(k, np.nan) for k in CONTROL_FIELDS)
         self.writer._maybe_flush()
 
@@ -128,7 +131,7 @@ class Recorder:
     def on_event(self, level: str, message: str, run_time: float) -> None:
         if self.no_space is not None:
             return
-        self.writer.log(level, message, run_time=run_time)
+        self.writer.log(level, message, run_time=run_time + self.offset / self.fs)
 
     def on_run_end(self, status: str, reason: str) -> None:
         if self.no_space is not None:

@@ -24,8 +24,13 @@ EXIT_CODES = {"complete": 0, "error": 1, "tripped": 3, "aborted": 130}
 
 def acquire(config: RigConfig, protocol: Protocol, output: str | Path, *, lockstep: bool = False,
             observers=(), overwrite: bool = False, attrs: dict | None = None, texts: dict | None = None,
-            on_runner=None, plan=None) -> RunOutcome:
+            on_runner=None, plan=None, append: bool = False) -> RunOutcome:
     """Run ``protocol`` on the rig at ``config``'s addresses and record to ``output``.
+
+    ``append``: add the stages to the cleanly closed run file ``output`` (its configuration texts
+    and attributes stay; ``texts`` and ``attrs`` are added), their sample indices continuing from its
+    last sample (:class:`rig.recorder.Recorder`); the file is replaced by the extended one only when
+    that is whole (:class:`shakerlab.runfile.writer.RunWriter`).
 
     ``on_runner(runner)`` is called before the run starts (to keep a handle
     for abort/pause, e.g. from a signal handler or a GUI button). ``plan``
@@ -43,7 +48,7 @@ def acquire(config: RigConfig, protocol: Protocol, output: str | Path, *, lockst
     try:
         check_device_settings(config, inst)
         recorder = Recorder(output, overwrite=overwrite, flush_interval=config.acquisition["flush_interval_s"],
-                            fs=inst.fs, quantities=inst.quantities)
+                            fs=inst.fs, quantities=inst.quantities, append=append)
     except Exception:
         inst.close()
         raise
@@ -54,6 +59,8 @@ def acquire(config: RigConfig, protocol: Protocol, output: str | Path, *, lockst
     ctx = PlanContext(config.limits)
     info = {"rig_toml": config.text, "protocol_toml": protocol.text, **(texts or {}),
             "attrs": {"rig_config": config.source, "protocol": protocol.source, **(attrs or {})}}
+    if append:      # the file keeps the texts and attributes of its first recording
+        info = {**(texts or {}), "attrs": dict(attrs or {})}
     try:
         outcome = runner.run(plan if plan is not None else protocol_plan(protocol, config.limits, ctx), info)
     finally:

@@ -176,7 +176,11 @@ class SimLaserSensor:
                 w.catch_up()
             avail = self._available()
             # samples that fell out of the ring are lost: flag the overflow and skip ahead
-            oldest = w.oldest_step() + w.delay_steps
+            # (the tip channel reads delay_steps back: its oldest reading is that much later, once the
+            # ring has wrapped; before, the delayed channel reads the first sample)
+            oldest = w.oldest_step()
+            if self.channel == 1 and oldest > 0:
+                oldest += w.delay_steps
             first_ok = max(0, math.ceil((oldest - self.start_step) / k))
             if self.next_index < first_ok:
                 self.overflow = True

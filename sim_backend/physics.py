@@ -8,6 +8,8 @@ the arrays and changes settings between calls.
 
 Mechanics (x_b armature/base, y = x_tip - x_base, specimen mass m, armature M):
     r   = c y' + k(t) y + fn_m(y, y') + z + extras(y, y')          (per unit mass)
+          extras: friction, quadratic damping, contact, a constant force f0; the effects'
+          cubic stiffness and amplitude damping add to fn_m's y^3 and y^2*dy coefficients
     M x_b'' = K_f i - k_s x_b - c_s x_b' + m r                       (reaction of the specimen)
     y''     = -r - x_b''
     z'      = alpha y' - gamma |y'| z - delta y' |z|
@@ -30,7 +32,8 @@ P_MA, P_KS, P_CS, P_KF, P_R = range(10, 15)
 P_GM, P_RAIL, P_RTH, P_TAU, P_TAMB, P_TMAX = range(15, 21)
 P_MU, P_C2, P_GAP, P_KC, P_DRIFT, P_W2, P_Z2, P_PHI2 = range(21, 29)
 P_SCALE_B, P_SCALE_T, P_NOISE, P_SEED, P_VNOISE, P_TIP_ON_BASE = range(29, 35)
-N_P = 35
+P_F0 = 35
+N_P = 36
 # the velocity readings' noise is a second counter-based stream: (seed, step + VELOCITY_STREAM), so the
 # displacement readings (and their noise) are the same whether or not velocity is read
 VELOCITY_STREAM = 1 << 60
@@ -91,6 +94,8 @@ def _rates(P, s, i, t, out):
         r += P[P_C2] * vy * abs(vy)
     if P[P_KC] > 0.0 and y > P[P_GAP]:
         r += P[P_KC] * (y - P[P_GAP])
+    if P[P_F0] != 0.0:
+        r += P[P_F0]
     ab = (P[P_KF] * i - P[P_KS] * xb - P[P_CS] * vb + P[P_M] * r) / P[P_MA]
     out[0] = vb
     out[1] = ab
@@ -241,8 +246,10 @@ def parameter_vector(cfg: dict, seed: int) -> np.ndarray:
     P[P_GAMMA] = sp["gamma"]
     P[P_DELTA] = sp["delta"]
     P[P_A2] = sp["fn_m"].get("y^2", 0.0)
-    P[P_A3] = sp["fn_m"].get("y^3", 0.0)
-    P[P_B2] = sp["fn_m"].get("y^2*dy", 0.0)
+    # an effect's term adds to the specimen's own (x + 0.0 == x: without the effect the kernel's input
+    # is the specimen's coefficient, bit for bit)
+    P[P_A3] = sp["fn_m"].get("y^3", 0.0) + fx["cubic_stiffness"]
+    P[P_B2] = sp["fn_m"].get("y^2*dy", 0.0) + fx["amplitude_damping"]
     P[P_MA] = sh["armature_mass"]
     P[P_KS] = sh["suspension_stiffness"]
     P[P_CS] = sh["suspension_damping"]
@@ -268,4 +275,5 @@ def parameter_vector(cfg: dict, seed: int) -> np.ndarray:
     P[P_SEED] = float(seed % (2**52))
     P[P_VNOISE] = sen["velocity_noise_std"]
     P[P_TIP_ON_BASE] = sen["tip_on_base"]
+    P[P_F0] = fx["offset"]
     return P

@@ -24,6 +24,8 @@ ENTRY_POINTS = {
     "rig.gui.results": {"recon"},
     "rig.gui.diagnosis": {"recon"},
     "rig.session": {"sim_backend"},
+    "rig.closed_loop": {"recon"},               # the closed loop: acquire, diagnose, acquire again
+    "rig.commands": {"workflows"},              # acquire --diagnose prints what `diagnose` prints
 }
 # a function-local import is allowed only with a one-line reason on the same line ("# heavy: ..." or
 # "# lazy: ..."), for start-up time of the command line or the operator window

@@ -246,3 +246,35 @@ def test_is_driven_follows_generator_amplifier_and_burst_state():
     A[ph.A_WD] = 1.0
     G[ph.G_BURST] = 0.0
     assert not w.is_driven(), "muted by the watchdog"
+
+
+def test_offset_moves_the_response_off_centre_by_f0_over_k():
+    # a constant force f0 per unit mass: the relative motion's mean sits off centre by f0 over a
+    # stiffness between k (the hysteretic state relaxed) and k + alpha (its initial stiffness)
+    cfg = load_config(None)["specimen"]
+    f0 = 2.0
+    _, xb0, xt0 = run(QUIET, f=8.0, vpp=0.05, seconds=3.0)
+    _, xb1, xt1 = run(merge(QUIET, {"effects": {"offset": f0}}), f=8.0, vpp=0.05, seconds=3.0)
+    shift = np.mean((xt1 - xb1)[-10000:]) - np.mean((xt0 - xb0)[-10000:])
+    assert f0 / (cfg["k_m"] + cfg["alpha_m"]) < -shift < 1.02 * f0 / cfg["k_m"]
+
+
+@pytest.mark.parametrize("effect,value,term", [("cubic_stiffness", 3.0e8, "y^3"),
+                                               ("amplitude_damping", 4.0e5, "y^2*dy")])
+def test_effect_terms_add_to_the_specimens_own(effect, value, term):
+    base = load_config(None)["specimen"]["fn_m"][term]
+    _, xb1, xt1 = run(merge(QUIET, {"effects": {effect: value}}), seconds=1.0)
+    _, xb2, xt2 = run(merge(QUIET, {"specimen": {"fn_m": {term: base + value}}}), seconds=1.0)
+    assert np.array_equal(xt1, xt2) and np.array_equal(xb1, xb2)
+    _, _, xt0 = run(QUIET, seconds=1.0)
+    assert not np.array_equal(xt0, xt1)
+
+
+def test_no_effect_path_is_bit_identical():
+    # every new effect at 0 leaves the kernel's input as it was: the same readings, bit for bit
+    cfg = {"effects": {"offset": 0.0, "cubic_stiffness": 0.0, "amplitude_damping": 0.0}}
+    _, xb0, xt0 = run(None, seconds=0.5, seed=4)
+    _, xb1, xt1 = run(cfg, seconds=0.5, seed=4)
+    assert np.array_equal(xt0, xt1) and np.array_equal(xb0, xb1)
+    P = ph.parameter_vector(load_config(None), 0)
+    assert P[ph.P_F0] == 0.0 and P[ph.P_A3] == load_config(None)["specimen"]["fn_m"]["y^3"]

@@ -29,6 +29,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from rig.gui.live_state import LiveData
 from rig.gui.diagnosis import Cancelled, DiagnosisJob
+from rig.gui.loop_panel import LoopController, LoopPanel
 from rig.gui.panels import (LOOP_TITLE, ConnectionPanel, DiagnosisPanel, LivePlots, ProtocolPanel, ResultsPanel,
                             set_series)
 from shakerlab.errors import UserFacingError
@@ -140,6 +141,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.protocol_panel = ProtocolPanel()
         ll.addWidget(self.connection)
         ll.addWidget(self.protocol_panel, 1)
+        self.loop_panel = LoopPanel()       # the closed loop (rig/gui/loop_panel.py)
+        ll.addWidget(self.loop_panel)
+        self.loop = None                    # LoopController while a loop runs or after it
+        self._loop_args = None              # (config with addresses, protocol, lockstep) of the last run
+        self.loop_diagnose = None           # the loop's diagnosis of a run file (None: recon.diagnose)
         self.log_view = QtWidgets.QPlainTextEdit()
         self.log_view.setReadOnly(True)
         self.log_view.setMaximumBlockCount(2000)
@@ -206,6 +212,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.diagnosis.cancel_button.clicked.connect(self.cancel_diagnosis)
         self.open_action.triggered.connect(self._choose_run)
         self.results_path = None
+        self.loop_panel.diagnose_button.clicked.connect(self.start_loop)
 
     # -- helpers --------------------------------------------------------------------------------
     def log(self, level: str, message: str, run_time: float | None = None) -> None:
@@ -219,6 +226,9 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def running(self) -> bool:
         return self._run_thread is not None and self._run_thread.is_alive()
+
+    def loop_running(self) -> bool:
+        return self.loop is not None and self.loop.running()
 
     def config(self):
         from rig.config import load_config  # lazy: loaded when the operator uses it (window start-up time)
@@ -402,7 +412,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def start_run(self) -> bool:
         """Validate the config and the protocol, then run them in the worker thread."""
-        if self.running():
+        if self.running() or self.loop_running():
             return False
         try:
             config = self.config()
@@ -458,6 +468,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
                     attrs.update(simulated=True, seed=self.seed)
                     texts["simulator_toml"] = DEFAULT_CONFIG_PATH.read_text()
+                self._loop_args = (cfg, protocol, lockstep)
                 outcome = acquire(cfg, protocol, path, lockstep=lockstep, observers=[self.live, bridge],
                                   on_runner=self._got_runner, attrs=attrs, texts=texts)
                 self.signals.finished.emit(outcome)
@@ -478,6 +489,10 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def abort(self) -> None:
         """First press: ramp to zero and stop; second press: cut the output at once."""
+        if self.loop_running():       # the closed loop's added stages: its runner ramps down (again: cuts)
+            self.log("warning", "ABORT: cancelling the closed loop (a stage being recorded ramps down)")
+            self.loop.cancel()
+            return
         if not self.running():
             self.log("info", "ABORT: nothing is running")
             return
@@ -564,6 +579,10 @@ class MainWindow(QtWidgets.QMainWindow):
         if self._close_pending:
             self.close()
             return
+        self.loop_panel.diagnose_button.setEnabled(outcome.status == "complete")
+        if outcome.status == "complete" and self.loop_panel.enabled.isChecked():
+            self.start_loop()
+            return
         if outcome.status == "complete" and self.auto_reconstruct:
             truth = self.sim.world.truth() if self._run_simulated and self.sim is not None else None
             self.open_run(outcome.path, truth=truth)
@@ -582,6 +601,36 @@ class MainWindow(QtWidgets.QMainWindow):
         self._error_box(f"run failed: {message}")
         if self._close_pending:
             self.close()
+
+    # -- closed loop ----------------------------------------------------------------------------------
+    def start_loop(self) -> bool:
+        """Diagnose the last run and record the stages that decide into it (rig/gui/loop_panel.py)."""
+        if self.running() or (self.loop is not None and self.loop.running()):
+            return False
+        if self.last_outcome is None or self.last_outcome.status != "complete" or self._loop_args is None:
+            self.log("info", "closed loop: no complete run to diagnose")
+            return False
+        cfg, protocol, lockstep = self._loop_args
+        if self._run_simulated:
+            cfg = cfg.with_addresses(self._ensure_sim().addresses)
+        self.loop = LoopController(self.loop_panel, self.last_outcome.path, cfg, protocol, lockstep=lockstep,
+                                   observers=[self.live, _Bridge(self.signals)], on_runner=self._got_runner,
+                                   diagnose=self.loop_diagnose, parent=self)
+        self.loop.finished.connect(self._on_loop_finished)
+        self.log("info", f"closed loop: diagnosing {self.last_outcome.path}")
+        self.loop.start()
+        return True
+
+    def _on_loop_finished(self, result) -> None:
+        if self._close_pending:
+            self.close()
+            return
+        if result is None:
+            self._error_box(f"closed loop failed: {self.loop.error}")
+            return
+        self.log("info", f"closed loop stopped ({result.stop}): {result.stop_reason}")
+        if self.auto_reconstruct:
+            self.open_run(self.last_outcome.path)
 
     # -- results --------------------------------------------------------------------------------------
     def open_run(self, path, reconstruct: bool = False, truth: dict | None = None, law=None) -> bool:
@@ -788,6 +837,11 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # -- closing ------------------------------------------------------------------------------------------
     def closeEvent(self, event) -> None:  # noqa: N802 - Qt name
+        if self.loop_running():
+            self._close_pending = True
+            self.loop.cancel()
+            event.ignore()
+            return
         if self.running():
             if not self._close_pending:
                 self._close_pending = True
@@ -803,6 +857,9 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def shutdown(self, timeout: float = 10.0) -> None:
         """Abort any run and wait for it (application exit without a close event)."""
+        if self.loop_running():
+            self.loop.cancel()
+            self.loop.join(timeout)
         if self.running():
             self._close_pending = True
             if self._runner is not None:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -16,8 +17,8 @@ from shakerlab.output_files import (OutputLock, check_name, check_signals, free_
                                     refuse_partial)
 from shakerlab.quantities import DISPLACEMENT, QUANTITIES, UNITS, channel_name
 from shakerlab.run_data import CHANNELS, check_stage_name
-from shakerlab.runfile.format import (CHUNK, FORMAT, FORMAT_VERSION, LEVELS, event_dtype, now_iso, set_scalar_attrs,
-                                      step_dtype, str_dtype)
+from shakerlab.runfile.format import (CHUNK, FORMAT, FORMAT_VERSION, LEVELS, event_dtype, now_iso, open_read,
+                                      set_scalar_attrs, step_dtype, str_dtype)
 
 
 class NoSpace(UserFacingError):
@@ -113,10 +114,17 @@ class RunWriter:
     :meth:`discard`, deletes the partial file and keeps ``path`` as it was. A
     crash leaves ``path.partial`` (recover it with ``shakerlab import
     --recover``).
+
+    ``append=True`` adds stages to the cleanly closed run file ``path`` the same way: a copy is
+    recorded into and renamed over it (:meth:`_open_for_append`); ``overwrite`` and ``attrs`` do
+    not apply.
     """
 
     def __init__(self, path: str | Path, *, overwrite: bool = False, flush_interval: float = 0.5,
-                 attrs: dict | None = None):
+                 attrs: dict | None = None, append: bool = False):
+        if append:
+            self._open_for_append(path, flush_interval)
+            return
         self.path = check_name(path)
         self.partial = partial_path(self.path)
         self.problems: list[str] = []      # what the check after closing found (empty: the file is whole)
@@ -163,6 +171,58 @@ class RunWriter:
         entry.create_dataset("events", shape=(0,), maxshape=(None,), dtype=event_dtype(), chunks=(256,))
         self.stages: dict[str, StageWriter] = {}
         self.flush()
+
+    def _open_for_append(self, path: str | Path, flush_interval: float) -> None:
+        """``append=True``: record more stages into a cleanly closed run file. The file itself is
+        never written in place: under its output lock it is copied to ``path.partial``, the new
+        stages go into the copy (flushed as it grows, as any recording), and :meth:`close` renames
+        the checked copy over the file. A crash or a failure leaves the file as it was (and the
+        copy with what was recorded, for ``shakerlab import --recover``)."""
+        target = Path(path)
+        if not target.is_file():
+            raise UserFacingError(f"{target}: no run file to add stages to")
+        target = target.resolve()    # a symbolic link is written through, the link stays
+        with open_read(target) as f:
+            if not bool(f.attrs.get("clean_close", False)):
+                raise UserFacingError(f"{target}: was not closed cleanly; stages are added only to a whole run "
+                                      f"file (make a clean copy with `shakerlab import --recover`)")
+        self.path = target
+        self.partial = partial_path(target)
+        self.problems = []
+        self.renamed = False
+        self.overwrite = True        # the rename replaces the file this copy extends
+        self.removed_stale = None
+        self._lock = OutputLock(target).acquire()
+        try:
+            refuse_partial(target)
+            need = target.stat().st_size + self.RESERVE_BYTES
+            if free_bytes(target) < need:
+                raise UserFacingError(f"{target}: no room to add stages (a copy needs {need} bytes); "
+                                      f"the file was left as it was")
+            shutil.copy2(target, self.partial)
+            try:
+                self.file = h5py.File(self.partial, "a")
+            except (OSError, ValueError) as exc:
+                self.partial.unlink(missing_ok=True)
+                raise UserFacingError(f"{target}: cannot open the copy {self.partial} ({exc})") from None
+        except BaseException:
+            self._lock.release()
+            raise
+        self.flush_interval = float(flush_interval)
+        self._last_flush = time.monotonic()
+        self._unflushed = 0
+        self._t_start = time.time()
+        self.file.attrs.update({"clean_close": False, "writer_pid": os.getpid()})
+        self.file["entry"].attrs["status"] = "running"
+        self.n_events = int(self.file["entry/events"].shape[0])
+        self.stages = {}
+        self.flush()
+
+    def end_index(self) -> int:
+        """The sample index one past the last recorded sample of any stage (0 for none)."""
+        stages = self.file["entry/stages"]
+        return max((int(g.attrs.get("end_index", g.attrs.get("start_index", 0) + g.attrs.get("n_samples", 0)))
+                    for g in stages.values()), default=0)
 
     # -- context manager ---------------------------------------------------
     def __enter__(self) -> "RunWriter":
