@@ -149,7 +149,8 @@ def fit_linear(y, dy, ddy, u, excitation: str, column_noise: dict | None = None,
                 f"stage {stage_name!r}: the linear step cannot determine c and K: the stage is too noisy (the "
                 f"noise its columns carry is {eps:.2g} of their rms, about {-20 * np.log10(max(eps, 1e-12)):.0f} dB, "
                 f"and buries their weakest direction, {sv[-1] / sv[0]:.2g} of the largest; condition number "
-                f"{cond:.3g}): the motion of this stage is too small against the sensor noise, or the noise "
+                f"{cond:.3g}, input lines {input_lines}): the motion of this stage is too small against the sensor "
+                f"noise, or the noise "
                 f"estimate is off (averaged or band-limited records): record a larger linear stage",
                 stage_name, eps)
         raise UserFacingError(f"stage {stage_name!r}: the linear step cannot determine c and K, the excitation is "
