@@ -261,7 +261,7 @@ class HystereticModel:
         u = self.drive(u, dt)
         coef, p, r = self.fn_arrays()
         if n_sub is None:   # capped: a trial stiffer than that (resonance above ~fs) is far from any record;
-            # uncapped, one such output-error trial took minutes (issue 18), capped it diverges and is rejected
+            # uncapped, one such output-error trial can take minutes; capped it diverges and is rejected
             n_sub = min(substeps(dt, max(abs(self.K_m), abs(self.k_m), 1.0)), MAX_SUBSTEPS)
         y0, v0, z0 = (0.0, 0.0, 0.0) if initial is None else (float(v) for v in initial)
         return simulate_sdof(u, dt, int(n_sub), self.input_gain, self.c_m, self.k_m, self.alpha_m,

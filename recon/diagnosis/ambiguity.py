@@ -8,11 +8,9 @@ samples: n_eff ln(MSE_B / MSE_A) < BIC_MARGIN, or A's lead over B is less than M
 the excess A itself leaves over the noise floor: MSE_B - MSE_A < MODEL_ERROR_SHARE (MSE_A - noise).
 The BIC margin counts the held-out residual as noise; where the first candidate leaves much of the
 mismatch unexplained, the residual is mostly model error, and a lead small beside it says which fit
-copes better with that error, not which effect is there (stress #627, quadratic damping on the
-paper protocol: a stiffness drift explained 38 % of the excess, the true term 32 %, 0.0043 against
-0.0045 held-out, 5 % of the excess apart with 62 % left; #497, quadratic damping on the rig
-protocol: amplitude-dependent damping 70 %, the true term 66 %, both fits far from the truth's
-0.00046).
+copes better with that error, not which effect is there (for example, under quadratic damping a
+stiffness drift or an amplitude-dependent damping can explain a few per cent more of the excess
+than the true term while both fits stay far from the truth's figure).
 """
 from __future__ import annotations
 

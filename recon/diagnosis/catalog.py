@@ -63,10 +63,9 @@ def _coulomb(base, ctx):
     # the smoothing velocity v0 is not known: a sharp sign (0.01) fits a rig's friction, a joint's
     # micro-slip is smoother (0.2); each is a start, the best one is kept (see diagnose.py), and v0
     # is then fitted with mu. 1 and 3: a small stage that moves in pre-sliding, below v0, where the
-    # friction acts as a viscous damper mu / v0 (stress #171: v0 2.9 x that stage's rms velocity; a
-    # paper baseline reconstructed there holds it as c 762 against the truth's 7.6). Independent
-    # stress #119: a small sweep stage that moves at 0.7 v0 (pre-sliding), fitted at 0.2 v_rms
-    # left that stage at NRMSE 0.50; with v0 free the fit reached mu and v0 within 1 %
+    # friction acts as a viscous damper mu / v0 (a baseline reconstructed there holds it as a c many
+    # times the true one). A fixed v0 far below a pre-sliding stage's velocity cannot fit that
+    # stage; with v0 free the fit reaches mu and v0
     out = []
     vmin = ctx["v_rms_min"]
     for f in V0_FACTORS:
@@ -140,9 +139,8 @@ def _mode_range(w: float, w1: float) -> tuple[float, float]:
     """The range a second mode started at ``w`` is fitted in: within a factor 2 of its start, and on
     the start's side of the band MODE_APART around the fundamental ``w1``, where a fitted mode is
     refused (diagnose.implausible). A fit that may cross into that band settles beside the
-    fundamental and takes up the baseline's error there instead of the mode it started at (stress
-    #460: a tip-driven mode at 63.5 Hz, fitted from 24.6 Hz and from 40.3 Hz, ended at 20.25 Hz
-    beside the 19.04 Hz fundamental and was refused). A start inside the band keeps the plain range."""
+    fundamental and takes up the baseline's error there instead of the mode it started at, and is
+    then refused. A start inside the band keeps the plain range."""
     lo, hi = 0.5 * w, 2.0 * w
     if w1 > 0 and w > (1 + MODE_APART) * w1:
         lo = max(lo, (1 + MODE_APART) * w1)
@@ -187,17 +185,15 @@ def _hysteresis_starts(base, ctx, alpha_share: float, bounds: dict, split_shares
 def _hysteresis(base, ctx):
     # a model without the law has taken the loop's small-amplitude stiffness into k (a Bouc-Wen
     # oscillator's tangent stiffness at rest is k + alpha): the starts also give part of k to the
-    # loop. From alpha = 0 beside the whole k (stress #1247, a Bouc-Wen law on sweeps, 79 dB, whose
-    # baseline keeps K = 2273 in k) every fit ended in a narrow loop (gamma 3400-11500, held-out
-    # 0.71-1.0); from 10 % of K at either width, and from 30 % at the narrower, it reached the
-    # truth (alpha 271, gamma 484, delta 322; held-out 0.00068)
+    # loop. From alpha = 0 beside the whole k the fits can end in a narrow loop (a large gamma) far
+    # from the truth; from a share of K in alpha they reach it
     return _hysteresis_starts(base, ctx, 0.0, {}, HYSTERESIS_SPLIT_SHARES)
 
 
 def _hysteresis_admissible(base, ctx):
     # alpha >= 0 (a loop traversed the other way feeds energy in), started inside the bound at 5 %
     # of K (from alpha = 0 on the bound the fit does not move): tried when the fit from alpha = 0
-    # ends inadmissible (stress #194: alpha -414 beside a stiffer k, and cubic_stiffness was named)
+    # ends inadmissible (a negative alpha beside a stiffer k, which lets another candidate be named)
     return _hysteresis_starts(base, ctx, 0.05, {"alpha_m": (0.0, np.inf)})
 
 
@@ -239,10 +235,9 @@ CATALOG: dict[str, Candidate] = {c.id: c for c in (
               "model change: y_rec = (1 + e) x_tip - x_base",
               "simulate, then scale the tip channel", ("x:tip_scale",), _scale,
               lambda b, c: b.excitation == BASE,
-              # stress #813, a -0.92 % tip scale on the rig protocol, no loop in the truth: the paper
-              # baseline got alpha 820 and the resonance-search stage at NRMSE 0.115; the scale fitted
-              # from it (as given, refitted, or alone) ended at held-out 0.0073 or worse against 0.0035
-              # as given; from the baseline without the law it reached -0.916 %, held-out 0.00079
+              # a tip-scale error can be taken up by a spurious Bouc-Wen law in the baseline; the
+              # scale fitted from that baseline (as given, refitted, or alone) then ends worse than
+              # the baseline, while from the baseline without the law it reaches the true scale
               # (the truth's figure)
               hysteresis_absorbs=True),
     Candidate("parameter_drift",

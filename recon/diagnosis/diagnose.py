@@ -161,8 +161,8 @@ def baseline_note(model: HystereticModel) -> str | None:
     """A warning when the baseline is one of reconstruct's simpler models (recon.estimator.fallback:
     the full model was inadmissible, or predicted the held-out stages worse), else None. Against
     such a baseline a catalog name can stand for a term the baseline lacks as well as for the
-    effect (stress #1072: a drift on the rig protocol, whose full estimate was inadmissible; the
-    linear fallback lacked the truth's y^2, y^3 and Bouc-Wen law, and quadratic damping was named)."""
+    effect (a linear fallback that lacks the true model's polynomial and hysteresis terms can have
+    a damping candidate named for what those terms do)."""
     kind = model.provenance.get("simpler_model")
     if not isinstance(kind, str):
         return None
@@ -204,9 +204,8 @@ HARDENING_LIMIT = 10.0
 # A Bouc-Wen law whose loop does not open over the recorded motion: (|gamma| + |delta|) times half the
 # recorded displacement range, the relative change of its tangent stiffness across the range, under
 # this. Such a law is a linear spring alpha y whose state's start, fitted per stage, is a constant
-# force: stress #958 (an offset on multisines, 53 dB, over a reconstruct fallback) fitted alpha at
-# 99 % of K with gamma -0.21 and delta 0.29 per m (1.7e-4 over the range) and was named before the
-# offset itself. Every true law of the stress rows opens by 1.5 or more
+# force, and can be named in place of an offset. Every true law on the stress bench opens by 1.5
+# or more, so the limit sits far below any real loop
 LOOP_MIN_OPENING = 0.01
 
 
@@ -256,17 +255,14 @@ def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data, interva
                        f"{w1 / (2 * math.pi):.4g} Hz")
         if m.get("zeta2") > MODE_ZETA_MAX:
             # damped beyond MODE_ZETA_MAX (a quality factor under 2.5), the fitted 'mode' has no
-            # resonance: a broadband filter that takes up whatever the baseline leaves (stress #287,
-            # clean, its paper baseline the truth within 0.2 %: zeta2 0.29996 at the top of its range,
-            # and 0.253 from the point-driven start, held-out 0.000333 -> 0.000216 on a noise floor
-            # of 0.000198). Of the 41 stress rows where a second mode was ever named, every one whose
-            # truth is a mode was fitted at 0.157 or less; the two above 0.2 (#7, #287) were false
+            # resonance: a broadband filter that takes up whatever the baseline leaves, even on a
+            # clean recording. On the stress bench every second mode named where the truth is a
+            # mode was fitted at 0.157 or less; those fitted above 0.2 were false alarms
             why.append(f"second mode's damping ratio {m.get('zeta2'):.3g} above {MODE_ZETA_MAX:g}: no resonance")
         if m.get("zeta2") <= 1.01 * ZETA2_RANGE[0]:
             # held on the bottom of its range the fit asks for an oscillation that does not decay: a
-            # line in the residual, not a resonance the input drives (stress #365, clean: 140 Hz at
-            # zeta2 0.001, and the delays of #56 and #82 in earlier versions; every fit named where
-            # the truth is a mode, at its frequency, had 0.0125 or more)
+            # line in the residual, not a resonance the input drives (on the stress bench every fit
+            # named where the truth is a mode, at its frequency, had 0.0125 or more)
             why.append(f"second mode's damping ratio {m.get('zeta2'):.3g} at the bottom of its range "
                        f"({ZETA2_RANGE[0]:g}): an undamped line, not a resonance")
     if cid == "parameter_drift":
@@ -322,7 +318,7 @@ def drop_sets(terms: list[str]) -> list[tuple]:
     PRUNE_PAIRS_UP_TO terms), all of them, and each parity class of y' in full: the terms odd in y'
     (dissipative, where friction or nonlinear damping is absorbed) and the even ones (elastic,
     where a stiffness law is). A baseline that absorbed friction holds several dissipative terms
-    next to true elastic ones (stress #54: y^2 y', y'^3, y^4 y', y'^5 beside y^2, y^3, y^5);
+    next to true elastic ones (odd terms in y' such as y^2 y', y'^3, y'^5 beside y^2, y^3);
     neither the pairs nor the whole set take out just the absorbing ones."""
     out = [(t,) for t in terms]
     if len(terms) <= PRUNE_PAIRS_UP_TO:
@@ -355,10 +351,8 @@ def prune_absorbed(fr: rank.FitResult, keys: list, sc: dict, b: dict, free: list
     cache = {} if cache is None else cache
     terms = [t for t in fr.model.baseline.fn_m if f"fn:{t}" not in keys]
     # tried too for a candidate that lowers the held-out NRMSE by MIN_REL_GAIN or more: where one stage
-    # misfitted by every model holds most of the fitting cost, no candidate removes a tenth of it
-    # (stress #112, a contact on the rig protocol: the resonance search's small stepped sine at 13 x its
-    # noise floor for every model, cost 36.25 against a floor of 0.79; the contact fit 36.23, its
-    # held-out 0.00155 against 0.00208 with the paper baseline's y^4 and y^3*y'^2 kept, 0.00137 without)
+    # misfitted by every model holds most of the fitting cost, no candidate removes a tenth of it,
+    # yet the held-out error can still show that a baseline term stands in for the candidate's
     promising = (math.isfinite(fr.nrmse_held) and math.isfinite(ref.nrmse_held)
                  and fr.nrmse_held <= (1.0 - rank.MIN_REL_GAIN) * ref.nrmse_held)
     if not terms or not (fr.cost_fit < PRUNE_FIT_SHARE * ref.cost_fit or promising):
@@ -366,8 +360,8 @@ def prune_absorbed(fr: rank.FitResult, keys: list, sc: dict, b: dict, free: list
     best, best_free, best_drop = fr, free, ()
     for drop in drop_sets(terms):
         # first with the baseline's other fn terms as they are; then, from there, with them refitted
-        # too: they were fitted next to the dropped ones and may compensate them (stress #54, Coulomb
-        # friction: y^5 at -6.1e13 beside y^4 y' and y'^5). The reference below refits what the
+        # too: they were fitted next to the dropped ones and may compensate them (a huge y^5 beside
+        # the dissipative terms that absorbed a friction). The reference below refits what the
         # kept fit refitted, so the candidate gets no credit for that
         f1 = [k for k in free if not (k.startswith("fn:") and k[3:] in drop)]
         kept = [f"fn:{t}" for t in terms if t not in drop and f"fn:{t}" not in f1]
@@ -413,9 +407,9 @@ def nested_null(fr: rank.FitResult, keys: list, free: list, cid: str | tuple, re
     """The candidate's fit ``fr`` with its own terms put back to the reference's values (off), and
     the baseline parameters its fit freed refitted from there: a null model fitted from where the
     candidate's fit ended. A candidate whose gain comes from its baseline parameters landing
-    somewhere better, not from its term, does no better than this (stress #26, clean: friction at
-    mu = 5e-6 m/s^2, nothing against a restoring force of 28 m/s^2, scored 0.0036 against the
-    null model's 0.0136, and so did an offset whose interval held 0). None if the fit fails."""
+    somewhere better, not from its term, does no better than this (on a clean recording a
+    negligible friction or an offset whose interval holds 0 can beat the null model fitted from the
+    reference by refitting the baseline alone). None if the fit fails."""
     m = fr.model.copy()
     for k in keys:
         if k in free:
@@ -458,20 +452,20 @@ def joint_pair(tested: list, fits: dict, nulls: list, ref_model: AugmentedModel,
     """When no candidate is significant alone: two fitted together. Two effects (or an effect and a
     term the baseline lacks) can each explain too little of the mismatch alone.
 
-    First the two that lower the held-out error most: stress #99, a contact on sweeps whose paper
-    baseline lacks the truth's y^2, held-out 0.00905 as given, 0.00702 with the contact alone and
-    0.00748 with y^2 alone, neither enough; the truth scores 0.00518. They are fitted together from
-    the better one's fit with the other's terms added at their fitted values, and (``refit_on(id,
-    fit)``: a candidate's whole fit, its starts included, from another's fit) each fitted again from
-    the other's fit: from the contact's fit, its gap near 0 standing in for y^2, the pair stayed at
-    0.00701; the contact fitted on top of y^2 reached 0.00518.
+    First the two that lower the held-out error most (for example a contact beside a y^2 the
+    baseline lacks: each alone removes part of the mismatch, neither enough). They are fitted
+    together from the better one's fit with the other's terms added at their fitted values, and
+    (``refit_on(id, fit)``: a candidate's whole fit, its starts included, from another's fit) each
+    fitted again from the other's fit: one candidate's fit can stand in for the other term (a
+    contact's gap near 0 for y^2) and hold the pair there, while fitted on top of the other term it
+    reaches the truth.
     Then, when the reference is far above the noise floor (``far_from_floor``), every other candidate
     plausible alone fitted on top of the one that lowers the fitting cost most, and the pair with the
     lowest fitting cost tried (a candidate refused alone is not taken: on the real bolted beam a
-    contact whose kc interval held 0 alone was named on top of the exciter's distortion): stress #80,
-    friction on sweeps whose reconstructed baseline is linear (c 223 against the truth's 8.0, and no
-    y^3): friction alone ends at held-out 1.41 (its k takes the hardening),
-    y^3 alone at 0.96, the reference 0.95, the truth 0.00045.
+    contact whose kc interval held 0 alone was named on top of the exciter's distortion). This is
+    for a baseline that lacks two things at once, such as friction and a hardening spring beside a
+    linear reconstruction: each alone does no better than the reference (friction's k takes the
+    hardening), while the pair reaches the truth.
 
     A pair is named (the one that lowers the fitting cost more alone first) only if it passes the
     rule against the best null model with both terms counted, each term adds significantly on top of
@@ -569,10 +563,9 @@ def hysteresis_free_core(base: AugmentedModel, data, free: list, max_nfev: int) 
     fit fails.
 
     A reconstructed Bouc-Wen law can take up a dissipation it does not hold: its |y'| z terms
-    dissipate more at larger amplitude, as quadratic damping or friction does (stress #16,
-    quadratic damping on the rig protocol: the paper baseline got alpha 880 with gamma 25.7 where
-    the truth has no loop; from there, and from its refit, c2 stayed at 0; from this core it
-    reached 6.12 against the truth's 6.14, held-out NRMSE 0.00034 against 0.00203 as given)."""
+    dissipate more at larger amplitude, as quadratic damping or friction does. From such a
+    baseline, and from its refit, the candidate's own term stays at 0; from this core it can reach
+    its true value."""
     if base.baseline.alpha_m == 0.0:
         return None
     m = base.copy()
@@ -599,10 +592,9 @@ def even_stiffness_free_core(base: AugmentedModel, drop: tuple, data, free: list
     without theirs) refitted by output error. None for a baseline without them or when the fit fails.
 
     A reconstructed y^2 or y^4 can take up a one-sided contact (the even part of its force); a
-    contact fitted on top of it then has nothing left to explain (stress #801, a contact at 0.23 mm
-    on the paper protocol: the paper baseline's y^4 fitted the fitting stages better than the truth,
-    cost 1.20 against 1.27, and predicted the held-out stage worse, 0.0155 against 0.0128; the
-    contact fitted beside it stayed at kc 106 against the truth's 845)."""
+    contact fitted on top of it then has nothing left to explain (the even terms can fit the
+    fitting stages better than the true contact while predicting the held-out stage worse, and the
+    contact fitted beside them stays far below its true stiffness)."""
     if not drop:
         return None
     return core_fit(without_terms(base, drop), free, data, max_nfev)
@@ -653,8 +645,8 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             and rank.uncovered_stages(run)):
         # reconstructed without the held-out end of a stage (rank.fitting_part), the baseline does
         # not simulate that stage: it is reconstructed from the whole run instead, and its score on
-        # that end is then in sample (stress #73, a contact passed at 5.9 x its gap on the rig
-        # protocol: the paper model's y^2, y^3 and y'^2 from 70 % of the nonlinear stage diverged there)
+        # that end is then in sample (a polynomial model fitted below a contact's engagement can
+        # diverge past it)
         base, kind = resolve_baseline(run, baseline, whole=True)
         base.baseline.provenance["fitted_on_held_out"] = "the whole run (its fitting part alone diverged)"
         data, null, given = _reference_fits(run, base, max_nfev)
@@ -686,9 +678,8 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     def fit_candidate(cid, cand, src, free, step_keys):
         """One candidate's augmented fit started from ``src`` with ``free`` baseline keys; a candidate
         with a discrete shape parameter the fit cannot move (``fit_each``: the contact's side) is
-        fitted once per value, and the fit with the lower fitting cost is kept (stress #99: a
-        contact beside a y^2 the baseline lacks; from the stop's wrong side the fit ended at held-out
-        0.00646 and was the better start by output error, from the right side at 0.00518)."""
+        fitted once per value, and the fit with the lower fitting cost is kept (a start that ranks
+        first by output error can still end worse than a full fit from the other value)."""
         if not cand.fit_each:
             return fit_from(cid, cand, src, free, step_keys, cand.starts)
         values = sorted({m.extras[cand.fit_each] for m, _, _, _ in cand.starts(src.model.baseline, ctx)})
@@ -738,10 +729,9 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                 i = int(np.argmin([f.cost_fit for f in scr]))
                 # the equation step itself is kept where its output error is lower still: where the
                 # source's damping holds the friction (a baseline whose viscous c is the friction's
-                # pre-sliding mu / v0, stress #171: c 712 against the truth's 7.6), mu alone fitted
-                # from the source only adds damping and stays at 0; the step moves c and mu together
-                # (at v0 = 3 x the smallest stage rms velocity it stepped to c 7.8, mu 0.374 against
-                # 7.6 and 0.368)
+                # pre-sliding mu / v0, many times the true c), mu alone fitted from the source only
+                # adds damping and stays at 0; the step moves c and mu together, to near their true
+                # values
                 step_cost = [rank.fit_cost(mm, data)
                              if within_bound(mm, starts[j][1][0], starts[j][3]) else math.inf
                              for j, (mm, _) in enumerate(stepped)]
@@ -753,23 +743,21 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             else:
                 # a start whose step puts the new term inside its physical bound first: the equation
                 # residuals of the starts differ by a few per cent at most (differentiation noise),
-                # and a step across the bound says that start is wrong (stress #60, contact: the
-                # stop's side stepped to kc = -9839, residual 0.964, was picked over the true side
-                # at kc = +8138, 0.977; fitted from there the contact ended worse than no contact)
+                # and a step across the bound says that start is wrong (a contact's start on the
+                # wrong side steps to kc < 0 with a residual as low as the true side's, and a fit
+                # from there can end worse than no contact)
                 inside = [j for j, (mm, _) in enumerate(stepped) if within_bound(mm, starts[j][1][0], starts[j][3])]
                 if len(inside) > 1:
                     # and among those, the step the output error says fits best: the equation
-                    # residuals differ by differentiation noise (stress #99, a contact fitted on
-                    # top of a y^2 fit: the stop's wrong side ranked first by equation residual,
-                    # and from there the pair ended at held-out 0.00646; from the right side at
-                    # 0.00518, the truth's figure)
+                    # residuals differ by differentiation noise (a contact's wrong side can rank
+                    # first by equation residual and lead the fit away from the truth)
                     cost = {j: rank.fit_cost(stepped[j][0], data) for j in inside}
                     if len(starts[inside[0]][1]) > 1:
                         # the starts differ in a shape parameter fitted beside the stepped one (the
                         # contact's gap): a step alone ranks them by where they start, a short fit
-                        # of the new terms by where they lead (stress #658, a contact at 0.65 mm:
-                        # the stepped start at 1.11 mm had the lowest output error, the fit from it
-                        # stayed at 1.15 mm, cost 1.35; from 0.52 or 0.81 mm it reached 0.65 mm, 0.87)
+                        # of the new terms by where they lead (the contact gap whose stepped start
+                        # has the lowest output error can be one the fit stays stuck near, while
+                        # other gaps lead to the true one)
                         for j in inside:
                             _, kj, scj, bj = starts[j]
                             try:
@@ -784,11 +772,10 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                     i = min(inside or range(len(stepped)), key=lambda j: stepped[j][1])
                 # the step is an equation-error estimate, and differentiation errors can point it the
                 # wrong way: kept only if the output error says it is a better start than none
-                # (stress #6, a stiffness drift on sweeps: from the refit the step gave drift +0.0016
-                # against the true -0.00074, and the fit stayed there; from 0 it reaches -0.00074).
-                # Only for a term free of bounds: "none" would put a bounded one (c2, kc, mu >= 0) on
-                # its bound, where the fit does not move it (stress #203 contact and #211 quadratic
-                # damping stayed at 0 and were not named)
+                # (a step of the wrong sign, for a stiffness drift, holds the fit there; from 0 it
+                # reaches the truth). Only for a term free of bounds: "none" would put a bounded one
+                # (c2, kc, mu >= 0) on its bound, where the fit does not move it and the effect
+                # goes unnamed
                 lo_, hi_ = starts[i][3].get(starts[i][1][0], (-np.inf, np.inf))
                 if (not (np.isfinite(lo_) or np.isfinite(hi_))
                         and rank.fit_cost(stepped[i][0], data) > rank.fit_cost(starts[i][0], data)):
@@ -814,7 +801,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             m, keys, sc, b = starts[0]
         fr = rank.fit(m, list(dict.fromkeys(free + keys)), data, sc, max_nfev=max_nfev, bounds=b)
         if cand.admissible_starts is not None and implausible(cid, fr, src.model, data, intervals=False):
-            # the fit ended outside the physical range (hysteresis: stress #194 reached alpha -414):
+            # the fit ended outside the physical range (hysteresis: a negative alpha):
             # fitted again from starts inside it, kept if it ends inside
             m2, keys2, sc2, b2 = screened(starts_from(cand.admissible_starts))
             fr2 = rank.fit(m2, list(dict.fromkeys(free + keys2)), data, sc2, max_nfev=max_nfev, bounds=b2)
@@ -833,15 +820,14 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
         origins.append((null, full_free, bkeys, "refit"))
     elif refit_better and math.isfinite(given.mse_held):
         # and the other way round: a refit that is better alone can lead the candidate's fit astray
-        # (stress #9, offset: from the refit, c and k went to 26 and 34748 against 9.0 and 21343
-        # and the validation simulation diverged; from the baseline as given offset was found)
+        # (for an offset, c and k can run far from their true values from the refit and the
+        # validation simulation diverge, where from the baseline as given the offset is found)
         origins.append((given, list(GIVEN_FREE), list(GIVEN_FREE), "as_given"))
     if not refit_better:
         # and the baseline as given with only the term's own parameters free: where refitting the
-        # baseline hurts the held-out samples, c and k moved beside the term can too (stress #7, a
-        # 0.77 % tip-sensor error on the rig protocol: the resonance search, 0.024 NRMSE for every
-        # model, truth included, held the fitting cost, and with c and k free the fit traded the
-        # nonlinear stage for it, held-out 0.0121 against 0.0083 as given; the scale alone 0.0064)
+        # baseline hurts the held-out samples, c and k moved beside the term can too (where one
+        # stage that every model misfits, the truth included, holds the fitting cost, c and k free
+        # trade the other stages for it; a sensor-scale term alone does better)
         origins.append((given, [], [], "term_alone"))
     pruned_refs = {}
     nulls = []          # null models fitted from where a significant candidate's fit ended
@@ -849,10 +835,10 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     if core is not None:
         # a reference that misses most of the response is no place for a local fit to start from:
         # reconstruct's library has no friction term, and on friction sweeps it made the paper
-        # baseline of huge opposite-signed y^3 and y^2 y' terms (stress #314: y^3 -2.3e10 beside
-        # k 5116, held-out 0.967); from there no candidate moved (mu stayed 0 +- 1.5e-6), from the
-        # linear core (c and k refitted, the fn terms at 0 and free) friction reached 0.00023, the
-        # truth's figure. The core is also a null model every candidate must beat
+        # baseline of huge opposite-signed y^3 and y^2 y' terms; from there no candidate moves
+        # (friction's mu stays at 0), from the linear core (c and k refitted, the fn terms at 0 and
+        # free) friction reaches the truth's figure. The core is also a null model every candidate
+        # must beat
         origins.append((core, full_free, bkeys, "linear_core"))
         nulls.append(core)
     unlooped_origins = []
@@ -900,14 +886,12 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                             and fr0.cost_fit < FOLLOW_ON_SHARE * src.cost_fit):
                         # the refit alone is worse than the baseline as given, and the term took
                         # half the fitting cost with only c and k free: the rest of the baseline,
-                        # fitted without the term, is refitted beside it too (stress #119, friction:
-                        # the paper baseline's Bouc-Wen law had absorbed it; with c and k alone
-                        # held-out 0.0126 against 0.0073 as given, with every parameter 0.00023, the
-                        # truth's). Also where the c-and-k fit already predicts the held-out samples
-                        # better (until 2026-11-27, sixth, it was refitted only where it predicted them
-                        # worse): stress #353, friction on the paper protocol, took 93 % of the
-                        # fitting cost with c and k and reached 0.00639 against 0.00666 as given,
-                        # not significant; with every parameter 0.00232, the truth's figure
+                        # fitted without the term, is refitted beside it too (a baseline whose
+                        # Bouc-Wen law absorbed a friction: with c and k alone the friction does
+                        # not reach significance, with every parameter free it reaches the truth's
+                        # figure). Also where the c-and-k fit already predicts the held-out
+                        # samples better: it can still fall short of significance that the full
+                        # refit reaches
                         fa = rank.fit(fr0.model, list(dict.fromkeys(full_free + keys0)), data, sc0,
                                       max_nfev=max(max_nfev // 2, 5), bounds=b0)
                         if math.isfinite(fa.mse_held) and fa.n_held > 0:

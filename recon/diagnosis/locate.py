@@ -43,10 +43,9 @@ def z_from_velocity(model, dy, dt):
 
     A step where the law is stiff (decay rate lam = gamma |y'| + delta y' sign(z) with lam dt > 1,
     where RK2 is inaccurate and beyond 2 unstable) is taken exactly for the step's mean velocity:
-    z' = alpha y' - lam z is then linear. Stress #256: a reconstructed baseline with alpha_m 3e-5 and
-    gamma 1.4e5 at 2 kHz (lam dt about 13): RK2 grew z to 1e50, and that set the scale of every
-    candidate's start and interval (an offset that explained 99 % of the mismatch had the interval
-    [-1e36, 1e36])."""
+    z' = alpha y' - lam z is then linear. A reconstructed baseline with a tiny alpha and a large
+    gamma can reach lam dt >> 1; RK2 then grows z without bound, and that sets the scale of every
+    candidate's start and interval."""
     a, g, d = model.alpha_m, model.gamma, model.delta
     if a == 0.0:
         return np.zeros_like(dy)
@@ -55,8 +54,8 @@ def z_from_velocity(model, dy, dt):
 
 @njit(cache=True)
 def _z_steps(dy, dt, a, g, d):
-    """The loop of :func:`z_from_velocity` (numba: a Python loop over the samples took 12 % of a
-    hysteretic record's diagnosis, stress #532)."""
+    """The loop of :func:`z_from_velocity` (numba: a Python loop over the samples can take a tenth
+    of a hysteretic record's diagnosis)."""
     z = np.zeros_like(dy)
     zi = 0.0
     for i in range(dy.size - 1):
@@ -346,8 +345,8 @@ def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
             break
     # a mode above the band the input excites answers it quasi-statically (q = g u / w^2: a feedthrough
     # of the input, no peak in the residual) and the scan, which looks for its resonance, does not
-    # find it: one start twice above the top of the fitting stages' input band (stress #213, a
-    # 104.6 Hz mode under sweeps that end at 42 Hz: the fits from the scan's 49-54 Hz stayed there)
+    # find it, and fits from the scan's peaks near the band's top stay there: one start twice above
+    # the top of the fitting stages' input band
     tops = []
     for d in data:
         if d.fit.any() and d.u.size > 16 and np.all(np.isfinite(d.u)):

@@ -18,10 +18,11 @@ An estimate of the scale at which an effect starts to show on this record, not a
 way. Two things move the true threshold: the baseline's own parameters can take part of a term's
 signature (a drift the stiffness refit follows, quadratic damping a viscous c mimics over one
 sweep), which raises it; and an effect already in the record is already in the reference's
-residual, where it needs less than an effect added on top of it, which lowers it. On 18 rows of the
-independent generator (docs/diagnosis.md, 2026-11-27 third) 8 of the 9 effects below their limit
-were not named (#321, an offset at 0.68 of it, was), and 4 of the 9 above it were (the other 5:
-effects the baseline's refit absorbs, whose own truth did not pass the rule either).
+residual, where it needs less than an effect added on top of it, which lowers it. The limit is
+therefore a guide, not a guarantee: measured on the independent generator's stress recordings
+(docs/diagnosis.md), effects below their limit are mostly not named, and effects above it can
+still be missed where the baseline's refit absorbs them (the truth itself does not pass the rule
+there either).
 """
 from __future__ import annotations
 

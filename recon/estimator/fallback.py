@@ -12,9 +12,8 @@ model of the simplest kinds below that predicts the held-out stages best:
 2. ``bouc_wen``: the Bouc-Wen law without fn terms, from the same starts;
 3. ``elastic``: no hysteresis; the TMP law's stiffness terms alone (c y' + k y + a2 y^2 +
    a3 y^3, from the estimate's y^2, y^3 when plausible, and from zero; the better fit is kept):
-   a system without hysteresis whose estimate was inadmissible (independent generator, diagnosis
-   stress #39: y^2 only, answered by the Bouc-Wen law with lambda Y = 0.006, a z that only adds
-   stiffness);
+   a system without hysteresis whose estimate was inadmissible (an estimate can answer a y^2 with
+   a Bouc-Wen law so narrow that its z only adds stiffness);
 4. ``equivalent_linear``: no hysteresis; stiffness and damping that change with amplitude
    (c y' + k y + k3 y^3 + c3 y^2 y');
 5. ``linear``: c y' + k y.
@@ -45,8 +44,8 @@ from shakerlab.run_data import BASE, Run
 NUMERICAL_ERRORS = (np.linalg.LinAlgError, FloatingPointError, OverflowError, ZeroDivisionError, ValueError)
 
 # |k| above 10 K: k and alpha nearly cancel (a force that falls after yield ten times faster than
-# it rose). On an independent record (stress seed 32, 60 dB) the pointwise estimate had
-# k = -5.7e11, alpha = 6.6e11 (K = 9e10 against the truth's 2155) and validated at NRMSE 1.0.
+# it rose). Such a split is a numerical artefact, not a law: its model, with K far from the
+# truth's, does not predict the validation stage at all.
 SPLIT_LIMIT = 10.0
 KINDS = ("bouc_wen_fewer_terms", "bouc_wen", "elastic", "equivalent_linear", "linear")
 # the kinds that have the law's own form (Bouc-Wen hysteresis): fitted by output error from a
@@ -196,10 +195,8 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
     fn_keys = [f"fn:{k}" for k in few]
     # the elastic kind also starts from y^2 = y^3 = 0 when the estimate gave them a value: an
     # estimate that is inadmissible has its terms biased by what it failed on, and from there the
-    # fit can stop in a local minimum (diagnosis stress #1175, y^2 and y^3 under sweeps with a
-    # second mode at 2.8 f_n: from the estimate's y^2 -2.5e7 and y^3 8.2e10 the fit ended at
-    # -4.6e7 and 9.8e10, fitted NRMSE 0.35; from zero at -2.1e7 and 5.1e10, 0.032, against the
-    # truth's -2.3e7 and 5.8e10)
+    # fit can stop in a local minimum (an effect the model lacks, a second mode for example,
+    # biases them; from zero the fit can reach the true values where from the estimate it does not)
     elastic, elastic_starts = [HystereticModel(**dict(base, fn_m=dict(few)))], None
     if any(v != 0.0 for v in few.values()):
         elastic.append(HystereticModel(**dict(base, fn_m={k: 0.0 for k in few})))

@@ -233,9 +233,9 @@ def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info
                 model, item, polish_info = refine_start(model, stage, item, polish_info)
         timings["polish"] = time.perf_counter() - tp
     elif s.polish:
-        # no polish from an inadmissible start: on an independent recording at 50 dB the estimate had
-        # k = 9.7e10 and alpha = -9.7e10 (a Bouc-Wen split that cancels), and polishing it took minutes
-        # without reaching an admissible model; the pipeline's other passes run instead (issue 18)
+        # no polish from an inadmissible start: an estimate whose Bouc-Wen split cancels (k and alpha
+        # huge and opposite) can take minutes to polish without reaching an admissible model; the
+        # pipeline's other passes run instead
         polish_info = {"applied": False, "skipped": "the equation-error estimate is not admissible"}
     model.provenance["equation_error_estimate"] = equation_error_model.to_dict()["parameters"]
     model.provenance["output_error_polish"] = polish_info

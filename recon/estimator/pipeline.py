@@ -119,8 +119,8 @@ def _attempt(name: str, run: Run, s: ReconSettings, validate_model: bool, failur
             return _reconstruct(run, s, validate_model)
     except UserFacingError as e:
         # an input error reaches the user as it is; a part of the estimate the recording does not
-        # determine (EstimateRefused: stress #215, a rig record whose nonlinear stage never has y' and z
-        # of opposite signs) is recorded, and the other passes and the simpler models follow
+        # determine (EstimateRefused: for example a nonlinear stage that never has y' and z of
+        # opposite signs) is recorded, and the other passes and the simpler models follow
         if name == "first" and not isinstance(e, EstimateRefused):
             raise
         failures[name] = str(e)
@@ -151,9 +151,9 @@ def _conclude(result: ReconResult, run: Run, s: ReconSettings, validate_model: b
 SIMPLER_GAIN = 0.5
 # ... and that fits the nonlinear stage at most this many times worse than the full model does: a
 # validation stage at a small amplitude does not judge the terms that act at the nonlinear stage's
-# (stress #1018, rig protocol, validation 0.37 mm against the nonlinear stage's 1.8 mm: an elastic
-# model with a softening y^3 predicted the validation at 0.009 against the full model's 0.039, fitted
-# the nonlinear stage at 0.070 against 0.008, and on the stage's held-out end left the record, 1.47)
+# amplitude: a simpler model can predict such a validation stage better while fitting the nonlinear
+# stage many times worse and diverging past it. The factor was set on the independent generator's
+# stress recordings; see docs/diagnosis.md
 SIMPLER_FIT_SLACK = 2.0
 
 
@@ -162,10 +162,9 @@ def _prefer_simpler(result: ReconResult, run: Run, s: ReconSettings, validate_mo
     """The full model when it is adequate; when it is not (its validation NRMSE above the adequacy
     limit), the simpler models of fallback.py are fitted too, and one that predicts the held-out
     (validation) stages in at most SIMPLER_GAIN of the full model's error is the answer. The
-    estimator's structure can be wrong without being inadmissible: on an independent record of a
-    system without hysteresis (diagnosis stress #26: y^2, y^3, a sweep through resonance) the
-    estimate carried a Bouc-Wen law and validated at 0.18, while the simpler models' output-error
-    fit reached 0.0036, the noise floor. Needs a validation stage (the held-out data decide).
+    estimator's structure can be wrong without being inadmissible: on a system without hysteresis
+    the estimate can carry a Bouc-Wen law and validate far above the noise floor, while a simpler
+    model's output-error fit reaches the floor. Needs a validation stage (the held-out data decide).
 
     Only simpler models that fit the nonlinear stage within SIMPLER_FIT_SLACK of the full model's
     error take part: a validation stage at a fraction of the nonlinear stage's amplitude (the rig
@@ -240,7 +239,7 @@ def _adopt(result: ReconResult | None, best, fallback: dict, run: Run, s: ReconS
                                                                       "nonlinear_stage": s.nonlinear_stage}}
     if best.kind in HYSTERETIC_KINDS and s.polish and s.two_stage_polish and admissible(best.model):
         # a Bouc-Wen law fitted on the nonlinear stage: the two stages decide its terms as for the full
-        # model (stress seed 34 at 40 dB: a spurious y^2 beside the true y^3)
+        # model (at low SNR a law fitted on one stage can carry a spurious term beside the true one)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             best.model = two_stage_polish(best.model, run, s)
     val = validate(best.model, run) if validate_model else {"nrmse": float("nan"), "stage": None}
@@ -348,11 +347,11 @@ def _without_vanished_hysteresis(model: HystereticModel, data: tuple, info: dict
     inadmissible; else ``model`` as it is. ``info`` (the term selection's) gets the figures.
 
     A law the equation-error step put in for a term it missed can fall to nothing once the term
-    selection adds that term, with an alpha of either sign: stress #1092 (a clean rig record of a
-    system with y^2 and no hysteresis) went from alpha 82446 beside a y'^2 to y^2 -3.679e6 (the
-    truth's -3.676e6), k 111953 (111784) and alpha -168, a z of 0.15 % of the elastic force. That
-    model was inadmissible for its alpha alone, so the revision was thrown away and the diagnosis
-    later named the y^2 the baseline lacked."""
+    selection adds that term, with an alpha of either sign: on a system with y^2 and no hysteresis,
+    a large alpha beside a spurious term can become, once y^2 is added, a tiny negative alpha
+    beside the true y^2 and k, a z of a fraction of a per cent of the elastic force. That
+    model is inadmissible for its alpha alone: without this step the revision would be thrown away
+    and the diagnosis would later name the y^2 the baseline lacks."""
     share = hysteretic_share(model, data[0], data[1])
     record = {"hysteretic_share": share, "threshold": NEGLIGIBLE, "applied": False}
     info["vanished_hysteresis"] = record

@@ -43,8 +43,8 @@ def reconstruct_pointwise(run: Run, s: ReconSettings, validate_model: bool = Tru
     Fn = g * u0 - ddy - lf.c_m * dy - lf.K_m * y
     dFn = g * nl.u[1] - dddy - lf.c_m * ddy - lf.K_m * dy
     # the quadrants of the loop are taken about its centre: a constant force moves the motion's
-    # centre off zero while z still swings about zero (on stress #425 the clusters about y = 0 put
-    # the offset's 5 % of the amplitude into the wrong quadrant and the regression found no y^2, y^3)
+    # centre off zero while z still swings about zero (clusters about y = 0 put an offset of a few
+    # per cent of the amplitude into the wrong quadrant, and the regression misses y^2, y^3)
     h = cluster(y - float(np.mean(y)) if b_in is not None else y, dy)
     lib = AgentLibrary(s.library_order, s.form, linear_correction=bool(s.linear_correction) and s.form == "joint",
                        offset=b_in is not None)

@@ -26,8 +26,8 @@ def scaled_lstsq(A, b):
     they are); returns ``(x, rss)`` in the original column units."""
     if not np.all(np.isfinite(A)):
         # LAPACK would print "DLASCL parameter number 4 had an illegal value" on the terminal and
-        # then raise this same error (a trial whose hysteresis column overflowed: the weak path's
-        # (gamma, delta) search, stress #848); raised here, without the message, and before the
+        # then raise this same error (a trial whose hysteresis column overflowed, as in the weak
+        # path's (gamma, delta) search); raised here, without the message, and before the
         # scaling below would warn of an inf / inf
         raise np.linalg.LinAlgError("least squares: the design matrix holds non-finite values "
                                     "(a trial whose columns overflowed)")

@@ -23,10 +23,10 @@ exactly that of the plain model (the extras are subtracted after the plain terms
 the 4-point cubic (Lagrange) through u[i-1], u[i], u[i+1], u[i+2] (linear
 extrapolation supplies the points beyond the ends). Linear interpolation, used
 before, loses (w dt)^2 / 8 of a tone at the mid-point: 0.9 % at 23 samples per
-period. On an independent-generator record (f_n 49.5 Hz at 1150 Hz, issue 18) the
-true model then simulated its own clean record at NRMSE 0.005 and the output-error
-fit started at the truth ended 6.9 % off delta; with the cubic the record reproduces
-to 0.00016. When the sampling is coarse compared with the model's time scales, each
+period. At so coarse a sampling (a 50 Hz mode at 1150 Hz) the true model then
+simulates its own clean record at an NRMSE of about 0.005 and an output-error fit
+started at the truth ends several per cent off delta; with the cubic the record
+reproduces to about 0.0002. When the sampling is coarse compared with the model's time scales, each
 sample interval is split into ``n_sub`` RK4 sub-steps. Zero initial conditions unless (y0, v0, z0) are given;
 the higher mode always starts at rest.
 """

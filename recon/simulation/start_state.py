@@ -8,9 +8,9 @@ only with the damping. Three numbers are better fitted to the response itself: t
 that makes the simulated y match the recorded y over the stage's first seconds, from the
 edge estimate, with rest as the other candidate (the better of the two is kept).
 
-Measured on an independent generator's rig-protocol record (stress seed 9, 60 dB), truth
-model: the edge start gave validation NRMSE 0.044 (0.216 at 40 dB), against 0.00005 for the
-true start (recon/model.py HystereticModel.stage_start, docs/method.md).
+The edge estimate alone is poor: on the independent generator's rig protocol the truth model
+simulated from it validates orders of magnitude above its figure from the true start, and
+worse at lower SNR (recon/model.py HystereticModel.stage_start, docs/method.md).
 """
 from __future__ import annotations
 

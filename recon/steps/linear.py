@@ -101,8 +101,8 @@ def fit_linear(y, dy, ddy, u, excitation: str, column_noise: dict | None = None,
     column (from the differentiation choice) used for the rank decision.
     ``offset``: fit the input's constant b as well (a constant force holds the stage off centre,
     :mod:`recon.estimator.input_offset`). Without it the constant projects onto the mean of y and
-    biases K_m: on diagnosis stress record #425 (a constant force of 0.88 of the stress scale, the
-    linear stage's mean 1.84 times its rms motion) K_m came out at 2.3 times the truth.
+    biases K_m: a constant force that holds the linear stage off centre by more than its rms motion
+    can put K_m at several times the truth.
     """
     if excitation == BASE:
         A = np.column_stack([-dy, -y])
@@ -114,7 +114,7 @@ def fit_linear(y, dy, ddy, u, excitation: str, column_noise: dict | None = None,
         names = ["dy", "y", "u"]
     if offset:
         # the constant (-g b) is fitted by centring every column: the rank test and c, K then see
-        # the motion about its mean, not the mean itself (a DC 9 times the motion, stress #9)
+        # the motion about its mean, not the mean itself (a DC can be many times the motion)
         A_mean, b_mean = A.mean(axis=0), float(b.mean())
         A, b = A - A_mean, b - b_mean
     norms = np.sqrt(np.sum(A * A, axis=0))

@@ -1,4 +1,4 @@
-"""Ground truth for constitutive mode: component tests with known hysteresis laws (issue 16).
+"""Ground truth for constitutive mode: component tests with known hysteresis laws.
 
 Like ``independent.py`` it shares no code with shakerlab: only numpy, scipy and the standard
 library (``tests/test_constitutive.py`` asserts it). A component test imposes a displacement

@@ -1,4 +1,4 @@
-"""The rows and the report of the diagnosis stress block (bench/diagnose.py --stress, issue 13).
+"""The rows and the report of the diagnosis stress block (bench/diagnose.py --stress).
 
 Each recording (recon.testing.stress.draw / recording) is diagnosed as `shakerlab diagnose
 RUN.h5` does by default ("paper": reconstruct, then diagnose against it) for "none" and the
@@ -29,7 +29,7 @@ from recon.testing.stress import draw, effect_cycle, recording
 
 
 def _ambiguous_ids(out: dict) -> list[str] | None:
-    """The ids of an 'ambiguous' answer, if the diagnosis JSON has such a key (issue 13)."""
+    """The ids of an 'ambiguous' answer, if the diagnosis JSON has such a key."""
     amb = out.get("ambiguous")
     if not amb:
         return None
@@ -117,7 +117,7 @@ def effect_signature(rec: dict, data) -> dict | None:
     """Where the concealed effect acts: the RMS of (truth - truth without the effect), each stage
     simulated from its recorded start, over the fitting and over the held-out samples of the
     diagnosis's split (rank.prepare), each over the noise floor of those samples. A fitting signature
-    far below the held-out one says the fitting samples do not show the effect (stress #1061: a
+    far below the held-out one says the fitting samples do not show the effect (for example a
     contact the nonlinear stage reaches only in its held-out end), so no fit can find it there,
     whatever the truth scores on the held-out samples. ``data`` as for :func:`oracle`. None for a
     clean recording."""
@@ -402,8 +402,8 @@ def rescore(rows: list[dict]) -> list[str]:
     A candidate refused as implausible stays refused. A row with a changed verdict may answer
     differently beyond that verdict: a significant candidate gets a nested null, and a pair is tried
     only when none is significant alone. A candidate whose score from before its nested null is
-    stored (``before_nested_null``, since 2026-12-02) is judged on that too; rows from before then
-    cannot show such a change."""
+    stored (``before_nested_null``) is judged on that too; rows stored without it cannot show such
+    a change."""
     changed, rerun, judged, unknown = [], [], 0, 0
     for r in rows:
         if r.get("status") != "ok":

@@ -237,9 +237,8 @@ def _glide(prev, f1):
     base displacement continuous but makes its velocity jump (A w cos theta with a new w): the
     recorded base then has an impulse in its second derivative that the structure, driven by each
     tone's own smooth x'', never felt (its relative velocity stayed continuous, so the tip's
-    absolute velocity jumped instead). Until 2026-11-27 the rig protocol's resonance search did so
-    at each of its frequency steps, and the truth, noise-free, simulated that stage from the
-    recorded base at NRMSE 0.018 (stress #112). Inside the glide x'' = A (w' cos theta - w^2 sin
+    absolute velocity jumped instead), so that even the truth, noise-free, would not simulate such a
+    stage from the recorded base to the noise floor. Inside the glide x'' = A (w' cos theta - w^2 sin
     theta) carries the change of speed."""
     f0 = float(prev.carrier[1][0]) / (2 * math.pi)
     T = GLIDE_PERIODS / min(f0, f1)
@@ -606,9 +605,8 @@ def _rig(sim, s, rng):
     sim.record("validation", ramped_tone(sim.t, f_val, a, 4.0, max(a / rate, 2 / f_val)),
                {"kind": "tone", "f_hz": f_val, "amplitude": a, "hold_s": 4.0})
     # the peaks the nonlinear stage reached, not the top level's: the raising stops where the
-    # response distorts or its gain or loss changes, often well below the top (stress contact rows
-    # on this protocol, to 2026-11-27: a gap placed at 0.55-0.75 of the top level's peak was
-    # reached in 2 of 11, at 0.08-0.88 of the gap in the others: records without their effect)
+    # response distorts or its gain or loss changes, often well below the top (a contact gap placed
+    # by the top level's peak is then often not reached: a record without its effect)
     y = sim.stages["nonlinear"]["truth_states"]["y"]
     return float(np.max(y)), float(-np.min(y))
 

@@ -1,13 +1,13 @@
 """The recordings of the stress benches, each reproducible from its index alone.
 
-Diagnosis stress (bench/diagnose.py --stress, issue 13): recording i is a random TMP-like system
+Diagnosis stress (bench/diagnose.py --stress): recording i is a random TMP-like system
 (f_n 5-60 Hz, y^2, y^3 and Bouc-Wen each on or off, (gamma, delta) of either sign), a random
 protocol (paper, rig, sweep, multisine), fs log-uniform 1-10 kHz, SNR uniform 40-80 dB (half of
 them quantised), one concealed effect taken in turn from "none" (twice per cycle) and every catalog
 id the generator implements, at a strength uniform in 0.3-1.5 of its nominal scale
 (:func:`draw`, :func:`recording`).
 
-Reconstruction stress (bench/recon_accuracy.py --stress, issue 18): seed s is a random system
+Reconstruction stress (bench/recon_accuracy.py --stress): seed s is a random system
 with Bouc-Wen hysteresis, a protocol and a sample rate (:func:`stress_system`).
 
 Both draw from the independent generator (recon/testing/independent.py), which shares no code
@@ -56,7 +56,7 @@ def recording(d: dict) -> dict:
 
 
 def stress_system(seed: int, protocols=("paper", "rig")) -> tuple[dict, str, float]:
-    """System, protocol and sample rate of stress seed ``seed`` (reproducible)."""
+    """System, protocol and sample rate of the reconstruction stress bench's ``seed`` (reproducible)."""
     rng = np.random.default_rng([seed, 18])
     system = ind.random_system(rng, hysteresis=True)
     fs = float(np.round(math.exp(rng.uniform(math.log(1000.0), math.log(10000.0)))))
