@@ -298,9 +298,9 @@ def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data, interva
 # A reconstructed baseline absorbs missing physics into fn terms of its own (friction as y'^3 and
 # y'^5, which compensate each other), and the candidate fitted next to them cannot show what it
 # explains. A candidate whose fit leaves at most this share of the reference's fitting cost is
-# refitted without those terms, singly, in pairs and all at once (foreign recording c02, Coulomb
-# friction: held-out NRMSE 0.0149 with the baseline's y'^3 and y'^5 kept, 0.0018 without them,
-# against 0.0112 for the baseline as given).
+# refitted without those terms, singly, in pairs and all at once (a friction fitted beside the
+# y'^3 and y'^5 that absorbed it can do worse than the baseline as given, and far better without
+# them).
 PRUNE_FIT_SHARE = 0.9
 # short output-error fits (function evaluations) that rank starts differing in a fitted shape parameter
 SHAPE_SCREEN_NFEV = 6

@@ -358,8 +358,8 @@ def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
     ctx["mode_scan"] = [{"frequency_hz": f, "explained_share": sh} for f, sh, _ in scan[:3]]
     ctx["mode_starts"] = picked + [(f, 0.0) for f in ctx["mode_freqs"]]
     # scan_p: the same scan for a resonance riding on the measured point (driven by its absolute
-    # acceleration; foreign recording c05: a 30 Hz mount resonance under a 8.3 Hz specimen, which
-    # the input-driven scan did not find)
+    # acceleration, as a mount resonance under the specimen is, which the input-driven scan does
+    # not find)
     ctx["mode_scan_point"] = [{"frequency_hz": f, "explained_share": sh} for f, sh, _ in scan_p[:3]]
     ctx["mode_starts_point"] = [(f, phi) for f, _, phi in scan_p[:1]]
     for f in findings:

@@ -194,9 +194,9 @@ def prepare(run: Run, model: HystereticModel) -> list[StageData]:
     for n in names:
         st = run.stage(n)
         # the Savitzky-Golay input, not the band-limited one reconstruct fits with
-        # (recon.input_band): with it the foreign recording c04 (a 0.4 ms channel delay) was
-        # named coulomb_friction, its delay candidate stopping at held-out NRMSE 0.0056 against
-        # 0.0017 (docs/diagnosis.md)
+        # (recon.input_band): band-limiting changes the input near the band's edge, and an output
+        # effect fitted on the changed input (a channel delay) can stop short of the truth while
+        # another candidate is named in its place (docs/diagnosis.md)
         u = model.stage_input(st, band=False)
         y = st.y
         fit = np.ones(y.size, bool)

@@ -24,13 +24,11 @@ from shakerlab.run_data import BASE
 
 # The residual entry of a diverged trial. Normalised residuals of a finite simulation stay
 # below ~10 (an NRMSE of 1000 %), so a diverged trial costs at least 1e4 times more than any
-# finite one and the trust region always steps back from it. (The diagnosis used 1e2 before
-# the copies were merged; both are far above any finite cost, and the diagnosis bench's
-# table is unchanged by the choice: docs/architecture.md.)
+# finite one and the trust region always steps back from it. Any value this far above every
+# finite cost gives the same fits (docs/architecture.md).
 DIVERGED_RESIDUAL = 1e3
 # The relative finite-difference step of every output-error fit's Jacobian (scipy's
-# least_squares ``diff_step``). Measured once (bench/diff_step.py, kept in git history:
-# ``git show 104a713:bench/diff_step.py``) at the truth of a base and a
+# least_squares ``diff_step``). Measured once, by a scan of the step at the truth of a base and a
 # force run (RK4) and of the Bouc-Wen benchmark chain (Newmark): the forward-difference
 # Jacobian's error is about 6 h down to h = 1e-8, where rounding takes over; 1e-6 puts it at
 # 3e-6 to 9e-6 for both simulators, far below what moves a trust-region step.

@@ -42,7 +42,7 @@ def draw(i: int) -> dict:
             "quantisation": float(rng.uniform(0.2, 1.0)) if rng.random() < 0.5 else None,
             "effect": cyc[i % len(cyc)], "strength": float(rng.uniform(0.3, 1.5)),
             # from row FIRST_MODE_DRIVE_ROW on, half the higher modes ride on the tip (driven by its
-            # absolute acceleration; the foreign set's c05), drawn apart so earlier rows stay as they were
+            # absolute acceleration, as a mount resonance is), drawn apart so earlier rows stay as they were
             **({"mode_drive": float(np.random.default_rng([i, 29]).random() < 0.5)}
                if i >= FIRST_MODE_DRIVE_ROW and cyc[i % len(cyc)] == "higher_mode" else {})}
 
