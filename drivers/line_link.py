@@ -78,10 +78,12 @@ def url_problem(url: str) -> str | None:
     return None
 
 
-class LineLink:
-    def __init__(self, instrument: str, url: str, timeout: float = 1.0, write_term: str = "\n",
-                 read_term: str = "\n", serial_settings: SerialSettings | None = None,
-                 reconnect_attempts: int = 3, reconnect_delay: float = 0.1):
+class LineTransport:
+    """What every line-based request/reply link shares: the checked timeout and line terminations,
+    and ``write``/``query`` serialised by one lock. A link sends with ``_send`` and reads one reply
+    line with ``_read_line``."""
+
+    def __init__(self, instrument: str, timeout: float, write_term: str, read_term: str):
         if not isinstance(timeout, (int, float)) or not timeout > 0:
             raise ValueError(f"{instrument}: timeout must be > 0 s, got {timeout!r}")
         for what, term in (("write", write_term), ("read", read_term)):
@@ -89,8 +91,31 @@ class LineLink:
                 raise ValueError(f"{instrument}: {what} termination {term!r} is not one of "
                                  f"{', '.join(map(repr, TERMINATIONS))}")
         self.instrument = instrument
-        self.url = url
         self.timeout = float(timeout)
+        self._lock = threading.Lock()
+
+    def write(self, command: str) -> None:
+        with self._lock:
+            self._send(command)
+
+    def query(self, command: str, timeout: float | None = None) -> str:
+        with self._lock:
+            self._send(command)
+            return self._read_line(command, self.timeout if timeout is None else timeout)
+
+    def _send(self, command: str) -> None:
+        raise NotImplementedError
+
+    def _read_line(self, command: str, timeout: float) -> str:
+        raise NotImplementedError
+
+
+class LineLink(LineTransport):
+    def __init__(self, instrument: str, url: str, timeout: float = 1.0, write_term: str = "\n",
+                 read_term: str = "\n", serial_settings: SerialSettings | None = None,
+                 reconnect_attempts: int = 3, reconnect_delay: float = 0.1):
+        super().__init__(instrument, timeout, write_term, read_term)
+        self.url = url
         self.write_term = write_term.encode()
         self.read_term = read_term.encode()
         self.serial_settings = SerialSettings() if serial_settings is None else serial_settings
@@ -133,15 +158,6 @@ class LineLink:
         return self._port is not None
 
     # ---- I/O ----------------------------------------------------------------------------------
-    def write(self, command: str) -> None:
-        with self._lock:
-            self._send(command)
-
-    def query(self, command: str, timeout: float | None = None) -> str:
-        with self._lock:
-            self._send(command)
-            return self._read_line(command, self.timeout if timeout is None else timeout)
-
     def _send(self, command: str) -> None:
         if self._port is None:
             self.open()

@@ -16,14 +16,13 @@ reopens it; a failed command is never re-sent.
 from __future__ import annotations
 
 import re
-import threading
 import time
 
 import pyvisa
 import pyvisa.constants as vc
 
 from drivers.base import InstrumentConnectionError, InstrumentTimeout, MalformedReply
-from drivers.line_link import TERMINATIONS, SerialSettings
+from drivers.line_link import LineTransport, SerialSettings
 
 RESOURCE = re.compile(r"^(TCPIP|USB|GPIB|ASRL|VXI|PXI)\d*::", re.IGNORECASE)
 VISA_LIBRARIES = ("", "@py", "@ivi")
@@ -39,12 +38,11 @@ def is_visa_resource(address: str) -> bool:
     return isinstance(address, str) and RESOURCE.match(address.strip()) is not None
 
 
-class VisaLink:
+class VisaLink(LineTransport):
     def __init__(self, instrument: str, resource: str, timeout: float = 1.0, write_term: str = "\n",
                  read_term: str = "\n", serial_settings: SerialSettings | None = None, visa_library: str = "",
                  reconnect_attempts: int = 3, reconnect_delay: float = 0.1):
-        if not isinstance(timeout, (int, float)) or not timeout > 0:
-            raise ValueError(f"{instrument}: timeout must be > 0 s, got {timeout!r}")
+        super().__init__(instrument, timeout, write_term, read_term)
         if not is_visa_resource(resource):
             raise ValueError(f"{instrument}: {resource!r} is not a VISA resource string "
                              f"(TCPIP0::host::port::SOCKET, TCPIP0::host::inst0::INSTR, USB0::...::INSTR, "
@@ -52,13 +50,7 @@ class VisaLink:
         if visa_library not in VISA_LIBRARIES:
             raise ValueError(f"{instrument}: VISA library {visa_library!r} is not one of "
                              f"{', '.join(map(repr, VISA_LIBRARIES))}")
-        for what, term in (("write", write_term), ("read", read_term)):
-            if term not in TERMINATIONS:
-                raise ValueError(f"{instrument}: {what} termination {term!r} is not one of "
-                                 f"{', '.join(map(repr, TERMINATIONS))}")
-        self.instrument = instrument
         self.url = resource.strip()
-        self.timeout = float(timeout)
         self.write_term = write_term
         self.read_term = read_term
         self.serial_settings = SerialSettings() if serial_settings is None else serial_settings
@@ -67,7 +59,6 @@ class VisaLink:
         self.reconnect_delay = reconnect_delay
         self._rm = None
         self._session = None
-        self._lock = threading.Lock()
         self.open()
 
     # ---- connection -----------------------------------------------------------------------
@@ -118,15 +109,6 @@ class VisaLink:
         return self._session is not None
 
     # ---- I/O ----------------------------------------------------------------------------------
-    def write(self, command: str) -> None:
-        with self._lock:
-            self._send(command)
-
-    def query(self, command: str, timeout: float | None = None) -> str:
-        with self._lock:
-            self._send(command)
-            return self._read_line(command, self.timeout if timeout is None else timeout)
-
     def _send(self, command: str) -> None:
         if self._session is None:
             self.open()

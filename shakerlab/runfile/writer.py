@@ -147,10 +147,7 @@ class RunWriter:
         except BaseException:
             self._lock.release()
             raise
-        self.flush_interval = float(flush_interval)
-        self._last_flush = time.monotonic()
-        self._unflushed = 0
-        self._t_start = time.time()
+        self._start_clock(flush_interval)
         self.n_events = 0
         f = self.file
         f.attrs.update({
@@ -171,6 +168,13 @@ class RunWriter:
         entry.create_dataset("events", shape=(0,), maxshape=(None,), dtype=event_dtype(), chunks=(256,))
         self.stages: dict[str, StageWriter] = {}
         self.flush()
+
+    def _start_clock(self, flush_interval: float) -> None:
+        """The flush schedule and the session clock of a file opened for writing."""
+        self.flush_interval = float(flush_interval)
+        self._last_flush = time.monotonic()
+        self._unflushed = 0
+        self._t_start = time.time()
 
     def _open_for_append(self, path: str | Path, flush_interval: float) -> None:
         """``append=True``: record more stages into a cleanly closed run file. The file itself is
@@ -208,10 +212,7 @@ class RunWriter:
         except BaseException:
             self._lock.release()
             raise
-        self.flush_interval = float(flush_interval)
-        self._last_flush = time.monotonic()
-        self._unflushed = 0
-        self._t_start = time.time()
+        self._start_clock(flush_interval)
         self.file.attrs.update({"clean_close": False, "writer_pid": os.getpid()})
         self.file["entry"].attrs["status"] = "running"
         self.n_events = int(self.file["entry/events"].shape[0])
