@@ -72,6 +72,7 @@ from recon.library import monomials
 from recon.model import HystereticModel
 from recon.output_error.problem import (DIVERGED_RESIDUAL, FD_STEP, get_parameter,
                                         parameter_scales, set_parameter)
+from recon.output_error.stopping import stop_for_stages
 from recon.regression.criteria import effective_samples
 from recon.threads import fd_map
 from shakerlab.run_data import BASE, Run, Stage
@@ -619,8 +620,11 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
 
     p0 = np.clip(np.zeros(len(keys)), lo, hi)
     if keys:
+        # stopped once an iteration gains less than a hundredth of a chi-square unit of the fit's
+        # own likelihood (each stage's error over its fit_scale): recon.output_error.stopping
+        stop = stop_for_stages([int(d.fit.sum()) for d in data if d.fit.any()])
         sol = least_squares(resid, p0, method="trf", bounds=(lo, hi), x_scale=1.0, diff_step=FD_STEP,
-                            max_nfev=max_nfev, xtol=1e-10, ftol=1e-10, workers=fd_map())
+                            max_nfev=max_nfev, xtol=1e-10, ftol=1e-10, workers=fd_map(), callback=stop)
         p = sol.x
         cost = float(sol.fun @ sol.fun)
         stderr = {}

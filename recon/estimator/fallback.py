@@ -33,7 +33,7 @@ from scipy.optimize import least_squares
 
 from recon.library import monomials
 from recon.model import HystereticModel
-from recon.output_error.polish import decimate
+from recon.output_error.polish import decimate, output_noise
 from recon.output_error.problem import FD_STEP, OutputError
 from recon.threads import fd_map
 from recon.validation import nrmse
@@ -142,7 +142,8 @@ def _fit(model: HystereticModel, data: list, free: list, max_nfev: int) -> Hyste
     prob = OutputError(model, data, free=free)
     with np.errstate(all="ignore"):
         sol = least_squares(prob.residual, np.zeros(len(prob.keys)), method="trf", x_scale=1.0, diff_step=FD_STEP,
-                            max_nfev=max_nfev, xtol=1e-10, ftol=1e-12, workers=fd_map())
+                            max_nfev=max_nfev, xtol=1e-10, ftol=1e-12, workers=fd_map(),
+                            callback=prob.stop([output_noise(d) for d in data]))
     return prob.build(sol.x)
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
+from recon.differentiation import estimate_spectrum
 from recon.model import HystereticModel
 from recon.output_error.problem import FD_STEP, OutputError
 from recon.threads import fd_map
@@ -35,6 +36,14 @@ def decimate(item: tuple, fs_target: float = POLISH_FS):
     return (t[::q], item[1][::q], item[2][::q], *item[3:]), q
 
 
+def output_noise(item: tuple) -> float:
+    """The white-noise std of a data item's recorded output (its spectrum's upper-half floor)."""
+    t, y = item[0], item[2]
+    if y.size < 64:
+        return float("nan")
+    return float(estimate_spectrum(y, float(t[1] - t[0])).noise_std)
+
+
 MAX_NFEV = 60          # the polish's evaluation budget (recon.estimator.finish.continue_polish)
 
 
@@ -47,6 +56,8 @@ def polish(model: HystereticModel, data: list, max_nfev: int = MAX_NFEV, masks=N
     Items sampled faster than twice ``fs_target`` are decimated to >= ``fs_target`` for the
     fit (a 10 kHz rig stage to 2 kHz: 5x fewer simulated samples; None: never)."""
     q = [1] * len(data)
+    # the stop's noise (recon.output_error.stopping): each item's white floor, taken before decimation
+    stop_noise = noise if noise is not None else [output_noise(d) for d in data]
     if fs_target:
         dec = [decimate(d, fs_target) for d in data]
         data, q = [d for d, _ in dec], [k for _, k in dec]
@@ -56,7 +67,7 @@ def polish(model: HystereticModel, data: list, max_nfev: int = MAX_NFEV, masks=N
     p0 = np.zeros(len(prob.keys))
     r0 = prob.residual(p0)
     sol = least_squares(prob.residual, p0, method="trf", x_scale=1.0, diff_step=FD_STEP,
-                        max_nfev=max_nfev, xtol=1e-10, ftol=1e-12, workers=fd_map())
+                        max_nfev=max_nfev, xtol=1e-10, ftol=1e-12, workers=fd_map(), callback=prob.stop(stop_noise))
     new = prob.build(sol.x)
     cost0 = float(np.sqrt(r0 @ r0 / len(data)))
     cost1 = float(np.sqrt(sol.fun @ sol.fun / len(data)))

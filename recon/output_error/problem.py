@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from recon.model import PARAMETER_NAMES, HystereticModel
+from recon.output_error.stopping import ChiSquareStop
 from shakerlab.run_data import BASE
 
 # The residual entry of a diverged trial. Normalised residuals of a finite simulation stay
@@ -115,6 +116,7 @@ class OutputError:
         self.rms = [float(np.sqrt(np.mean((d[2] - d[2].mean()) ** 2))) or 1.0 for d in data]
         self.n_rows = sum(int(d[2].size if m is None else np.count_nonzero(m)) for d, m in zip(data, self.masks))
         self.item_weights = [1.0] * len(data)
+        self.noise = list(noise) if noise is not None and all(np.isfinite(noise)) and min(noise) > 0 else None
         if noise is not None:        # maximum likelihood under white output noise of std noise[i] per item
             n = [int(d[2].size if m is None else np.count_nonzero(m)) for d, m in zip(data, self.masks)]
             w = [r * np.sqrt(k) / s for r, k, s in zip(self.rms, n, noise)]
@@ -163,6 +165,18 @@ class OutputError:
         sqrt(n)), times the item's weight (under ``noise``: in all, proportional to 1/noise)."""
         return [w / (r * np.sqrt(d[2].size if mk is None else np.count_nonzero(mk)))
                 for d, r, mk, w in zip(self.data, self.rms, self.masks, self.item_weights)]
+
+    def stop(self, noise=None):
+        """The fit's stop in chi-square units (recon.output_error.stopping): each item's rows in units
+        of its output noise std (the problem's ``noise``, else ``noise`` given here: an estimate that
+        weights nothing and only says when the fit has converged). None (the solver's own
+        tolerances) when neither is known."""
+        noise = self.noise if self.noise is not None else noise
+        if noise is None:
+            return None
+        units = [1.0 / (w * s) ** 2 for w, s in zip(self.row_weights(), noise)
+                 if w > 0 and np.isfinite(s) and s > 0]
+        return ChiSquareStop(2.0 * max(units), self.n_rows) if units else None
 
     def residual(self, p) -> np.ndarray:
         res = self.simulate(self.build(p))

@@ -1,0 +1,93 @@
+"""The output-error fits' stop in chi-square units (recon.output_error.stopping)."""
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from recon.output_error.stopping import STOP_CHI2, ChiSquareStop, stop_for_stages
+
+T = np.linspace(0.0, 2.0, 4000)
+TRUE = (1.0, 0.7, 9.0)        # amplitude, decay rate [1/s], angular frequency [rad/s]
+
+
+def ringdown(p):
+    a, d, w = p
+    return a * np.exp(-d * T) * np.sin(w * T)
+
+
+def fit(y, sigma, callback=None, model=ringdown):
+    def resid(p):
+        return (model(p) - y) / sigma
+    return least_squares(resid, np.array([0.8, 0.5, 8.6]), method="trf", xtol=1e-14, ftol=1e-14, gtol=1e-14,
+                         max_nfev=200, callback=callback)
+
+
+@pytest.mark.parametrize("sigma", [1e-2, 1e-4])
+def test_the_stop_saves_evaluations_and_loses_less_than_its_bound(sigma):
+    y = ringdown(TRUE) + sigma * np.random.default_rng(1).standard_normal(T.size)
+    full = fit(y, sigma)
+    stop = ChiSquareStop(units_per_cost=2.0, rows=T.size)      # rows in noise units: chi2 = 2 F
+    short = fit(y, sigma, stop)
+    assert stop.stopped and short.status == -2
+    assert short.nfev < full.nfev
+    # what was left on the table is below the stop's own size, in chi-square units
+    lost = 2.0 * (short.cost - full.cost)
+    assert 0.0 <= lost < STOP_CHI2
+    # and the parameters are the optimum's to far better than their standard errors
+    J = full.jac
+    se = np.sqrt(np.diag(np.linalg.inv(J.T @ J)))
+    assert np.all(np.abs(short.x - full.x) < 0.2 * se)
+
+
+def test_a_model_that_misses_the_record_is_judged_in_its_residual_s_own_units():
+    """Where the model lacks part of the record, the residual's mean square (not the noise) is the
+    error variance: the stop comes at a step that is small against that, not against the noise."""
+    sigma = 1e-4
+    y = ringdown(TRUE) + 0.05 * np.sin(40.0 * T) + sigma * np.random.default_rng(2).standard_normal(T.size)
+    noise_only = ChiSquareStop(units_per_cost=2.0, rows=10 ** 12)     # as if every row were noise
+    both = ChiSquareStop(units_per_cost=2.0, rows=T.size)
+    a = fit(y, sigma, noise_only)
+    b = fit(y, sigma, both)
+    assert b.nfev < a.nfev
+    # its loss in units of the residual's variance per row stays below the stop's size
+    s2 = 2.0 * a.cost / T.size
+    assert 2.0 * (b.cost - a.cost) / s2 < STOP_CHI2
+
+
+def test_stop_arguments_are_checked():
+    with pytest.raises(ValueError, match="units_per_cost"):
+        ChiSquareStop(0.0, 10)
+    with pytest.raises(ValueError, match="stop_chi2"):
+        ChiSquareStop(1.0, 10, stop_chi2=float("nan"))
+    assert stop_for_stages([]) is None
+    # a residual of stages scaled per sample count: the largest stage sets the (conservative) unit
+    s = stop_for_stages([100, 400])
+    assert s.units_per_cost == pytest.approx(800.0) and s.rows == 500
+
+
+def test_output_error_fits_stop_on_their_noise_and_keep_their_answer():
+    """The polish of a simulated record: the stop ends the fit where the full tolerance would have
+    gone on, and the parameters are the same to far below their uncertainty."""
+    from recon.model import HystereticModel
+    from recon.output_error import polish as polish_mod
+    from recon.output_error.problem import OutputError
+
+    truth = HystereticModel(excitation="base", c_m=4.0, k_m=1500.0, alpha_m=700.0, gamma=150.0, delta=50.0,
+                            fn_m={"y^2": 1.5e5})
+    t = np.arange(0.0, 4.0, 1e-3)
+    u = 3.0 * np.sin(2 * np.pi * 7.0 * t) * np.minimum(t / 0.5, 1.0)
+    y = truth.simulate(t, u)[0]
+    sigma = 1e-3 * float(np.std(y))
+    y = y + sigma * np.random.default_rng(3).standard_normal(y.size)
+    start = HystereticModel.from_dict(truth.to_dict())
+    start.c_m, start.alpha_m, start.gamma = 5.0, 600.0, 120.0
+    item = (t, u, y)
+    prob = OutputError(start, [item], noise=[sigma])
+    stop = prob.stop()
+    assert isinstance(stop, ChiSquareStop)
+    fitted, info = polish_mod.polish(start, [item], noise=[sigma], max_nfev=200)
+    sol = least_squares(prob.residual, np.zeros(len(prob.keys)), method="trf", x_scale=1.0, max_nfev=200,
+                        xtol=1e-14, ftol=1e-15, gtol=1e-15, diff_step=polish_mod.FD_STEP)
+    full = prob.build(sol.x)
+    assert info["nfev"] < sol.nfev
+    for k in ("c_m", "k_m", "alpha_m", "gamma", "delta"):
+        assert getattr(fitted, k) == pytest.approx(getattr(full, k), rel=2e-3)
