@@ -11,6 +11,7 @@ from recon.diagnosis.catalog import CATALOG
 from recon.testing.concealed import EFFECTS, concealed_run
 from recon.diagnosis.diagnose import diagnose
 from recon.diagnosis.locate import billings_voon
+from recon.diagnosis.settings import DEFAULTS
 from shakerlab.cli import main
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import FORCE
@@ -230,7 +231,7 @@ def test_a_top_level_that_begins_in_the_held_out_end_is_half_fitted(top_from):
     n = nl.y.size
     onset = int(np.argmax(level > 0.6e-3))
     cut = rank.hold_cut(nl.y)
-    if top_from < 1 - rank.HOLD_FRACTION:
+    if top_from < 1 - DEFAULTS.hold_fraction:
         assert cut == rank.fit_cut(n)
     else:       # half the top level, from within a period (200 samples) of its start
         assert 0 <= cut - (onset + n) // 2 <= 100
@@ -254,7 +255,7 @@ def test_held_out_data_span_the_amplitudes_the_fit_saw(validation, held_in_nonli
     nl = data["nonlinear"]
     n = nl.y.size
     if held_in_nonlinear:
-        cut = int((1 - rank.HOLD_FRACTION) * n)
+        cut = int((1 - DEFAULTS.hold_fraction) * n)
         assert nl.fit[:cut].all() and not nl.fit[cut:].any() and nl.held[cut:].all() and not nl.held[:cut].any()
     else:
         assert nl.fit.all() and not nl.held.any()

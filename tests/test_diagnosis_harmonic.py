@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from recon.diagnosis.diagnose import diagnose
+from recon.diagnosis.settings import DEFAULTS
 from recon.testing import independent as ind
 from recon.testing.runs import model_of, to_run
 
@@ -56,7 +57,7 @@ def test_each_effect_is_named_from_one_tone_per_stage(effect):
             y = e["side"] * (np.asarray(st["x_tip"]) - np.asarray(st["x_base"]))
             return float(np.max(y[int(start * y.size):])) / e["gap"]
         assert reach("validation") < 0.5 and rank.uncovered_stages(run) == {"nonlinear"}
-        assert reach("nonlinear", 1 - rank.HOLD_FRACTION) > 1.0
+        assert reach("nonlinear", 1 - DEFAULTS.hold_fraction) > 1.0
     out = diagnose(run, baseline).to_dict()
     ids = [m["id"] for m in out["missing_physics"]]
     amb = out.get("ambiguous") or []
@@ -65,7 +66,7 @@ def test_each_effect_is_named_from_one_tone_per_stage(effect):
     fb, fa = out["fit_before"], out["fit_after"]
     if effect == "contact_stiffness":
         assert fb["held_out_share"]["validation"] == 1.0
-        assert fb["held_out_share"]["nonlinear"] == pytest.approx(rank.HOLD_FRACTION, abs=1e-3)
+        assert fb["held_out_share"]["nonlinear"] == pytest.approx(DEFAULTS.hold_fraction, abs=1e-3)
     assert fa["held_out_nrmse"] < fb["held_out_nrmse_as_given"]
     assert fa["held_out_nrmse"] < fb["refit_held_out_nrmse"]
 

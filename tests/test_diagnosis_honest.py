@@ -18,6 +18,7 @@ import pytest
 from recon.diagnosis import rank
 from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.diagnose import diagnose, implausible, unexplained_mismatch
+from recon.diagnosis.settings import DEFAULTS
 from recon.testing.concealed import concealed_run
 
 
@@ -122,7 +123,7 @@ def test_a_tiny_noise_floor_does_not_make_a_small_gain_significant():
     # the BIC and gain-over-noise tests trivially (gain over noise ~ 6e8) but is not a meaningful fraction
     ref = _fr(1.0)
     small = rank.score(ref, _fr(0.97 ** 2), 1, 1e-10)
-    assert small["gain_over_noise"] > 1e8 and small["dbic"] < -rank.BIC_MARGIN
+    assert small["gain_over_noise"] > 1e8 and small["dbic"] < -DEFAULTS.rule.bic_margin
     assert small["relative_gain"] == pytest.approx(0.03)
     assert not small["significant"]
     big = rank.score(ref, _fr(0.5 ** 2), 1, 1e-10)
@@ -134,8 +135,8 @@ def test_a_gain_below_the_noise_needs_the_steady_route():
     # the floor all but 5 % of an excess of 0.3 noise variances is not named: the floor tiers that
     # admitted it were removed on 2026-12-02 (clean stress #1002)
     floor = rank.score(_fr(1.3), _fr(1.005, pieces=False), 1, 1.0)
-    assert floor["explained"] >= 0.95 and floor["gain_over_noise"] < rank.MIN_GAIN_NOISE
-    assert floor["relative_gain"] >= rank.MIN_REL_GAIN and not floor["significant"]
+    assert floor["explained"] >= 0.95 and floor["gain_over_noise"] < DEFAULTS.rule.min_gain_noise
+    assert floor["relative_gain"] >= DEFAULTS.rule.min_rel_gain and not floor["significant"]
     # clean stress #65's false candidate: 70 % of an excess of 2 noise variances (gain 1.4)
     part = rank.score(_fr(3.0), _fr(1.6, pieces=False), 1, 1.0)
     assert part["explained"] == pytest.approx(0.7) and part["gain_over_noise"] == pytest.approx(1.4)
@@ -151,7 +152,7 @@ def test_a_gain_below_the_noise_needs_the_steady_route():
     assert rank.passes(-20.0, 0.95, 0.278, 0.114, 0.9)
     # from MIN_GAIN_NOISE on, the pieces do not matter
     big = rank.score(_fr(3.0), _fr(1.4, pieces=False), 1, 1.0)
-    assert big["gain_over_noise"] >= rank.MIN_GAIN_NOISE and big["significant"]
+    assert big["gain_over_noise"] >= DEFAULTS.rule.min_gain_noise and big["significant"]
 
 
 # ----------------------------------------------------------------- plausibility
@@ -742,14 +743,14 @@ def test_friction_is_found_where_the_paper_baseline_misses_the_response():
 
 
 @pytest.mark.slow
-def test_two_effects_neither_enough_alone_are_named_together(monkeypatch):
+def test_two_effects_neither_enough_alone_are_named_together():
     # stress #99 (a contact on sweeps, 45.9 dB) against its paper baseline, which lacks the truth's
     # y^2 and holds y^4, y^5 instead: held-out 0.00905, the contact alone 0.0070, y^2 alone 0.0075,
     # neither significant before the rule's steady route (2026-11-28b), which passes the contact alone
     # (it helps on 9 of 10 held-out pieces, 22 % lower NRMSE); with that route asking 25 %, as when
     # neither passed alone, fitted together (the contact on top of the y^2 fit, each side of the stop
     # fitted) they reach the truth's figure (the pair over y^2 alone: 31 % lower, 9 of 10 pieces)
-    monkeypatch.setattr(rank, "STEADY_REL_GAIN", 0.25)
+    settings = dataclasses.replace(DEFAULTS, rule=dataclasses.replace(DEFAULTS.rule, steady_rel_gain=0.25))
     from recon.testing.stress import draw, recording
     from recon.testing.runs import model_of, to_run, true_model
 
@@ -758,7 +759,7 @@ def test_two_effects_neither_enough_alone_are_named_together(monkeypatch):
     base = model_of({"c_m": 11.7001577133738, "k_m": 40610.18688167713, "alpha_m": 60820.44292600348,
                      "gamma": 1554.9743494079798, "delta": 3035.3745078802367,
                      "fn_m": {"y^4": 94735987934030.47, "y^5": 1.5106721897868547e+17}})
-    dg = diagnose(run, baseline=base, candidates=["contact_stiffness", "quadratic_stiffness"])
+    dg = diagnose(run, baseline=base, candidates=["contact_stiffness", "quadratic_stiffness"], settings=settings)
     assert [m["id"] for m in dg.missing] == ["contact_stiffness", "quadratic_stiffness"]
     by_id = {c["id"]: c for c in dg.candidates}
     assert not by_id["contact_stiffness"]["alone"]["significant"]
@@ -933,7 +934,7 @@ def test_a_candidate_that_helps_throughout_the_held_out_record_needs_less_of_the
     # and a steady candidate that stays above the floor tiers needs STEADY_GAIN and
     # STEADY_REL_GAIN: clean #105's sensor scale (10 of 10 pieces, 2.1 % and 0.05 noise variances) fails
     small = rank.score(ref, _fr(1.345, math.sqrt(1.345) * r), 1, 1.0)
-    assert small["blocks_improved"] == 1.0 and small["relative_gain"] < rank.STEADY_REL_GAIN
+    assert small["blocks_improved"] == 1.0 and small["relative_gain"] < DEFAULTS.rule.steady_rel_gain
     assert not small["significant"]
 
 
@@ -944,8 +945,8 @@ def test_a_small_term_that_helps_throughout_the_held_out_record_is_named():
     r /= np.sqrt(np.mean(r ** 2))
     ref = _fr(1.22, math.sqrt(1.22) * r)
     steady = rank.score(ref, _fr(1.11, math.sqrt(1.11) * r), 1, 1.0)
-    assert steady["relative_gain"] < rank.MIN_REL_GAIN and steady["gain_over_noise"] < 0.25
-    assert steady["relative_gain"] >= rank.STEADY_REL_GAIN and steady["blocks_improved"] == 1.0
+    assert steady["relative_gain"] < DEFAULTS.rule.min_rel_gain and steady["gain_over_noise"] < 0.25
+    assert steady["relative_gain"] >= DEFAULTS.rule.steady_rel_gain and steady["blocks_improved"] == 1.0
     assert steady["significant"]
     # the same mean squares, better on the first half and worse on the second (clean #326's
     # friction: 6.6 %, 0.18 noise variances, 5 of 10 pieces): not significant
@@ -957,9 +958,9 @@ def test_a_small_term_that_helps_throughout_the_held_out_record_is_named():
     # nor is a steady one under STEADY_GAIN noise variances (a reference at 1.061 noise variances,
     # the candidate at 0.965: a gain of 0.096)
     faint = rank.score(_fr(12.2, math.sqrt(12.2) * r), _fr(11.1, math.sqrt(11.1) * r), 1, 11.5)
-    assert faint["blocks_improved"] == 1.0 and faint["relative_gain"] >= rank.STEADY_REL_GAIN
-    assert faint["explained"] >= rank.MIN_EXPLAINED and faint["dbic"] < -rank.BIC_MARGIN
-    assert faint["gain_over_noise"] < rank.STEADY_GAIN and not faint["significant"]
+    assert faint["blocks_improved"] == 1.0 and faint["relative_gain"] >= DEFAULTS.rule.steady_rel_gain
+    assert faint["explained"] >= DEFAULTS.rule.min_explained and faint["dbic"] < -DEFAULTS.rule.bic_margin
+    assert faint["gain_over_noise"] < DEFAULTS.rule.steady_gain and not faint["significant"]
 
 
 def test_a_term_that_brings_the_model_near_the_floor_on_every_piece_is_named():
@@ -970,8 +971,8 @@ def test_a_term_that_brings_the_model_near_the_floor_on_every_piece_is_named():
     r /= np.sqrt(np.mean(r ** 2))
     ref = _fr(1.085, math.sqrt(1.085) * r)
     near = rank.score(ref, _fr(1.015, math.sqrt(1.015) * r), 1, 1.0)
-    assert near["relative_gain"] < rank.STEADY_REL_GAIN and near["gain_over_noise"] < rank.STEADY_GAIN
-    assert near["explained"] >= rank.COMPLETE_EXPLAINED and near["blocks_improved"] == 1.0
+    assert near["relative_gain"] < DEFAULTS.rule.steady_rel_gain and near["gain_over_noise"] < DEFAULTS.rule.steady_gain
+    assert near["explained"] >= DEFAULTS.rule.complete_explained and near["blocks_improved"] == 1.0
     assert near["significant"]
     # the same figures on 9 of 10 pieces: the steady route's pieces, but not every one: not named
     nine = math.sqrt(1.015) * r.copy()
@@ -983,12 +984,12 @@ def test_a_term_that_brings_the_model_near_the_floor_on_every_piece_is_named():
     # clean #1041's channel delay (rig, 41 dB): 82 % of an excess of 0.032 noise variances, 1.25 %,
     # every piece better: under COMPLETE_REL_GAIN and COMPLETE_GAIN, not named
     clean = rank.score(_fr(1.032, math.sqrt(1.032) * r), _fr(1.006, math.sqrt(1.006) * r), 1, 1.0)
-    assert clean["explained"] >= rank.COMPLETE_EXPLAINED and clean["blocks_improved"] == 1.0
-    assert clean["relative_gain"] < rank.COMPLETE_REL_GAIN and not clean["significant"]
+    assert clean["explained"] >= DEFAULTS.rule.complete_explained and clean["blocks_improved"] == 1.0
+    assert clean["relative_gain"] < DEFAULTS.rule.complete_rel_gain and not clean["significant"]
     # a candidate below the noise floor (the floor overestimated; clean #781's delay explained 1.67
     # of its excess) has no near-floor route: the steady route's figures decide
     below = rank.score(_fr(1.05, math.sqrt(1.05) * r), _fr(0.99, math.sqrt(0.99) * r), 1, 1.0)
-    assert below["explained"] > 1.0 and below["relative_gain"] < rank.STEADY_REL_GAIN
+    assert below["explained"] > 1.0 and below["relative_gain"] < DEFAULTS.rule.steady_rel_gain
     assert not below["significant"]
 
 
@@ -1001,12 +1002,12 @@ def test_a_term_that_helps_on_every_piece_with_part_of_the_excess_is_named():
     ref = _fr(1.173, math.sqrt(1.173) * r)
     part = rank.score(ref, _fr(1.0986, math.sqrt(1.0986) * r), 1, 1.0)
     assert part["blocks_improved"] == 1.0 and 0.4 <= part["explained"] < 0.8
-    assert part["gain_over_noise"] < rank.STEADY_GAIN and part["relative_gain"] < rank.STEADY_REL_GAIN
+    assert part["gain_over_noise"] < DEFAULTS.rule.steady_gain and part["relative_gain"] < DEFAULTS.rule.steady_rel_gain
     assert part["significant"]
     # clean #105's sensor scale (paper, 63 dB): 22 % of the excess, 2.1 %, every piece: not named
     clean = rank.score(_fr(1.236, math.sqrt(1.236) * r), _fr(1.184, math.sqrt(1.184) * r), 1, 1.0)
-    assert clean["blocks_improved"] == 1.0 and clean["relative_gain"] >= rank.COMPLETE_REL_GAIN
-    assert clean["explained"] < rank.COMPLETE_EXPLAINED and not clean["significant"]
+    assert clean["blocks_improved"] == 1.0 and clean["relative_gain"] >= DEFAULTS.rule.complete_rel_gain
+    assert clean["explained"] < DEFAULTS.rule.complete_explained and not clean["significant"]
 
 
 @pytest.mark.slow
@@ -1059,7 +1060,7 @@ def test_starts_that_differ_in_the_contact_gap_are_ranked_by_where_a_short_fit_l
     assert dg.best.get("kc") == pytest.approx(truth["kc"] / rec["system"]["m"], rel=0.05)
 
 
-def test_a_fitting_stage_recorded_in_motion_leaves_its_start_transient_out_of_the_fit(monkeypatch):
+def test_a_fitting_stage_recorded_in_motion_leaves_its_start_transient_out_of_the_fit():
     # stress #641 (the rig protocol, a 0.31 ms channel delay): the resonance search starts in the
     # linear stage's ringing with a Bouc-Wen state no fit's start knows. The truth, started as the
     # fits start it, erred most in that stage's first seconds, and that transient held most of its
@@ -1070,17 +1071,16 @@ def test_a_fitting_stage_recorded_in_motion_leaves_its_start_transient_out_of_th
     rec = recording(draw(641))
     run = to_run(rec)
     truth, _ = true_model(rec)
-    assert rank.BURN_IN_DECAYS == 3.0                        # on by default (docs/diagnosis.md, 2026-12-01c)
+    assert DEFAULTS.burn_in_decays == 3.0                        # on by default (docs/diagnosis.md)
     data = rank.prepare(run, truth.baseline)
-    cut = rank.BURN_IN_DECAYS / (truth.baseline.c_m / 2.0)
-    monkeypatch.setattr(rank, "BURN_IN_DECAYS", 0.0)
-    whole = rank.prepare(run, truth.baseline)
+    cut = DEFAULTS.burn_in_decays / (truth.baseline.c_m / 2.0)
+    whole = rank.prepare(run, truth.baseline, dataclasses.replace(DEFAULTS, burn_in_decays=0.0))
     search = next(d for d in data if d.name == "resonance_search")
     search0 = next(d for d in whole if d.name == "resonance_search")
     assert search.edge is not None
     left_out = search0.fit & ~search.fit
     assert left_out.any() and np.all(search.t[left_out] < search.t[0] + cut + search.dt)
-    assert search.fit.sum() > rank.BURN_IN_KEEP * search0.fit.sum()
+    assert search.fit.sum() > DEFAULTS.burn_in_keep * search0.fit.sum()
     for d, d0 in zip(data, whole):          # stages recorded from rest, and held-out samples, as they were
         assert np.array_equal(d.held, d0.held)
         if d.edge is None:

@@ -3,6 +3,7 @@ issues 13 and 18: it must share no code with shakerlab, and its physics must be 
 from __future__ import annotations
 
 import ast
+import dataclasses
 import math
 import subprocess
 import sys
@@ -219,7 +220,7 @@ def test_stress_report_says_which_misses_the_fitting_samples_do_not_show():
     text = "\n".join(report(rows))
     assert "missed where the truth passes: 3, 3 with the effect's signature (" in text
     assert "of those 1 whose effect acts on the fitting samples at under 10% of its held-out size" in text
-    # 0.20 x the noise: the least signature that can cut the held-out NRMSE by 2 % (rank.COMPLETE_REL_GAIN)
+    # 0.20 x the noise: the least signature that can cut the held-out NRMSE by 2 % (DEFAULTS.rule.complete_rel_gain)
     assert "and 1 whose effect acts on the held-out samples at under 0.20 x the noise" in text and "(#4)" in text
     assert "right first by SNR: 40-45 dB 1/3, 75-80 dB 0/1" in text
     assert "paper baseline is a reconstruct fallback" not in text
@@ -291,13 +292,15 @@ def test_effect_signature_sees_a_contact_the_fitting_samples_never_reach(monkeyp
     from recon.testing.diagnosis_stress import effect_signature
     from recon.testing.stress import draw, recording
 
-    def signature(i):
+    from recon.diagnosis.settings import DEFAULTS
+
+    def signature(i, settings=DEFAULTS):
         rec = recording(draw(i))
-        return effect_signature(rec, rank.prepare(to_run(rec), true_model(rec)[0].baseline))
+        return effect_signature(rec, rank.prepare(to_run(rec), true_model(rec)[0].baseline, settings))
 
     now = signature(1061)
     assert now["fit_over_noise"] > 5 and now["held_over_noise"] > 5, now
-    monkeypatch.setattr(rank, "TOP_REACH", 0.0)
-    sig = {i: signature(i) for i in (957, 1061)}
+    split = dataclasses.replace(DEFAULTS, top_reach=0.0)
+    sig = {i: signature(i, split) for i in (957, 1061)}
     assert sig[957]["fit_over_noise"] > 5 and sig[957]["held_over_noise"] > 5, sig
     assert sig[1061]["fit_over_noise"] < 0.1 and sig[1061]["held_over_noise"] > 100, sig

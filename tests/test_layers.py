@@ -195,3 +195,33 @@ def test_no_test_imports_bench():
                     and "bench" in ast.unparse(node)):
                 bad.append(f"{rel}:{node.lineno} puts bench/ on sys.path")
     assert not bad, "\n".join(bad)
+
+
+def test_no_test_or_bench_rewrites_a_recon_setting():
+    """A tuned number is changed by passing settings (recon.diagnosis.settings, ReconSettings), never
+    by rewriting a module's constant: no test or bench script monkeypatches an UPPER_CASE attribute
+    or assigns one on an imported module (``rank.BURN_IN_DECAYS = 0``)."""
+    bad = []
+    for path in sorted(list((ROOT / "tests").rglob("*.py")) + list((ROOT / "bench").glob("*.py"))):
+        rel = path.relative_to(ROOT)
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "setattr"
+                    and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant)
+                    and isinstance(node.args[1].value, str) and node.args[1].value.isupper()):
+                bad.append(f"{rel}:{node.lineno} sets {node.args[1].value}")
+            if isinstance(node, ast.Assign):
+                for t in node.targets:
+                    if isinstance(t, ast.Attribute) and t.attr.isupper() and isinstance(t.value, ast.Name):
+                        bad.append(f"{rel}:{node.lineno} assigns {t.value.id}.{t.attr}")
+    assert not bad, "\n".join(bad)
+
+
+def test_the_diagnosis_rule_and_split_live_in_its_settings():
+    """recon.diagnosis.rank holds no number of the significance rule, the held-out split, the burn-in
+    or the stages' weighting: those are DiagnosisSettings fields (each with meaning, unit, range)."""
+    from recon.diagnosis import rank
+    from recon.diagnosis.settings import describe, DEFAULTS
+
+    fields = {r["name"].split(".")[-1].upper() for r in describe(DEFAULTS)}
+    left = sorted(n for n in vars(rank) if n in fields)
+    assert not left, f"recon.diagnosis.rank still defines {left}"

@@ -13,6 +13,7 @@ model; on the stage's held-out end it then left the record (NRMSE 1.47).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -23,6 +24,7 @@ from recon.estimator.fallback import admissible, score
 from recon.estimator.finish import validate
 from recon.estimator.pipeline import SIMPLER_FIT_SLACK, SIMPLER_GAIN, _prefer_simpler
 from recon.estimator.result import ReconResult
+from recon.diagnosis.settings import DEFAULTS
 from recon.model import HystereticModel
 from shakerlab.run_data import Run
 
@@ -43,9 +45,8 @@ def _stress_record(i: int) -> tuple[Run, dict]:
 def record():
     whole, rec = _stress_record(ROW)
     assert rec["protocol"] == "rig" and rec["snr"] == pytest.approx(53.6)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(rank, "TOP_REACH", 0.0)      # the 70/30 split (rank.fit_cut), as before hold_cut
-        return whole, rank.fitting_part(whole)
+    # the 70/30 split (rank.fit_cut): no top level asked to be fitted
+    return whole, rank.fitting_part(whole, dataclasses.replace(DEFAULTS, top_reach=0.0))
 
 
 # reconstruct's admissible estimate on the fitting part (its y^2 and Bouc-Wen law are the truth's

@@ -27,6 +27,7 @@ from recon.constitutive.law import ConstitutiveLaw, is_law_file
 from recon import progress
 from recon.determinism import single_thread_blas
 from recon.diagnosis import rank
+from recon.diagnosis.settings import DEFAULT_RULE, DEFAULTS, DiagnosisSettings, SignificanceRule
 from recon.diagnosis.ambiguity import ambiguous_pair, separating_stage
 from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.catalog import CATALOG, MODE_APART, MODE_ZETA_MAX, ZETA2_RANGE
@@ -72,7 +73,8 @@ def linear_baseline(run: Run) -> HystereticModel:
                                           if used != name else {})})
 
 
-def resolve_baseline(run: Run, baseline, whole: bool = False) -> tuple[AugmentedModel, str]:
+def resolve_baseline(run: Run, baseline, whole: bool = False,
+                     settings: DiagnosisSettings = DEFAULTS) -> tuple[AugmentedModel, str]:
     """The baseline as an augmented model and its kind. ``paper`` and ``linear`` are reconstructed
     from :func:`rank.fitting_part` of ``run`` (from all of it when ``whole``)."""
     if isinstance(baseline, AugmentedModel):
@@ -82,7 +84,7 @@ def resolve_baseline(run: Run, baseline, whole: bool = False) -> tuple[Augmented
     if baseline in (None, "paper"):
         # reconstructed from the fitting samples only (rank.fitting_part: a stage the validation
         # stages do not cover has its end held out), so the baseline's held-out score is out of sample
-        res = reconstruct(run if whole else rank.fitting_part(run))
+        res = reconstruct(run if whole else rank.fitting_part(run, settings))
         model = res.model
         if res.linear is not None and res.linear.warnings:
             model.provenance["warnings"] = list(res.linear.warnings)
@@ -99,7 +101,7 @@ def resolve_baseline(run: Run, baseline, whole: bool = False) -> tuple[Augmented
             model.input_offset = None
         return AugmentedModel(model), "paper"
     if baseline == "linear":
-        return AugmentedModel(linear_baseline(run if whole else rank.fitting_part(run))), "linear"
+        return AugmentedModel(linear_baseline(run if whole else rank.fitting_part(run, settings))), "linear"
     path = Path(str(baseline))
     if path.suffix != ".json" and not path.exists():
         raise UserFacingError(f"--baseline must be 'paper', 'linear' or a model JSON file, got {baseline!r}")
@@ -340,21 +342,21 @@ def without_terms(am: AugmentedModel, drop: tuple) -> AugmentedModel:
 
 
 def prune_absorbed(fr: rank.FitResult, keys: list, sc: dict, b: dict, free: list, ref: rank.FitResult, data,
-                   max_nfev: int, cache: dict | None = None):
+                   max_nfev: int, cache: dict | None = None, rule: SignificanceRule = DEFAULT_RULE):
     """(fit, free keys, dropped terms, reference to score against): the candidate fit ``fr`` refitted
     without the baseline fn terms it may have made redundant, when one such refit predicts the
     held-out samples better (only for a candidate that removes at least 1 - PRUNE_FIT_SHARE of the
-    reference's fitting cost, or lowers its held-out NRMSE by rank.MIN_REL_GAIN). The reference is then the better of ``ref`` and the baseline without
+    reference's fitting cost, or lowers its held-out NRMSE by the rule's min_rel_gain). The reference is then the better of ``ref`` and the baseline without
     the same terms, its parameters refitted as in the candidate's fit: the candidate gets no credit
     for what dropping them and refitting the rest alone does.
     ``cache`` keeps those pruned references between candidates."""
     cache = {} if cache is None else cache
     terms = [t for t in fr.model.baseline.fn_m if f"fn:{t}" not in keys]
-    # tried too for a candidate that lowers the held-out NRMSE by MIN_REL_GAIN or more: where one stage
+    # tried too for a candidate that lowers the held-out NRMSE by the rule's min_rel_gain or more: where one stage
     # misfitted by every model holds most of the fitting cost, no candidate removes a tenth of it,
     # yet the held-out error can still show that a baseline term stands in for the candidate's
     promising = (math.isfinite(fr.nrmse_held) and math.isfinite(ref.nrmse_held)
-                 and fr.nrmse_held <= (1.0 - rank.MIN_REL_GAIN) * ref.nrmse_held)
+                 and fr.nrmse_held <= (1.0 - rule.min_rel_gain) * ref.nrmse_held)
     if not terms or not (fr.cost_fit < PRUNE_FIT_SHARE * ref.cost_fit or promising):
         return fr, free, (), ref
     best, best_free, best_drop = fr, free, ()
@@ -448,7 +450,8 @@ def combined_fit(first: tuple, second: tuple, second_id: str, data, max_nfev: in
 
 
 def joint_pair(tested: list, fits: dict, nulls: list, ref_model: AugmentedModel, data, noise_mse: float,
-               max_nfev: int, refit_on=None, far_from_floor: bool = False) -> tuple[list, rank.FitResult | None]:
+               max_nfev: int, refit_on=None, far_from_floor: bool = False,
+               rule: SignificanceRule = DEFAULT_RULE) -> tuple[list, rank.FitResult | None]:
     """When no candidate is significant alone: two fitted together. Two effects (or an effect and a
     term the baseline lacks) can each explain too little of the mismatch alone.
 
@@ -503,9 +506,9 @@ def joint_pair(tested: list, fits: dict, nulls: list, ref_model: AugmentedModel,
             a, b = b, a
         (fa, keys_a, _, _, free_a), (fb, keys_b, _, _, _) = fits[a["id"]], fits[b["id"]]
         k2 = len(keys_a) + len(keys_b)
-        joint = rank.score(against0, frc, k2, noise_mse)
-        if not (joint["significant"] and rank.score(fb, frc, len(keys_a), noise_mse)["significant"]
-                and rank.score(fa, frc, len(keys_b), noise_mse)["significant"]):
+        joint = rank.score(against0, frc, k2, noise_mse, rule)
+        if not (joint["significant"] and rank.score(fb, frc, len(keys_a), noise_mse, rule)["significant"]
+                and rank.score(fa, frc, len(keys_b), noise_mse, rule)["significant"]):
             continue
         if implausible(a["id"], frc, ref_model, data) or implausible(b["id"], frc, ref_model, data):
             continue
@@ -513,7 +516,7 @@ def joint_pair(tested: list, fits: dict, nulls: list, ref_model: AugmentedModel,
         nn = nested_null(frc, keys_a + keys_b, free_a, (a["id"], b["id"]), ref_model, data, max_nfev)
         if nn is not None and nn.mse_held < against.mse_held:
             against = nn
-            joint = rank.score(against, frc, k2, noise_mse)
+            joint = rank.score(against, frc, k2, noise_mse, rule)
             if not joint["significant"]:
                 continue
         for t, other in ((a, b), (b, a)):
@@ -606,10 +609,10 @@ def every_parameter(base: AugmentedModel) -> list[str]:
     return rank.baseline_keys(base.baseline) + [f"x:{k}" for k in base.extras if k not in ("v0", "side")]
 
 
-def _reference_fits(run: Run, base: AugmentedModel, max_nfev: int):
+def _reference_fits(run: Run, base: AugmentedModel, max_nfev: int, settings: DiagnosisSettings = DEFAULTS):
     """(stage data, the null model: every baseline parameter refitted, the baseline as given scored
     the same way with no parameter moved)."""
-    data = rank.prepare(run, base.baseline)
+    data = rank.prepare(run, base.baseline, settings)
     null = rank.fit(base, every_parameter(base), data, max_nfev=max_nfev)
     given = rank.fit(base, [], data)
     return data, null, given
@@ -629,27 +632,33 @@ def _check_null(null, data, run) -> None:
 
 @single_thread_blas
 @progress.task("diagnose")
-def diagnose(run: Run, baseline="paper", candidates=None, max_nfev: int = 30) -> Diagnosis:
-    """Diagnose ``run`` against ``baseline`` ("paper", "linear", a model JSON path or a model)."""
-    return _diagnose(run, baseline, candidates, max_nfev)
+def diagnose(run: Run, baseline="paper", candidates=None, max_nfev: int = 30,
+             settings: DiagnosisSettings | None = None) -> Diagnosis:
+    """Diagnose ``run`` against ``baseline`` ("paper", "linear", a model JSON path or a model).
+    ``settings``: the significance rule and the record's split and weighting
+    (recon.diagnosis.settings; None: the calibrated defaults)."""
+    if settings is not None and not isinstance(settings, DiagnosisSettings):
+        raise TypeError(f"settings must be a DiagnosisSettings, not {type(settings).__name__}")
+    return _diagnose(run, baseline, candidates, max_nfev, settings or DEFAULTS)
 
 
-def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
+def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: DiagnosisSettings) -> Diagnosis:
     t0 = time.perf_counter()
+    rule = settings.rule
     progress.step("the baseline model", share=0.15)
-    base, kind = resolve_baseline(run, baseline)
+    base, kind = resolve_baseline(run, baseline, settings=settings)
     if base.excitation != run.excitation:
         raise UserFacingError(f"baseline model is {base.excitation} excitation, {run.source or 'run'} is {run.excitation}")
-    data, null, given = _reference_fits(run, base, max_nfev)
+    data, null, given = _reference_fits(run, base, max_nfev, settings)
     if (kind in ("paper", "linear") and not (math.isfinite(null.mse_held) or math.isfinite(given.mse_held))
-            and rank.uncovered_stages(run)):
+            and rank.uncovered_stages(run, settings)):
         # reconstructed without the held-out end of a stage (rank.fitting_part), the baseline does
         # not simulate that stage: it is reconstructed from the whole run instead, and its score on
         # that end is then in sample (a polynomial model fitted below a contact's engagement can
         # diverge past it)
-        base, kind = resolve_baseline(run, baseline, whole=True)
+        base, kind = resolve_baseline(run, baseline, whole=True, settings=settings)
         base.baseline.provenance["fitted_on_held_out"] = "the whole run (its fitting part alone diverged)"
-        data, null, given = _reference_fits(run, base, max_nfev)
+        data, null, given = _reference_fits(run, base, max_nfev, settings)
     bkeys = rank.baseline_keys(base.baseline)
     full_free = every_parameter(base)
     before = given.nrmse
@@ -907,8 +916,9 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                 # harmonic offset test: 29 s without the follow-on fit, 113 s with it and the drops)
                 drop, against = (), ref
             else:
-                fr, free, drop, against = prune_absorbed(fr, keys, sc, b, free, ref, data, max_nfev, pruned_refs)
-            sc_ = rank.score(against, fr, len(keys), noise_mse)
+                fr, free, drop, against = prune_absorbed(fr, keys, sc, b, free, ref, data, max_nfev, pruned_refs,
+                                                         rule)
+            sc_ = rank.score(against, fr, len(keys), noise_mse, rule)
             before_nested = None
             if sc_["significant"]:
                 nn = nested_null(fr, keys, free, cid, ref.model, data, max_nfev)
@@ -919,7 +929,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                         # rule can be judged on stored rows (it decides whether this null exists)
                         before_nested = {k: sc_[k] for k in SCORE_KEYS if k in sc_}
                         against = nn
-                        sc_ = rank.score(against, fr, len(keys), noise_mse)
+                        sc_ = rank.score(against, fr, len(keys), noise_mse, rule)
         except CANDIDATE_FAILURES as exc:
             # a candidate whose fit or simulation fails is recorded with its reason and not ranked
             tested.append({"id": cid, "failed": f"{type(exc).__name__}: {exc}", "significant": False,
@@ -954,13 +964,13 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             if t.get("significant") and t["id"] in references:
                 against, k_added = references[t["id"]]
                 if best_null.mse_held < against.mse_held:
-                    t.update(rank.score(best_null, fits[t["id"]][0], k_added, noise_mse))
+                    t.update(rank.score(best_null, fits[t["id"]][0], k_added, noise_mse, rule))
                     t["compared_with_held_out_nrmse"] = best_null.nrmse_held
                     t["compared_with_nested_null"] = True
     # what the record can show: the size at which each candidate's effect, added to it, would be named
     # (an estimate; sensitivity.py)
     progress.step("detection limits", share=0.1)
-    limits = detection_limits(ref, fits, data, noise_mse, CANDIDATE_FAILURES)
+    limits = detection_limits(ref, fits, data, noise_mse, CANDIDATE_FAILURES, rule)
     for t in tested:
         if t["id"] in limits:
             t["detection_limit"] = limits[t["id"]]
@@ -976,7 +986,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                                  [k for k in free0 if k in bkeys])[0]
 
         sig, combined = joint_pair(tested, fits, nulls + [ref], ref.model, data, noise_mse, max_nfev, refit_on,
-                                   unexplained_mismatch(ref, noise_mse, []) is not None)
+                                   unexplained_mismatch(ref, noise_mse, []) is not None, rule)
     ranked = list(sig)
     if len(sig) > 1 and combined is None:
         # forward step: a runner-up is reported only if it still adds on top of the best one
@@ -986,7 +996,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             _, keys1, sc1, b1, _ = fits[t["id"]]
             try:
                 frc = combined_fit(fits[sig[0]["id"]], fits[t["id"]], t["id"], data, max_nfev)
-                s2 = rank.score(best_fr, frc, len(keys1), noise_mse)
+                s2 = rank.score(best_fr, frc, len(keys1), noise_mse, rule)
             except CANDIDATE_FAILURES as exc:
                 t["on_top_of_best"] = {"failed": f"{type(exc).__name__}: {exc}", "significant": False}
                 continue
@@ -1001,7 +1011,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                 break
         sig = kept
     pair = ambiguous_pair(ranked, {t["id"] for t in sig[1:]}, {c: f[0].mse_held for c, f in fits.items()},
-                          rank.BIC_MARGIN, noise_mse)
+                          rule.bic_margin, noise_mse)
     ambiguity = separating_stage(pair) if pair else None
     missing = []
     for t in sig:

@@ -2,10 +2,10 @@
 
 Output-error fit: the free parameters (the baseline's own ones, refitted, plus the
 candidate's) minimise sum over fitting stages of |y_sim - y_rec|^2 / (N s^2), with
-s^2 = noise^2 + (FIT_MODEL_SHARE rms(y))^2 per stage (:func:`fit_scale`).
+s^2 = noise^2 + (fit_model_share rms(y))^2 per stage (:func:`fit_scale`).
 The held-out data are the validation stage(s); without one, the last 30 % of
 every stage (the simulation runs through the whole stage, only the score is split).
-A fitting stage whose response the validation stages do not reach (below COVER_SHARE
+A fitting stage whose response the validation stages do not reach (below cover_share
 of its peak: the rig protocol's nonlinear stage) has its last 30 % held out as well,
 so that the held-out data span the amplitudes the fit saw (:func:`uncovered_stages`); where
 that stage reaches its top level only inside those 30 %, the fit keeps the level's first
@@ -23,27 +23,28 @@ The figures of the comparison, all on the held-out samples (:func:`score`):
   (MSE_null - MSE_cand) / (MSE_null - noise^2), that the candidate removes;
 - gain: the mean-square reduction MSE_null - MSE_cand in units of the noise variance;
 - rel: the relative cut of the held-out NRMSE, 1 - sqrt(MSE_cand / MSE_null);
-- blocks: the share of HELD_BLOCKS equal consecutive pieces of the held-out samples on
+- blocks: the share of held_blocks equal consecutive pieces of the held-out samples on
   which the candidate's mean-square error is below the null model's (:func:`blocks_improved`).
 
-The significance rule (:func:`passes`). Every candidate needs dBIC < -BIC_MARGIN (10) and
-explained >= MIN_EXPLAINED (0.15): terms fitted to noise
+The significance rule (recon.diagnosis.settings.SignificanceRule; the field names below are
+its fields, the figures its defaults). Every candidate needs dBIC < -bic_margin (10) and
+explained >= min_explained (0.15): terms fitted to noise
 fail both. It then passes by one of three routes:
 
-- **Large gain:** gain >= MIN_GAIN_NOISE (1.5 noise variances) and rel >= MIN_REL_GAIN
+- **Large gain:** gain >= min_gain_noise (1.5 noise variances) and rel >= min_rel_gain
   (0.10). An improvement smaller than the noise cannot be told from a better fit of the
   input-estimation errors; on clean recordings no candidate passing the other conditions
   reaches a gain of 1.5.
-- **Steady:** blocks >= CONSISTENT_BLOCKS (0.9, all but one of the ten pieces), gain >=
-  STEADY_GAIN (0.1) and rel >= STEADY_REL_GAIN (0.04). A weak term that is truly missing
+- **Steady:** blocks >= consistent_blocks (0.9, all but one of the ten pieces), gain >=
+  steady_gain (0.1) and rel >= steady_rel_gain (0.04). A weak term that is truly missing
   (quadratic damping beside a refitted linear damping, a higher mode far above the band)
   acts throughout the record and lowers the held-out error by a few per cent, often by a
   fraction of the noise variance on a record at 40-80 dB; a fit of a passing error helps on
   some pieces and hurts on others.
-- **Unanimous:** blocks >= COMPLETE_BLOCKS (1.0, every piece), COMPLETE_EXPLAINED (0.4) <=
+- **Unanimous:** blocks >= complete_blocks (1.0, every piece), complete_explained (0.4) <=
   explained <= 1 (a candidate that goes below the noise floor means the floor is
-  overestimated and the excess unknown), gain >= COMPLETE_GAIN (0.04) and rel >=
-  COMPLETE_REL_GAIN (0.02). Where the reconstructed baseline has taken up most of an effect,
+  overestimated and the excess unknown), gain >= complete_gain (0.04) and rel >=
+  complete_rel_gain (0.02). Where the reconstructed baseline has taken up most of an effect,
   what is left is small beside the noise; unanimity over the ten pieces is the evidence
   (10 of 10 by chance, were the pieces independent: 1 in 1024), and what the gain over the
   noise guards against, a fit of input-estimation errors, is a passing error.
@@ -74,46 +75,18 @@ from recon.output_error.problem import (DIVERGED_RESIDUAL, FD_STEP, get_paramete
                                         parameter_scales, set_parameter)
 from recon.output_error.stopping import stop_for_stages
 from recon.regression.criteria import effective_samples
+from recon.diagnosis.settings import DEFAULT_RULE, DEFAULTS, DiagnosisSettings, SignificanceRule
 from recon.threads import fd_map
 from shakerlab.run_data import BASE, Run, Stage
 
-BIC_MARGIN = 10.0
-MIN_EXPLAINED = 0.15
-MIN_GAIN_NOISE = 1.5
-MIN_REL_GAIN = 0.1          # the held-out NRMSE must fall by at least 10 % of the reference's
-# the steady route: a small term that beats its reference on at least CONSISTENT_BLOCKS of HELD_BLOCKS
-# consecutive pieces of the held-out samples, with STEADY_GAIN noise variances and a held-out NRMSE
-# lower by STEADY_REL_GAIN (in place of MIN_REL_GAIN)
-CONSISTENT_BLOCKS = 0.9
-STEADY_GAIN = 0.1
-STEADY_REL_GAIN = 0.04
-# the unanimous route: a candidate that beats its reference
-# on every held-out piece (COMPLETE_BLOCKS) and removes at least COMPLETE_EXPLAINED of its excess
-# over the noise, without going below the noise floor (there the floor is
-# overestimated and the excess unknown), needs COMPLETE_GAIN noise variances and a held-out NRMSE
-# lower by COMPLETE_REL_GAIN
-COMPLETE_BLOCKS = 1.0
-COMPLETE_EXPLAINED = 0.4
-COMPLETE_GAIN = 0.04
-COMPLETE_REL_GAIN = 0.02
-HELD_BLOCKS = 10
-HOLD_FRACTION = 0.3
-COVER_SHARE = 0.4     # a validation stage below 0.4 of a fitting stage's peak leaves that stage's top untested
-# a partly held-out stage whose first 1 - HOLD_FRACTION stays below TOP_REACH of its peak (a level
-# stepped up in its held-out end) fits the first half of that top level too (hold_cut)
-TOP_REACH = 0.9
-# a fitting stage recorded in motion leaves its first BURN_IN_DECAYS decay times of the baseline's mode
-# (2 / c per unit mass each) out of the fit, if at least BURN_IN_KEEP of its fitting samples remain
-# (:func:`burn_in`; docs/diagnosis.md)
-BURN_IN_DECAYS = 3.0
-BURN_IN_KEEP = 0.3
-# Each fitting stage's error is divided by hypot(noise floor, FIT_MODEL_SHARE x rms): the maximum-
-# likelihood weighting where the noise dominates, with an allowance for the model's own error so
-# that an averaged (nearly noise-free) stage does not outweigh the rest by its resolution alone.
-# Weighting by each stage's rms instead lets a small, noisy stage set the cost by its noise, so
-# that a large stage's error hardly counts and the fit can trade a true mode for one that fits
-# the small stage's noise.
-FIT_MODEL_SHARE = 1e-3
+# the significance rule, the held-out split, the burn-in and the stages' weighting are settings
+# (recon.diagnosis.settings): every function below that uses one takes ``settings`` (or ``rule``),
+# the calibrated defaults when not given. The weighting: each fitting stage's error is divided by
+# hypot(noise floor, fit_model_share x rms), the maximum-likelihood weighting where the noise
+# dominates, with an allowance for the model's own error so that an averaged (nearly noise-free)
+# stage does not outweigh the rest by its resolution alone. Weighting by each stage's rms instead
+# lets a small, noisy stage set the cost by its noise, so that a large stage's error hardly counts
+# and the fit can trade a true mode for one that fits the small stage's noise.
 RESOLUTION_FRACTION = 1e-5  # no displacement reading resolves better than 1e-5 of its peak (100 dB)
 DIFF_ORDERS = (2, 3, 4, 5, 6)
 STEP_MIN_FINITE = 0.9    # an equation-error step needs a finite residual on 90 % of the fitting samples
@@ -175,6 +148,7 @@ class StageData:
     edge: tuple | None = None          # a fitting stage recorded in motion: its edge estimate (y, y', z)
     edge_model: HystereticModel | None = None    # the model whose force balance gave ``edge``'s z
     noise_parts: dict = field(default_factory=dict)   # per channel: spectral, differences, resolution
+    fit_model_share: float = DEFAULTS.fit_model_share  # the model-error allowance of fit_scale (settings)
 
     @functools.cached_property
     def dt(self) -> float:
@@ -187,10 +161,10 @@ def stage_output(am: AugmentedModel, d: StageData, initial=None) -> np.ndarray:
     return am.simulate(d.t, d.u, d.x_in, initial, dt=d.dt)[0]
 
 
-def prepare(run: Run, model: HystereticModel) -> list[StageData]:
+def prepare(run: Run, model: HystereticModel, settings: DiagnosisSettings = DEFAULTS) -> list[StageData]:
     """Per stage: input (computed once), recorded y, fit/held masks, noise level."""
     names = list(run.stages)
-    partly = partly_held_stages(run)
+    partly = partly_held_stages(run, settings)
     out = []
     for n in names:
         st = run.stage(n)
@@ -207,7 +181,7 @@ def prepare(run: Run, model: HystereticModel) -> list[StageData]:
                 fit[:] = False
                 held[:] = True
         else:
-            cut = hold_cut(y)
+            cut = hold_cut(y, settings)
             fit[cut:] = False
             held[cut:] = True
         if st.excitation == BASE:
@@ -219,7 +193,8 @@ def prepare(run: Run, model: HystereticModel) -> list[StageData]:
         # session time (drift): an imported stage keeps its original start in settings["source_t0"]
         t_session = st.t + float(st.settings.get("source_t0", 0.0) or 0.0)
         d = StageData(n, t_session, u, st.channels.get("x_base") if st.excitation == BASE else None, y,
-                      fit, held, noise, float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0, noise_parts=floors)
+                      fit, held, noise, float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0, noise_parts=floors,
+                      fit_model_share=settings.fit_model_share)
         # the edge estimate, not a start fitted with the baseline: a fitted start absorbs what an
         # output effect (a channel delay, a tip-scale error) does to the first seconds, and the
         # candidate that models it is then scored from a start made for the model without it
@@ -243,16 +218,17 @@ def prepare(run: Run, model: HystereticModel) -> list[StageData]:
             from_start = stage_output(am, d, start)
             if np.sum((from_start - y) ** 2) < np.sum((from_rest - y) ** 2):
                 d.initial, d.start_model = start, model
-            d.fit = burn_in(d.t, d.fit, model)
+            d.fit = burn_in(d.t, d.fit, model, settings=settings)
         out.append(d)
     return out
 
 
 def burn_in(t: np.ndarray, fit: np.ndarray, model: HystereticModel, decays: float | None = None,
-            keep: float | None = None, hysteresis_only: bool = True) -> np.ndarray:
+            keep: float | None = None, hysteresis_only: bool = True,
+            settings: DiagnosisSettings = DEFAULTS) -> np.ndarray:
     """The fitting mask of a stage recorded in motion without its first ``decays`` (default
-    BURN_IN_DECAYS) decay times of ``model``'s mode (2 / c each, c per unit mass), unless fewer than
-    ``keep`` (default BURN_IN_KEEP) of its fitting samples would remain, the model has no damped
+    ``settings.burn_in_decays``) decay times of ``model``'s mode (2 / c each, c per unit mass), unless
+    fewer than ``keep`` (default ``settings.burn_in_keep``) of its fitting samples would remain, the model has no damped
     mode (c <= 0 or k <= 0) or, with ``hysteresis_only``, no hysteresis (alpha = 0): then ``fit``
     as given.
 
@@ -265,8 +241,8 @@ def burn_in(t: np.ndarray, fit: np.ndarray, model: HystereticModel, decays: floa
     wrong candidate). Leaving the first decay times out of the fit removes the transient.
     Without hysteresis y and y' are the whole state, and the cut only takes information away (on
     the bolted beam it costs held-out accuracy and a named effect); see docs/diagnosis.md."""
-    decays = BURN_IN_DECAYS if decays is None else decays
-    keep = BURN_IN_KEEP if keep is None else keep
+    decays = settings.burn_in_decays if decays is None else decays
+    keep = settings.burn_in_keep if keep is None else keep
     if not (model.c_m > 0 and model.k_m > 0) or (hysteresis_only and model.alpha_m == 0.0) \
             or not fit.any() or decays <= 0:
         return fit
@@ -274,28 +250,28 @@ def burn_in(t: np.ndarray, fit: np.ndarray, model: HystereticModel, decays: floa
     return cut if cut.sum() > keep * fit.sum() else fit
 
 
-def fit_cut(n: int) -> int:
+def fit_cut(n: int, settings: DiagnosisSettings = DEFAULTS) -> int:
     """Where a stage of ``n`` samples that is partly held out stops being fitted (its last
-    HOLD_FRACTION is held out)."""
-    return int((1 - HOLD_FRACTION) * n)
+    ``settings.hold_fraction`` is held out)."""
+    return int((1 - settings.hold_fraction) * n)
 
 
-def hold_cut(y: np.ndarray) -> int:
+def hold_cut(y: np.ndarray, settings: DiagnosisSettings = DEFAULTS) -> int:
     """Where a stage with response ``y`` that is partly held out stops being fitted: at
     :func:`fit_cut`, unless the response reaches its top level only after that (its fitting samples
-    stay below TOP_REACH of the stage's peak). Then half of the top level is fitted and its second
-    half held out, from the first sample that reaches TOP_REACH of the peak on.
+    stay below ``settings.top_reach`` of the stage's peak). Then half of the top level is fitted and
+    its second half held out, from the first sample that reaches that share of the peak on.
 
     The rig protocol's nonlinear stage steps its level up, and where the last level begins in the
-    stage's last HOLD_FRACTION the fit never sees the amplitudes it is judged at: a contact that
+    stage's last hold_fraction the fit never sees the amplitudes it is judged at: a contact that
     only the top level engages is then not fitted at all, and a model fitted below the top level
     can diverge when predicting it (a polynomial baseline extrapolated past its fitted range)."""
     y = np.asarray(y, float)
-    cut = fit_cut(y.size)
+    cut = fit_cut(y.size, settings)
     peak = response_peak(y)
-    if not (peak > 0) or response_peak(y[:cut]) >= TOP_REACH * peak:
+    if not (peak > 0) or response_peak(y[:cut]) >= settings.top_reach * peak:
         return cut
-    onset = int(np.argmax(np.abs(y - y.mean()) >= TOP_REACH * peak))
+    onset = int(np.argmax(np.abs(y - y.mean()) >= settings.top_reach * peak))
     return max(cut, (onset + y.size) // 2)
 
 
@@ -311,11 +287,11 @@ def has_validation(run: Run) -> bool:
     return any(n.startswith("validation") for n in names) and any(not n.startswith("validation") for n in names)
 
 
-def uncovered_stages(run: Run) -> set[str]:
+def uncovered_stages(run: Run, settings: DiagnosisSettings = DEFAULTS) -> set[str]:
     """The fitting stages whose response the validation stage(s) do not reach: each one whose peak
-    exceeds the largest validation peak by more than 1 / COVER_SHARE (0.4: between the protocols that
+    exceeds the largest validation peak by more than 1 / ``settings.cover_share`` (0.4: between the protocols that
     reach less, the rig protocol's 0.13-0.29 on the stress bench, and those that reach more, the paper
-    protocol's, sweeps', multisines' 0.53-0.98, recon.testing.concealed's 0.50-0.60). Their last HOLD_FRACTION is
+    protocol's, sweeps', multisines' 0.53-0.98, recon.testing.concealed's 0.50-0.60). Their last hold_fraction is
     held out too, so that the held-out data span the amplitudes the fit saw. An effect that acts
     only at large amplitude cannot be scored on a validation stage that never gets there: the rig
     protocol's validation tone (0.7 f_res at 0.75 of the final level) moves y to about a third of
@@ -327,26 +303,26 @@ def uncovered_stages(run: Run) -> set[str]:
     val = [response_peak(run.stage(n).y) for n in names if n.startswith("validation")]
     reach = max(val, default=0.0)
     return {n for n in names if not n.startswith("validation")
-            and response_peak(run.stage(n).y) * COVER_SHARE > reach}
+            and response_peak(run.stage(n).y) * settings.cover_share > reach}
 
 
-def partly_held_stages(run: Run) -> set[str]:
+def partly_held_stages(run: Run, settings: DiagnosisSettings = DEFAULTS) -> set[str]:
     """The stages of ``run`` whose end (from :func:`hold_cut` on) is held out: every stage of a run
     without validation stages, else the :func:`uncovered_stages`."""
-    return uncovered_stages(run) if has_validation(run) else set(run.stages)
+    return uncovered_stages(run, settings) if has_validation(run) else set(run.stages)
 
 
-def fitting_part(run: Run) -> Run:
+def fitting_part(run: Run, settings: DiagnosisSettings = DEFAULTS) -> Run:
     """``run`` with each of its :func:`uncovered_stages` cut to its fitting samples (before
     :func:`hold_cut`): all a baseline reconstructed for the diagnosis may see, so that its
     held-out score stays out of sample. ``run`` itself when no stage is cut."""
-    cut_stages = uncovered_stages(run)
+    cut_stages = uncovered_stages(run, settings)
     if not cut_stages:
         return run
     stages = {}
     for n, st in run.stages.items():
         if n in cut_stages:
-            cut = hold_cut(st.y)
+            cut = hold_cut(st.y, settings)
             st = Stage(n, st.t[:cut], {c: v[:cut] for c, v in st.recorded().items()}, st.excitation,
                        dict(st.settings))
         stages[n] = st
@@ -554,9 +530,9 @@ def baseline_keys(model: HystereticModel) -> list[str]:
 
 
 def fit_scale(d: StageData) -> float:
-    """The error a stage's fitting samples are divided by: its noise floor, with FIT_MODEL_SHARE
-    of its rms added in quadrature (see FIT_MODEL_SHARE)."""
-    return math.hypot(d.noise, FIT_MODEL_SHARE * d.rms) or d.rms
+    """The error a stage's fitting samples are divided by: its noise floor, with its
+    ``fit_model_share`` (DiagnosisSettings) of its rms added in quadrature."""
+    return math.hypot(d.noise, d.fit_model_share * d.rms) or d.rms
 
 
 def fit_residual(am: AugmentedModel, data: list[StageData]) -> np.ndarray:
@@ -677,7 +653,7 @@ def held_noise_mse(data: list[StageData]) -> float:
     return float(np.sum([np.sum(d.held) * d.noise ** 2 for d in data]) / max(sum(int(d.held.sum()) for d in data), 1))
 
 
-def blocks_improved(ref_resid, cand_resid, blocks: int = HELD_BLOCKS) -> float | None:
+def blocks_improved(ref_resid, cand_resid, blocks: int = DEFAULT_RULE.held_blocks) -> float | None:
     """The share of ``blocks`` equal consecutive pieces of the held-out samples on which the
     candidate's mean-square error is below the reference's (None without both residuals): a term
     that is missing acts throughout the record, a fit of a passing error helps here and hurts there."""
@@ -688,29 +664,19 @@ def blocks_improved(ref_resid, cand_resid, blocks: int = HELD_BLOCKS) -> float |
     return float(np.mean([float(np.mean(y)) < float(np.mean(x)) for x, y in zip(a, b)]))
 
 
-def passes(dbic: float, explained: float, gain: float, rel: float, blocks: float | None = None) -> bool:
-    """The significance rule on a candidate's held-out figures (see the module docstring): the BIC
-    margin and the share of the excess explained, then either MIN_GAIN_NOISE with the relative NRMSE
-    cut MIN_REL_GAIN, or, for a candidate that helps on all but one of the held-out pieces
-    (``blocks``, :func:`blocks_improved`; None closes this route), STEADY_GAIN with STEADY_REL_GAIN,
-    or, for one that helps on every piece and removes at least COMPLETE_EXPLAINED of the excess
-    without going below the noise floor, COMPLETE_GAIN with COMPLETE_REL_GAIN."""
-    if not (dbic < -BIC_MARGIN and explained >= MIN_EXPLAINED):
-        return False
-    steady = blocks is not None and blocks >= CONSISTENT_BLOCKS
-    complete = (blocks is not None and blocks >= COMPLETE_BLOCKS
-                and COMPLETE_EXPLAINED <= explained <= 1.0)
-    return bool((rel >= MIN_REL_GAIN and gain >= MIN_GAIN_NOISE)
-                or (steady and gain >= STEADY_GAIN and rel >= STEADY_REL_GAIN)
-                or (complete and gain >= COMPLETE_GAIN and rel >= COMPLETE_REL_GAIN))
+def passes(dbic: float, explained: float, gain: float, rel: float, blocks: float | None = None,
+           rule: SignificanceRule = DEFAULT_RULE) -> bool:
+    """The significance rule on a candidate's held-out figures (SignificanceRule.passes)."""
+    return rule.passes(dbic, explained, gain, rel, blocks)
 
 
-def smallest_relative_cut() -> float:
-    """The smallest relative cut of the held-out NRMSE that any route of :func:`passes` accepts."""
-    return min(MIN_REL_GAIN, STEADY_REL_GAIN, COMPLETE_REL_GAIN)
+def smallest_relative_cut(rule: SignificanceRule = DEFAULT_RULE) -> float:
+    """The smallest relative cut of the held-out NRMSE that any route of the rule accepts."""
+    return rule.smallest_relative_cut()
 
 
-def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> dict:
+def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float,
+          rule: SignificanceRule = DEFAULT_RULE) -> dict:
     """Held-out comparison of a candidate with the null model (see the module docstring)."""
     n_eff = effective_samples(null.resid_held)
     if not (math.isfinite(cand.mse_held) and math.isfinite(null.mse_held)) or cand.mse_held <= 0 or null.mse_held <= 0:
@@ -722,11 +688,11 @@ def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float) -> d
     explained = (null.mse_held - cand.mse_held) / excess if excess > 0 else 0.0
     gain = (null.mse_held - cand.mse_held) / max(noise_mse, 1e-300)
     rel = 1.0 - math.sqrt(cand.mse_held / null.mse_held)
-    blocks = blocks_improved(null.resid_held, cand.resid_held)
+    blocks = blocks_improved(null.resid_held, cand.resid_held, rule.held_blocks)
     return {"dbic": float(dbic), "explained": float(explained), "gain_over_noise": float(gain),
             "n_eff": float(n_eff), "relative_gain": float(rel),
             "blocks_improved": blocks,
-            "significant": passes(dbic, explained, gain, rel, blocks)}
+            "significant": rule.passes(dbic, explained, gain, rel, blocks)}
 
 
 def equation_step(am: AugmentedModel, keys: list[str], new_key: str | None, column, derivs: dict,

@@ -33,12 +33,14 @@ import numpy as np
 
 from recon.diagnosis import rank
 from recon.diagnosis.augmented import AugmentedModel
+from recon.diagnosis.settings import DEFAULT_RULE, SignificanceRule
 from recon.output_error.problem import get_parameter, set_parameter
 
 SEARCH_STEPS = 80        # bisection steps of smallest_detectable_mse (a factor 4 bracket, then halving)
 
 
-def smallest_detectable_mse(ref: rank.FitResult, k_added: int, noise_mse: float) -> float:
+def smallest_detectable_mse(ref: rank.FitResult, k_added: int, noise_mse: float,
+                            rule: SignificanceRule = DEFAULT_RULE) -> float:
     """The smallest held-out mean square D an effect with ``k_added`` parameters must add to the
     reference ``ref`` for a candidate that removes it exactly to pass :func:`rank.score`; inf when
     none does (a reference without held-out samples). The rule's margins all grow with D (the
@@ -54,7 +56,7 @@ def smallest_detectable_mse(ref: rank.FitResult, k_added: int, noise_mse: float)
     def passes(d: float) -> bool:
         null = dataclasses.replace(ref, mse_held=m + d, resid_held=ref.resid_held * math.sqrt((m + d) / m))
         cand = dataclasses.replace(ref, mse_held=m)
-        return rank.score(null, cand, k_added, noise_mse)["significant"]
+        return rank.score(null, cand, k_added, noise_mse, rule)["significant"]
 
     hi = max(m, noise_mse, 1e-300)
     for _ in range(SEARCH_STEPS):
@@ -88,7 +90,8 @@ def nominal_model(ref: AugmentedModel, fitted: AugmentedModel, keys: list[str], 
     return m
 
 
-def detection_limits(ref: rank.FitResult, fits: dict, data: list, noise_mse: float, failures: tuple) -> dict:
+def detection_limits(ref: rank.FitResult, fits: dict, data: list, noise_mse: float, failures: tuple,
+                     rule: SignificanceRule = DEFAULT_RULE) -> dict:
     """:func:`detection_limit` of every fitted candidate, ``fits`` {id: (FitResult, keys, scales,
     ...)}; the parts every candidate shares (the rule's smallest D per number of added parameters,
     the held-out mean square) computed once. A candidate whose simulation raises one of ``failures``
@@ -99,7 +102,7 @@ def detection_limits(ref: rank.FitResult, fits: dict, data: list, noise_mse: flo
     out = {}
     for cid, (fr, keys, scales, *_) in fits.items():
         if len(keys) not in d_min:
-            d_min[len(keys)] = smallest_detectable_mse(ref, len(keys), noise_mse)
+            d_min[len(keys)] = smallest_detectable_mse(ref, len(keys), noise_mse, rule)
         try:
             out[cid] = detection_limit(ref, fr.model, keys, scales, data, d_min[len(keys)], ms_y)
         except failures as exc:

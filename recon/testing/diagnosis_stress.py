@@ -23,6 +23,7 @@ import numpy as np
 from recon.diagnosis import rank
 from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.diagnose import diagnose
+from recon.diagnosis.settings import DEFAULT_RULE
 from recon.output_error.problem import get_parameter
 from recon.testing.runs import model_of, to_run, true_model
 from recon.testing.stress import draw, effect_cycle, recording
@@ -325,10 +326,10 @@ def report(rows: list[dict]) -> list[str]:
         if hidden:
             # why the truth fails: its effect hardly shows (the held-out NRMSE falls by less than the rule's
             # relative minimum) or it shows but the rule's other margins (gain over the noise, BIC) refuse it
-            faint = [r for r in hidden if (r["oracle"].get("relative_gain") or 0.0) < rank.MIN_REL_GAIN]
+            faint = [r for r in hidden if (r["oracle"].get("relative_gain") or 0.0) < DEFAULT_RULE.min_rel_gain]
             held = [r for r in hidden if r not in faint]
             out.append(f"  of those {len(hidden)}: {len(faint)} where the truth lowers the held-out NRMSE by less "
-                       f"than {rank.MIN_REL_GAIN:.0%} (" + ", ".join(f"#{r['index']}" for r in faint)
+                       f"than {DEFAULT_RULE.min_rel_gain:.0%} (" + ", ".join(f"#{r['index']}" for r in faint)
                        + f"); {len(held)} where it lowers it more but fails the other margins ("
                        + ", ".join(f"#{r['index']} gain {r['oracle'].get('gain_over_noise', float('nan')):.2f} noise var, "
                                    f"dBIC {r['oracle'].get('dbic', float('nan')):.0f}" for r in held) + ")")
@@ -435,7 +436,7 @@ def rescore(rows: list[dict]) -> list[str]:
         out.append("run again (--rows): " + " ".join(str(i) for i in rerun))
     if unknown:
         out.append(f"{unknown} candidate(s) scored against a nested null without their earlier score stored "
-                   "(rows from before 2026-12-02): a change there shows only in a rerun")
+                   "(rows saved before the nested null's score was stored): a change there shows only in a rerun")
     return out
 
 

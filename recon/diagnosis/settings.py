@@ -1,0 +1,138 @@
+"""The diagnosis's settings: the significance rule and how a record is split, weighted and fitted.
+
+Every number the diagnosis decides with lives here, in two frozen objects, each field with its
+meaning, unit and allowed range (checked when the object is made):
+
+- :class:`SignificanceRule`: when a candidate's held-out improvement over its reference counts
+  (recon.diagnosis.rank's module doc gives the figures it reads);
+- :class:`DiagnosisSettings`: the rule, and how a record is split into fitting and held-out
+  samples, how its stages are weighted, and how a stage recorded in motion starts.
+
+``recon.diagnose(run, settings=DiagnosisSettings(...))`` uses them; the defaults are the
+calibrated ones (docs/diagnosis.md, "How the rule was set"). A test or a study that asks another
+value makes another object (``dataclasses.replace``); no module holds a tuned number of its own.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+
+def _f(default, meaning: str, unit: str, lo: float, hi: float, lo_open: bool = False):
+    """A field with its meaning, unit and range [lo, hi] (``lo_open``: (lo, hi])."""
+    return field(default=default, metadata={"meaning": meaning, "unit": unit, "range": (lo, hi),
+                                            "lo_open": lo_open})
+
+
+def _check(obj) -> None:
+    for f in dataclasses.fields(obj):
+        if "range" not in f.metadata:
+            continue
+        v = getattr(obj, f.name)
+        lo, hi = f.metadata["range"]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ValueError(f"{type(obj).__name__}.{f.name} must be a finite number ({f.metadata['meaning']}), "
+                             f"not {v!r}")
+        below = v <= lo if f.metadata["lo_open"] else v < lo
+        if below or v > hi:
+            left = "(" if f.metadata["lo_open"] else "["
+            raise ValueError(f"{type(obj).__name__}.{f.name} = {v!r} is outside {left}{lo:g}, {hi:g}] "
+                             f"({f.metadata['meaning']}, {f.metadata['unit']})")
+
+
+def describe(obj) -> list[dict]:
+    """Each field of a settings object: name, value, meaning, unit, range (for docs and reports)."""
+    out = []
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            out += [{**d, "name": f"{f.name}.{d['name']}"} for d in describe(v)]
+        elif "range" in f.metadata:
+            out.append({"name": f.name, "value": v, "meaning": f.metadata["meaning"], "unit": f.metadata["unit"],
+                        "range": list(f.metadata["range"])})
+    return out
+
+
+@dataclass(frozen=True)
+class SignificanceRule:
+    """When a candidate's held-out improvement over its reference is significant (rank.score's
+    figures: dBIC, explained, gain over the noise, relative cut of the NRMSE, share of pieces
+    improved). Every candidate needs the BIC margin and the explained share; it then passes by the
+    large-gain, the steady or the unanimous route (:meth:`passes`)."""
+    bic_margin: float = _f(10.0, "held-out BIC improvement every candidate needs (dBIC < -margin)",
+                           "BIC units (n_eff ln MSE ratio + k ln n_eff)", 0.0, 1e3)
+    min_explained: float = _f(0.15, "share of the reference's excess over the noise floor the candidate "
+                              "must remove", "fraction", 0.0, 1.0)
+    min_gain_noise: float = _f(1.5, "large-gain route: mean-square cut of the held-out error",
+                               "noise variances", 0.0, 1e6)
+    min_rel_gain: float = _f(0.1, "large-gain route: relative cut of the held-out NRMSE", "fraction", 0.0, 1.0)
+    held_blocks: int = _f(10, "equal consecutive pieces the held-out samples are cut into for the "
+                          "steady and unanimous routes", "pieces", 1, 1000)
+    consistent_blocks: float = _f(0.9, "steady route: share of the pieces the candidate must improve",
+                                  "fraction", 0.0, 1.0)
+    steady_gain: float = _f(0.1, "steady route: mean-square cut of the held-out error", "noise variances",
+                            0.0, 1e6)
+    steady_rel_gain: float = _f(0.04, "steady route: relative cut of the held-out NRMSE", "fraction", 0.0, 1.0)
+    complete_blocks: float = _f(1.0, "unanimous route: share of the pieces the candidate must improve",
+                                "fraction", 0.0, 1.0)
+    complete_explained: float = _f(0.4, "unanimous route: share of the excess over the noise removed "
+                                   "(at most all of it)", "fraction", 0.0, 1.0)
+    complete_gain: float = _f(0.04, "unanimous route: mean-square cut of the held-out error",
+                              "noise variances", 0.0, 1e6)
+    complete_rel_gain: float = _f(0.02, "unanimous route: relative cut of the held-out NRMSE", "fraction",
+                                  0.0, 1.0)
+
+    def __post_init__(self):
+        _check(self)
+        if int(self.held_blocks) != self.held_blocks:
+            raise ValueError(f"SignificanceRule.held_blocks must be a whole number of pieces, not {self.held_blocks!r}")
+
+    def passes(self, dbic: float, explained: float, gain: float, rel: float, blocks: float | None = None) -> bool:
+        """The rule on a candidate's held-out figures: the BIC margin and the share of the excess
+        explained, then either the large gain with its relative cut, or, for a candidate that
+        helps on ``consistent_blocks`` of the pieces (``blocks``; None closes the two block
+        routes), the steady gain and cut, or, for one that helps on every piece and removes at
+        least ``complete_explained`` of the excess without going below the noise floor, the
+        unanimous gain and cut."""
+        if not (dbic < -self.bic_margin and explained >= self.min_explained):
+            return False
+        steady = blocks is not None and blocks >= self.consistent_blocks
+        complete = (blocks is not None and blocks >= self.complete_blocks
+                    and self.complete_explained <= explained <= 1.0)
+        return bool((rel >= self.min_rel_gain and gain >= self.min_gain_noise)
+                    or (steady and gain >= self.steady_gain and rel >= self.steady_rel_gain)
+                    or (complete and gain >= self.complete_gain and rel >= self.complete_rel_gain))
+
+    def smallest_relative_cut(self) -> float:
+        """The smallest relative cut of the held-out NRMSE that any route accepts."""
+        return min(self.min_rel_gain, self.steady_rel_gain, self.complete_rel_gain)
+
+
+@dataclass(frozen=True)
+class DiagnosisSettings:
+    """The significance rule, and how the diagnosis splits, weights and starts a record's stages."""
+    rule: SignificanceRule = field(default_factory=SignificanceRule)
+    hold_fraction: float = _f(0.3, "share at the end of a stage held out when the run has no validation "
+                              "stage reaching it", "fraction", 0.0, 1.0, lo_open=True)
+    cover_share: float = _f(0.4, "a validation stage whose peak is below this share of a fitting stage's "
+                            "peak leaves that stage's top untested (its end is held out too)", "fraction",
+                            0.0, 1.0)
+    top_reach: float = _f(0.9, "a partly held-out stage whose fitting part stays below this share of its "
+                          "peak fits the first half of its top level too", "fraction", 0.0, 1.0)
+    burn_in_decays: float = _f(3.0, "decay times of the mode (2 / c each) a fitting stage recorded in "
+                               "motion leaves out of the fit (0: none)", "decay times", 0.0, 100.0)
+    burn_in_keep: float = _f(0.3, "the burn-in applies only if at least this share of the stage's "
+                             "fitting samples remains", "fraction", 0.0, 1.0)
+    fit_model_share: float = _f(1e-3, "each stage's fitting error is divided by hypot(noise floor, this "
+                                "share of its rms): an allowance for model error beside the noise",
+                                "fraction of rms", 0.0, 1.0)
+
+    def __post_init__(self):
+        if not isinstance(self.rule, SignificanceRule):
+            raise ValueError(f"DiagnosisSettings.rule must be a SignificanceRule, not {type(self.rule).__name__}")
+        _check(self)
+
+
+DEFAULT_RULE = SignificanceRule()
+DEFAULTS = DiagnosisSettings(rule=DEFAULT_RULE)
