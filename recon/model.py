@@ -20,7 +20,8 @@ from recon.exciter import drive_force
 from recon.library import monomials
 from recon.simulation.rk4 import simulate_sdof, substeps
 from recon.simulation.start_state import fit_start
-from recon.signals import continuous_velocity_start, stage_input, start_derivatives
+from recon.signals import (continuous_velocity_start, response_target, stage_input, start_derivatives,
+                           target_edge)
 from shakerlab.errors import UserFacingError
 from shakerlab.output_files import check_output, write_text
 from shakerlab.run_data import BASE, FORCE, Stage
@@ -276,6 +277,7 @@ class HystereticModel:
 
     def stage_start(self, stage: Stage, u=None, fit: bool = True):
         """The stage's state at its first sample (y, y', z), estimated from the recording.
+        A response recorded as velocity or acceleration: :meth:`measured_start`.
 
         y, y', y'' by a Savitzky-Golay fit at the start; z from the equation of motion,
         z = g u - y'' - c y' - k y - fn(y, y'). A stage recorded from rest gives ~0. A stage that
@@ -287,6 +289,8 @@ class HystereticModel:
         if measured is not None:
             y0, v0, a0, at_rest = measured
             return y0, v0, float(self.start_z(0.0 if at_rest else u[0], y0, v0, a0))
+        if response_target(stage) is not None:
+            return self.measured_start(stage, u, fit)
         y0, v0, a0, sigma, sig_v, v_rms = start_derivatives(stage)
         # recorded from rest: y0 within the noise and y'0 small against the stage's rms
         # velocity (a zero crossing mid-motion has y'0 near its peak) or within the noise of
@@ -307,6 +311,57 @@ class HystereticModel:
                              edge, scales, n_free=2 if self.alpha_m == 0.0 else 3)
         return start
 
+    def measured_start(self, stage: Stage, u: np.ndarray, fit: bool = True):
+        """:meth:`stage_start` of a stage whose response was recorded as velocity or acceleration,
+        judged in that quantity (recon.signals.response_target), never on the integrated
+        displacement, whose drift (the integrated sensor noise) is no motion of the structure.
+
+        The edge of the recorded quantity says whether the stage starts at rest: its value within
+        5 % of its rms or within 4 times its edge noise (under acceleration, the velocity of the
+        displacement rule too). At rest the start is the model's rest (0, 0, 0): a record in
+        velocity cannot see a static offset, and the rest is the state a stage recorded from rest
+        is in. Otherwise the start is fitted to the stage's first seconds in the recorded quantity
+        (recon.simulation.start_state), from the edge estimate."""
+        order, x = response_target(stage)
+        x0, x1, sig, x_rms = target_edge(stage)
+        y0, v0d, a0d, _, sig_vd, v_rms_d = start_derivatives(stage)
+        if order == 1:
+            v0, a0, v_rms = x0, x1, x_rms
+            at_rest = abs(x0) < 0.05 * x_rms or abs(x0) < 4 * sig
+        else:
+            v0, a0, v_rms = v0d, x0, v_rms_d
+            at_rest = ((abs(x0) < 0.05 * x_rms or abs(x0) < 4 * sig)
+                       and (abs(v0d) < 0.05 * v_rms_d or abs(v0d) < 4 * sig_vd))
+        if at_rest:
+            return 0.0, 0.0, 0.0
+        edge = (float(y0), float(v0), float(self.start_z(u[0], y0, v0, a0)))
+        if not fit:
+            return edge
+        t = stage.t - stage.t[0]
+        y_rms = float(np.std(stage.y)) or 1.0
+        scales = (max(abs(edge[0]), 0.05 * y_rms), max(abs(edge[1]), 0.05 * v_rms),
+                  max(abs(edge[2]), 0.05 * abs(self.alpha_m) * y_rms, 1e-12))
+        start, _ = fit_start(lambda init, n: self.simulate_quantity(t[:n], u[:n], init, order), x, stage.dt,
+                             edge, scales, n_free=2 if self.alpha_m == 0.0 else 3)
+        return start
+
+    def simulate_quantity(self, t, u, initial=None, order: int = 0) -> np.ndarray:
+        """The simulated y^(order) (0: y, 1: y', 2: y'' from the equation of motion) from ``initial``."""
+        y, dy, z = self.simulate(t, u, initial=initial)
+        if order == 0:
+            return y
+        if order == 1:
+            return dy
+        return self.acceleration(t, u, y, dy, z)
+
+    def acceleration(self, t, u, y, dy, z) -> np.ndarray:
+        """y'' = g u - c y' - k y - fn(y, y') - z along a simulated (y, y', z) driven by ``u``."""
+        u = np.asarray(u, float)
+        if self.input_offset is not None:
+            u = u - self.input_offset
+        u = self.drive(u, float(np.median(np.diff(t))))
+        return self.input_gain * u - self.c_m * dy - self.k_m * y - self.fn(y, dy) - z
+
     def start_z(self, u0: float, y0: float, v0: float, a0: float) -> float:
         """z at a recorded start (y, y', y''): from the equation of motion when the model has
         hysteresis; 0 when it has none (alpha = 0), since such a z would never decay and would act
@@ -326,10 +381,27 @@ class HystereticModel:
     def fit_item(self, stage: Stage, u=None) -> tuple:
         """``stage`` as the output-error fits take it: (t from 0, u, y, (y0, y0', y0'')). The
         start carries y'' rather than z, so that every trial parameter set gets its own z0
-        from :meth:`balance`."""
+        from :meth:`balance`. A response recorded as velocity or acceleration adds its fifth
+        element, (order, target) of recon.signals.response_target: the fits compare the simulated
+        y' or y'' with it (recon.output_error.problem.item_target)."""
         u = self.stage_input(stage) if u is None else u
         y0, v0, z0 = self.stage_start(stage, u)
-        return stage.t - stage.t[0], u, stage.y, (y0, v0, self.balance(u[0], y0, v0, z0))
+        item = (stage.t - stage.t[0], u, stage.y, (y0, v0, self.balance(u[0], y0, v0, z0)))
+        measured = response_target(stage)
+        return item if measured is None else item + (measured,)
+
+    def simulate_measured(self, stage: Stage) -> tuple[np.ndarray, np.ndarray]:
+        """(simulated, recorded) response of the stage in the quantity it was recorded in: y and the
+        stage's y for a displacement record, y' or y'' and recon.signals.response_target otherwise.
+        What a fit is judged on (validation, the simpler models' scores, adequacy)."""
+        measured = response_target(stage)
+        if measured is None:
+            return self.simulate_stage(stage)[1], stage.y
+        u = self.stage_input(stage)
+        sim = self.simulate_quantity(stage.t - stage.t[0], u, self.stage_start(stage, u), measured[0])
+        # a constant velocity offset is a nuisance of the comparison, as in the fits
+        # (recon.output_error.problem.measured_error)
+        return sim + np.mean(measured[1] - sim), measured[1]
 
     def simulate_stage(self, stage: Stage):
         """(t, y_sim) for the stage's recorded input, started from the stage's initial state."""

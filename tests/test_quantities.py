@@ -69,7 +69,8 @@ def test_velocity_csv_gives_the_displacement_parameters(tmp_path, truth):
     assert rv.stage("nonlinear").quantities == {"x_base": "velocity", "x_tip": "velocity"}
     assert set(pv) == set(px)                     # the same terms
     # measured at 80 dB (seed 11): displacement within 0.03 % of the truth, velocity within 0.5 %
-    # (c +0.25 %, k +0.12 %, y^2*dy +0.5 %): the integrated y enters the output-error fit
+    # (c +0.25 %, k +0.12 %, y^2*dy +0.5 %) when the output-error fit compared the integrated y; it
+    # compares y' with the record now (docs/recording-format.md)
     assert max(_rel(pv, px).values()) < 0.01, _rel(pv, px)
     # a constant velocity-sensor offset of 1 % of the channel rms: removed with the line
     _, po = _reconstruct(tmp_path, _export(tmp_path, run, model, "v", 80.0, 11, offset=0.01), "vo")

@@ -6,7 +6,9 @@ The verdict is ``adequate`` when the model is admissible, its validation NRMSE i
 otherwise ``inadequate``, with the reasons. A fallback to a simpler model without hysteresis
 (equivalent-linear, linear) is always inadequate; a fallback of the law's own (Bouc-Wen) form,
 fitted by output error from a generic start, is judged by the same figures as any estimate. The noise floor is the NRMSE a perfect model
-would score: the validation record's noise (from its spectrum's flat tail) over its rms.
+would score: the validation record's noise (from its spectrum's flat tail) over its rms, both in
+the quantity the response was recorded in (a velocity record's velocity: validation compares the
+simulated y' with it, recon.estimator.finish.validate).
 An inadequate model points to ``shakerlab diagnose``.
 """
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 
 from recon.differentiation import estimate_spectrum
 from recon.estimator.fallback import HYSTERETIC_KINDS, admissible
+from recon.signals import response_target
 from shakerlab.run_data import Run
 from shakerlab.words import nrmse_text
 
@@ -29,11 +32,13 @@ def noise_floor(run: Run, stage: str | None) -> float | None:
     if stage is None or stage not in run.stages:
         return None
     st = run.stage(stage)
-    y = st.y - np.mean(st.y)
+    measured = response_target(st)      # the record in its own quantity, as validation judges it
+    x = st.y if measured is None else measured[1]
+    y = x - np.mean(x)
     rms = float(np.sqrt(np.mean(y ** 2)))
     if rms <= 0:
         return None
-    return float(estimate_spectrum(st.y, st.dt).noise_std) / rms
+    return float(estimate_spectrum(x, st.dt).noise_std) / rms
 
 
 def verdict(ok: bool, v: float, floor: float | None, n_fn: int, fitted_on_validation: bool,

@@ -107,13 +107,13 @@ def score(model: HystereticModel, run: Run, names: list[str]) -> float:
     """Mean NRMSE of the model's simulation over ``names`` (inf if it diverges)."""
     out = []
     for n in names:
-        try:
-            _, ys = model.simulate_stage(run.stage(n))
+        try:     # in the recorded quantity, as validation (HystereticModel.simulate_measured)
+            ys, measured = model.simulate_measured(run.stage(n))
         except NUMERICAL_ERRORS:
             return float("inf")
         if not np.all(np.isfinite(ys)):
             return float("inf")
-        out.append(nrmse(ys, run.stage(n).y))
+        out.append(nrmse(ys, measured))
     return float(np.mean(out)) if out else float("inf")
 
 

@@ -20,10 +20,8 @@ def validate(model: HystereticModel, run: Run, skip: tuple = ()) -> dict:
     if not names:
         names = [n for n in ("nonlinear",) if n in run.stages]
     out = {}
-    for n in names:
-        st = run.stage(n)
-        _, ysim = model.simulate_stage(st)
-        out[n] = nrmse(ysim, st.y)
+    for n in names:      # in the quantity the response was recorded in (HystereticModel.simulate_measured)
+        out[n] = nrmse(*model.simulate_measured(run.stage(n)))
     main = names[0] if names else None
     return {"nrmse": out.get(main, float("nan")), "stage": main, "per_stage": out,
             "fitted_on_validation_stage": main == "nonlinear"}

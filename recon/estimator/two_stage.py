@@ -54,11 +54,17 @@ from recon.estimator.finish import SCREEN_NFEV, generic_starts
 from recon.estimator.result import ReconSettings
 from recon.model import HystereticModel
 from recon.output_error.polish import decimate, polish
-from recon.output_error.problem import OutputError
-from recon.signals import input_filter
+from recon.output_error.problem import OutputError, item_target, measured_error
+from recon.signals import base_noise_in_target, input_filter, response_target
 from shakerlab.run_data import BASE, Run, Stage
 
 JOINT_FALSE_ALARM = 0.01
+
+
+def measured(st: Stage) -> np.ndarray:
+    """The stage's response in its recorded quantity (y of a displacement record)."""
+    target = response_target(st)
+    return st.y if target is None else target[1]
 # how far (as a ratio, either way) the joint fit's mean square per sample may be from its floor
 # (TwoStages.floor) for the fit to be taken as at its floor: the mean square's sampling spread is
 # sqrt(2/n), under 0.01 for n > 20000, and the floor's own estimate is good to a few per cent, so
@@ -81,7 +87,8 @@ class TwoStages:
         if s.linear_stage not in run.stages or s.linear_stage == s.nonlinear_stage:
             return None
         stages = [run.stage(s.linear_stage), run.stage(s.nonlinear_stage)]
-        noise = [float(estimate_spectrum(st.y, st.dt).noise_std) for st in stages]
+        # in the quantity each response was recorded in, as the fits compare it (problem.item_target)
+        noise = [float(estimate_spectrum(measured(st), st.dt).noise_std) for st in stages]
         if not all(v > 0 and np.isfinite(v) for v in noise):
             return None
         return cls(stages, noise)
@@ -105,8 +112,8 @@ class TwoStages:
         out = []
         for item, sd in zip(items, self.noise):
             d, _ = decimate(item)
-            ys = OutputError.response(model, d[0], d[1], d[3] if len(d) > 3 else None)
-            out.append(((ys - d[2]) / sd, float(d[0][1] - d[0][0])))
+            ys = OutputError.item_response(model, d)
+            out.append((measured_error(ys, item_target(d)) / sd, float(d[0][1] - d[0][0])))
         return out
 
     def floor(self, model: HystereticModel, items: list) -> float:
@@ -120,17 +127,18 @@ class TwoStages:
         for st, item, sd in zip(self.stages, items, self.noise):
             d, q = decimate(item)
             f = input_filter(st)
-            base = OutputError.response(model, d[0], d[1], d[3] if len(d) > 3 else None)
+            base = OutputError.item_response(model, d)
             share = []
             for _ in range(FLOOR_DRAWS):
                 nb = rng.normal(0.0, f.noise_std, st.t.size)
                 un = f(nb)
-                ys = OutputError.response(model, d[0], (item[1] + un)[::q], d[3] if len(d) > 3 else None)
+                ys = OutputError.item_response(model, d, (item[1] + un)[::q])
                 if not np.all(np.isfinite(ys)):
                     return float("inf")
                 if st.excitation == BASE:     # y_meas carries -n_base: the residual gets +n_base
-                    e = ys - base + nb[::q]
-                    share.append((float(np.mean(e ** 2)) - f.noise_std ** 2) / sd ** 2)
+                    carried, own = base_noise_in_target(st, nb, un)
+                    e = ys - base - carried[::q]
+                    share.append((float(np.mean(e ** 2)) - (f.noise_std ** 2 if own else 0.0)) / sd ** 2)
                 else:
                     share.append(float(np.mean((ys - base) ** 2)) / sd ** 2)
             total += d[2].size * (1.0 + max(float(np.mean(share)), 0.0))
@@ -193,7 +201,7 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
     except NUMERICAL_ERRORS as exc:
         record.update(applied=False, reason=f"{type(exc).__name__}: {exc}")
         return with_record(model)
-    rms = float(np.std(items[1][2])) or 1.0
+    rms = float(np.std(item_target(items[1])[1])) or 1.0
     p = len(OutputError(model, [items[1]]).keys)
     limit = float(chi2.isf(JOINT_FALSE_ALARM, p))
 

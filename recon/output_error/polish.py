@@ -4,7 +4,9 @@ With the sparsity pattern fixed by the equation-error regression, the
 parameters (c_m, k_m, alpha_m, gamma, delta, a_j[, inv_m]) are refined by
 nonlinear least squares on the simulated response: the residual is
 (y_sim - y_meas)/rms(y_meas) over the fitting stages, simulated with the
-recorded input from each stage's estimated start state. This uses the whole
+recorded input from each stage's estimated start state (in the quantity the response was
+recorded in: y' of a velocity record, y'' of an acceleration record;
+recon.output_error.problem.item_target). This uses the whole
 time history instead of a third derivative, so it removes most of the
 differentiation bias the equation-error estimates carry.
 
@@ -25,7 +27,7 @@ POLISH_FS = 2000.0   # Hz: the polish simulates at no less than this rate (faste
 
 
 def decimate(item: tuple, fs_target: float = POLISH_FS):
-    """Every q-th sample of a data item (t, u, y[, start]) so that its rate is >= ``fs_target``
+    """Every q-th sample of a data item (t, u, y[, start[, target]]) so that its rate is >= ``fs_target``
     (q = floor(fs / fs_target)); returns (item, q). The input u is a Savitzky-Golay-smoothed
     derivative (base) or a force, so taking every q-th sample does not alias the response band."""
     t = item[0]
@@ -33,7 +35,10 @@ def decimate(item: tuple, fs_target: float = POLISH_FS):
     q = max(1, int(fs // fs_target))
     if q == 1:
         return item, 1
-    return (t[::q], item[1][::q], item[2][::q], *item[3:]), q
+    out = (t[::q], item[1][::q], item[2][::q], *item[3:4])
+    if len(item) > 4:           # the measured target (recon.output_error.problem.item_target)
+        out += ((item[4][0], item[4][1][::q]),)
+    return out, q
 
 
 def output_noise(item: tuple) -> float:
@@ -49,7 +54,7 @@ MAX_NFEV = 60          # the polish's evaluation budget (recon.estimator.finish.
 
 def polish(model: HystereticModel, data: list, max_nfev: int = MAX_NFEV, masks=None, fs_target: float | None = POLISH_FS,
            free: list | None = None, noise: list | None = None):
-    """Refine ``model`` on ``data`` = [(t, u, y_meas[, (y0, dy0, a0)]), ...]; returns (model, info).
+    """Refine ``model`` on ``data`` = [(t, u, y_meas[, (y0, dy0, a0)[, target]]), ...]; returns (model, info).
     ``free``: the parameter keys refined (None: every key of the model, problem.parameter_keys).
 
     ``masks``: per data item, the samples the residual is taken over (None: all).

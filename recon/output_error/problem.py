@@ -89,8 +89,32 @@ def parameter_scales(keys, x0, lam, overrides: dict | None = None) -> np.ndarray
     return scale
 
 
+def item_start(d: tuple):
+    """The recorded start (y, y', y'') of a data item, None (rest) when it has none."""
+    return d[3] if len(d) > 3 else None
+
+
+def item_target(d: tuple) -> tuple[int, np.ndarray]:
+    """(order, values) a data item's simulation is compared with: (0, y) for a response recorded as
+    displacement; (1, y') or (2, y'') in the quantity it was recorded in (the item's fifth element,
+    HystereticModel.fit_item): the fit is judged in the measured quantity, so a velocity record is
+    never integrated into a displacement whose drift the fit would take for motion."""
+    return d[4] if len(d) > 4 else (0, d[2])
+
+
+def measured_error(sim: np.ndarray, target: tuple) -> np.ndarray:
+    """sim - measured of an item's target (order, values). In velocity (order >= 1) a constant
+    sensor offset is a nuisance parameter of the fit: its least-squares value, the error's mean,
+    is taken out (a velocity sensor's constant offset, and the mean over the stage of its
+    low-frequency noise; the model's own y' averages (y_end - y_0) / T over the stage, a residual
+    set over the stage's length, far below the motion). A displacement error is left as it is."""
+    e = sim - target[1]
+    return e - e.mean() if target[0] else e
+
+
 class OutputError:
-    """The output-error problem of ``model`` on ``data`` = [(t, u, y_meas[, (y0, dy0, a0)]), ...].
+    """The output-error problem of ``model`` on ``data`` = [(t, u, y_meas[, (y0, dy0, a0)[, target]]), ...]
+    (the residual is taken in the item's measured quantity, :func:`item_target`).
 
     Parameters are ``x = x0 + p * scale``; ``extra_terms`` = {monomial: scale} adds fn terms
     that the model does not have (coefficient 0 at p = 0). ``masks`` (one boolean array per
@@ -113,7 +137,8 @@ class OutputError:
                                             0.1 * max(float(np.std(d[1])) for d in data)) or 1.0
         self.scale = parameter_scales(self.keys, self.x0, model.gamma + model.delta, overrides)
         self.masks = masks if masks is not None else [None] * len(data)
-        self.rms = [float(np.sqrt(np.mean((d[2] - d[2].mean()) ** 2))) or 1.0 for d in data]
+        self.targets = [item_target(d) for d in data]
+        self.rms = [float(np.sqrt(np.mean((x - x.mean()) ** 2))) or 1.0 for _, x in self.targets]
         self.n_rows = sum(int(d[2].size if m is None else np.count_nonzero(m)) for d, m in zip(data, self.masks))
         self.item_weights = [1.0] * len(data)
         self.noise = list(noise) if noise is not None and all(np.isfinite(noise)) and min(noise) > 0 else None
@@ -136,23 +161,31 @@ class OutputError:
                                input_offset=kw.pop("input_offset", m.input_offset), **kw)
 
     @staticmethod
-    def response(m: HystereticModel, t, u, start=None) -> np.ndarray:
-        """Simulated y of ``m`` from rest, or from the recorded start (y, y', y'') with z0 from
-        the equation of motion for this parameter set."""
+    def response(m: HystereticModel, t, u, start=None, order: int = 0) -> np.ndarray:
+        """Simulated y (``order`` 1: y', 2: y'') of ``m`` from rest, or from the recorded start
+        (y, y', y'') with z0 from the equation of motion for this parameter set."""
         init = None
         if start is not None:
             y0, v0, a0 = start
             init = (y0, v0, m.start_z(u[0], y0, v0, a0))
-        return m.simulate(t, u, initial=init)[0]
+        if order == 0:
+            return m.simulate(t, u, initial=init)[0]
+        return m.simulate_quantity(t, u, init, order)
+
+    @staticmethod
+    def item_response(m: HystereticModel, d: tuple, u=None) -> np.ndarray:
+        """:meth:`response` of a data item in its measured quantity (``u``: another input)."""
+        return OutputError.response(m, d[0], d[1] if u is None else u, item_start(d), item_target(d)[0])
 
     def simulate(self, m: HystereticModel) -> list:
-        """Normalised residual (y_sim - y_meas)/rms per data item over ALL samples (None: diverged)."""
+        """Normalised residual (sim - measured)/rms per data item over ALL samples, in each item's
+        measured quantity (None: diverged)."""
         out = []
-        for d, r in zip(self.data, self.rms):
-            ys = self.response(m, d[0], d[1], d[3] if len(d) > 3 else None)
+        for d, target, r in zip(self.data, self.targets, self.rms):
+            ys = self.item_response(m, d)
             if not np.all(np.isfinite(ys)):
                 return None
-            out.append((ys - d[2]) / r)
+            out.append(measured_error(ys, target) / r)
         return out
 
     def weighted(self, res: list) -> np.ndarray:

@@ -60,7 +60,7 @@ import numpy as np
 from recon.determinism import single_thread_blas
 from recon.estimator.pipeline import reconstruct
 from recon.model import HystereticModel
-from recon.output_error.problem import OutputError
+from recon.output_error.problem import OutputError, measured_error
 from recon.regression.criteria import decorrelation_lag
 from recon.regression.sparse import GroupedSparseSelector
 from recon.signals import input_filter
@@ -157,9 +157,9 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
     def resid(x):
         m = prob.build(x, values=True)
         out = []
-        for (t, u, y, start), wi in zip(data, w):
-            ys = OutputError.response(m, t, u, start)
-            out.append((ys - y) * wi)
+        for d, target, wi in zip(data, prob.targets, w):
+            ys = OutputError.item_response(m, d)
+            out.append(measured_error(ys, target) * wi)
         return out
 
     r_parts = resid(x0)
@@ -198,12 +198,12 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
     members = x0[:, None] - (contrib @ signs) * scale[:, None]     # p x B
     if s.input_noise:
         m0 = prob.build(x0, values=True)
-        base = [OutputError.response(m0, t, u, start) for t, u, _, start in data]
+        base = [OutputError.item_response(m0, d) for d in data]
     if s.input_noise:
         for b in range(s.n_resamples):
             dr = []
-            for (t, u, _, start), ys0, wi, nm in zip(data, base, w, noise):
-                ys = OutputError.response(m0, t, u + nm(rng), start)
+            for d, ys0, wi, nm in zip(data, base, w, noise):
+                ys = OutputError.item_response(m0, d, d[1] + nm(rng))
                 dr.append((ys - ys0) * wi)
             dr = np.concatenate(dr)
             if np.all(np.isfinite(dr)):
