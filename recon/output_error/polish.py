@@ -20,7 +20,7 @@ from scipy.optimize import least_squares
 
 from recon.differentiation import estimate_spectrum
 from recon.model import HystereticModel
-from recon.output_error.problem import FD_STEP, OutputError
+from recon.output_error.problem import FD_STEP, OutputError, item_target
 from recon.threads import fd_map
 
 POLISH_FS = 2000.0   # Hz: the polish simulates at no less than this rate (faster stages are decimated)
@@ -42,8 +42,10 @@ def decimate(item: tuple, fs_target: float = POLISH_FS):
 
 
 def output_noise(item: tuple) -> float:
-    """The white-noise std of a data item's recorded output (its spectrum's upper-half floor)."""
-    t, y = item[0], item[2]
+    """The white-noise std of a data item's recorded output in the quantity its residual is taken
+    in (item_target: displacement, or the velocity a vibrometer gave), its spectrum's upper-half
+    floor."""
+    t, y = item[0], item_target(item)[1]
     if y.size < 64:
         return float("nan")
     return float(estimate_spectrum(y, float(t[1] - t[0])).noise_std)
