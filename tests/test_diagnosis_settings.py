@@ -13,10 +13,10 @@ from recon.testing.concealed import concealed_run
 @pytest.mark.parametrize("field,value,match", [
     ("bic_margin", -1.0, "bic_margin = -1.0 is outside"),
     ("min_explained", 1.5, "min_explained = 1.5 is outside"),
-    ("steady_rel_gain", float("nan"), "steady_rel_gain must be a finite number"),
+    ("steady_rel_gain", float("nan"), "steady_rel_gain must be finite numbers"),
     ("held_blocks", 2.5, "held_blocks must be a whole number"),
     ("held_blocks", 0, "held_blocks = 0 is outside"),
-    ("complete_gain", "0.1", "complete_gain must be a finite number"),
+    ("complete_gain", "0.1", "complete_gain must be finite numbers"),
 ])
 def test_a_rule_out_of_range_is_refused_naming_the_field(field, value, match):
     with pytest.raises(ValueError, match=match):

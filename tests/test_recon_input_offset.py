@@ -62,7 +62,10 @@ def test_reconstruct_fits_the_offset_only_when_asked(force_runs):
 
 
 def test_auto_rule_reads_the_linear_stage_dc(force_runs):
-    from recon.estimator.input_offset import DC_SHARE, resolve_input_offset
+    from recon.estimator.input_offset import resolve_input_offset
+    from recon.estimator.tuning import EstimatorTuning
+
+    DC_SHARE = ReconSettings().tuning.dc_share
 
     base, _ = sdof_run(snr_db=60.0, duration=4.0, seed=2)
     s, rule = resolve_input_offset(base, ReconSettings())
@@ -74,6 +77,9 @@ def test_auto_rule_reads_the_linear_stage_dc(force_runs):
     s, rule = resolve_input_offset(shifted, ReconSettings())
     assert s.input_offset is True and rule["on"] and rule["dc_share"] == pytest.approx(2.0, rel=0.05)
     assert resolve_input_offset(shifted, ReconSettings(input_offset=False))[0].input_offset is False
+    # the switch's threshold is a setting: above the stage's DC share, the offset stays off
+    s, rule = resolve_input_offset(shifted, ReconSettings(tuning=EstimatorTuning(dc_share=3.0)))
+    assert s.input_offset is False and rule["threshold"] == 3.0
     _, off, _, _ = force_runs
     s, rule = resolve_input_offset(off, ReconSettings())
     assert s.input_offset is False and "force excitation" in rule["reason"]

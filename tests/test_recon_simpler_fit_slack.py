@@ -1,12 +1,11 @@
 """An inadequate full model gives way to a simpler model only where the simpler model also fits the
-nonlinear stage (recon.estimator.pipeline.SIMPLER_FIT_SLACK).
+nonlinear stage (ReconSettings.tuning.simpler_fit_slack, recon.estimator.tuning).
 
 The record is diagnosis-stress recording #1018 of the independent generator (recon.testing.independent
 shares no code with the estimator): the rig protocol at 53.6 dB, a system with y^2 and a Bouc-Wen law,
 and a 0.66 ms delay of the tip channel. Its validation stage moves 0.37 mm, the nonlinear stage 1.8 mm.
-The full model is reconstruct's estimate on the first 70 % of the nonlinear stage (the fitting part
-rank.fitting_part gave before 2026-12-05; rank.hold_cut now fits half of this stage's top level too,
-and the record is kept as it was: the test is of reconstruct's choice on it), inadequate because
+The full model is reconstruct's estimate on the first 70 % of the nonlinear stage (rank.fitting_part
+with no top level asked to be fitted: the test is of reconstruct's choice on that record), inadequate because
 of the delay: an elastic model (c, k, y^2, a softening y^3) predicted the small validation stage in a
 quarter of its error while it fitted the nonlinear stage nine times worse, and it replaced the full
 model; on the stage's held-out end it then left the record (NRMSE 1.47).
@@ -22,7 +21,8 @@ from recon import ReconSettings
 from recon.diagnosis import rank
 from recon.estimator.fallback import admissible, score
 from recon.estimator.finish import validate
-from recon.estimator.pipeline import SIMPLER_FIT_SLACK, SIMPLER_GAIN, _prefer_simpler
+from recon.estimator.pipeline import _prefer_simpler
+from recon.estimator.tuning import EstimatorTuning
 from recon.estimator.result import ReconResult
 from recon.diagnosis.settings import DEFAULTS
 from recon.model import HystereticModel
@@ -66,6 +66,7 @@ def test_a_simpler_model_that_misses_the_nonlinear_stage_does_not_replace_the_fu
     assert not (out.adequacy.get("fallback") or {}).get("used")
     assert out.model is full
     cmp_ = out.adequacy["simpler_models_compared"]
+    SIMPLER_GAIN, SIMPLER_FIT_SLACK = s.tuning.simpler_gain, s.tuning.simpler_fit_slack
     full_nl = cmp_["full_model_nonlinear_stage_nrmse"]
     assert full_nl == pytest.approx(score(full, run, ["nonlinear"]))
     by_kind = {c["kind"]: c for c in cmp_["candidates"]}
@@ -81,3 +82,8 @@ def test_a_simpler_model_that_misses_the_nonlinear_stage_does_not_replace_the_fu
     # the full model it keeps stays on the record over the whole nonlinear stage, with the held-out end
     # reconstruct did not see (0.055; the elastic model that replaced it before: 1.47)
     assert score(full, whole, ["nonlinear"]) < 0.1
+    # the slack is the setting that decides: without it (a slack no fit exceeds) the elastic model
+    # that misses the nonlinear stage is taken
+    loose = ReconSettings(tuning=EstimatorTuning(simpler_fit_slack=1e3))
+    out2 = _prefer_simpler(ReconResult.of_model(full, validate(full, run), loose), run, loose, True, {})
+    assert (out2.adequacy.get("fallback") or {}).get("kind") == "elastic"

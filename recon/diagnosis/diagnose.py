@@ -33,7 +33,7 @@ from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.catalog import CATALOG, MODE_APART, MODE_ZETA_MAX, ZETA2_RANGE
 from recon.diagnosis.locate import locate, stage_derivatives
 from recon.diagnosis.sensitivity import detection_limits
-from recon.estimator.adequacy import NOISE_FACTOR, NRMSE_FLOOR
+from recon.estimator.tuning import DEFAULT_TUNING
 from recon.estimator.linear_start import linear_step
 from recon.estimator.pipeline import reconstruct
 from recon.library import monomials
@@ -177,20 +177,21 @@ def baseline_note(model: HystereticModel) -> str | None:
 
 def unexplained_mismatch(fr: rank.FitResult, noise_mse: float, named: list[str]) -> dict | None:
     """The held-out mismatch the final model (``fr``: the baseline, or the baseline with what was
-    named) still leaves, when it is above reconstruct's adequacy limit (max of NOISE_FACTOR x the
-    held-out noise floor and NRMSE_FLOOR, recon.estimator.adequacy): physics outside the catalog,
+    named) still leaves, when it is above reconstruct's adequacy limit (max of noise_factor x the
+    held-out noise floor and nrmse_floor, recon.estimator.tuning's defaults): physics outside the catalog,
     an effect this excitation cannot bring out, or a baseline too far off for a local fit to
     recover. None when the final model is within the limit."""
     if not (math.isfinite(fr.mse_held) and fr.mse_held > 0 and math.isfinite(fr.nrmse_held)):
         return None
     noise = math.sqrt(max(noise_mse, 0.0)) * fr.nrmse_held / math.sqrt(fr.mse_held)
-    limit = max(NOISE_FACTOR * noise, NRMSE_FLOOR)
+    factor, lowest = DEFAULT_TUNING.noise_factor, DEFAULT_TUNING.nrmse_floor
+    limit = max(factor * noise, lowest)
     if fr.nrmse_held <= limit:
         return None
     after = f"with {', '.join(named)} added" if named else "no catalog candidate is significant"
     return {"held_out_nrmse": fr.nrmse_held, "noise_nrmse": noise, "nrmse_limit": limit, "named": list(named),
-            "note": f"the held-out NRMSE {fr.nrmse_held:.3g} is above {limit:.3g} (max of {NOISE_FACTOR:g} x the "
-                    f"held-out noise floor {noise:.2g} and {NRMSE_FLOOR:g}); {after}: something the catalog does "
+            "note": f"the held-out NRMSE {fr.nrmse_held:.3g} is above {limit:.3g} (max of {factor:g} x the "
+                    f"held-out noise floor {noise:.2g} and {lowest:g}); {after}: something the catalog does "
                     f"not hold, an effect this excitation cannot separate, or a baseline too far off"}
 
 

@@ -14,44 +14,11 @@ value makes another object (``dataclasses.replace``); no module holds a tuned nu
 """
 from __future__ import annotations
 
-import dataclasses
-import math
 from dataclasses import dataclass, field
 
+from recon.settings_fields import bounded as _f, check as _check, describe
 
-def _f(default, meaning: str, unit: str, lo: float, hi: float, lo_open: bool = False):
-    """A field with its meaning, unit and range [lo, hi] (``lo_open``: (lo, hi])."""
-    return field(default=default, metadata={"meaning": meaning, "unit": unit, "range": (lo, hi),
-                                            "lo_open": lo_open})
-
-
-def _check(obj) -> None:
-    for f in dataclasses.fields(obj):
-        if "range" not in f.metadata:
-            continue
-        v = getattr(obj, f.name)
-        lo, hi = f.metadata["range"]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise ValueError(f"{type(obj).__name__}.{f.name} must be a finite number ({f.metadata['meaning']}), "
-                             f"not {v!r}")
-        below = v <= lo if f.metadata["lo_open"] else v < lo
-        if below or v > hi:
-            left = "(" if f.metadata["lo_open"] else "["
-            raise ValueError(f"{type(obj).__name__}.{f.name} = {v!r} is outside {left}{lo:g}, {hi:g}] "
-                             f"({f.metadata['meaning']}, {f.metadata['unit']})")
-
-
-def describe(obj) -> list[dict]:
-    """Each field of a settings object: name, value, meaning, unit, range (for docs and reports)."""
-    out = []
-    for f in dataclasses.fields(obj):
-        v = getattr(obj, f.name)
-        if dataclasses.is_dataclass(v):
-            out += [{**d, "name": f"{f.name}.{d['name']}"} for d in describe(v)]
-        elif "range" in f.metadata:
-            out.append({"name": f.name, "value": v, "meaning": f.metadata["meaning"], "unit": f.metadata["unit"],
-                        "range": list(f.metadata["range"])})
-    return out
+__all__ = ["SignificanceRule", "DiagnosisSettings", "DEFAULT_RULE", "DEFAULTS", "describe"]
 
 
 @dataclass(frozen=True)

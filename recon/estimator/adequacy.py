@@ -1,8 +1,9 @@
 """Is the reconstructed model adequate? A verdict with the figures that decide it.
 
 The verdict is ``adequate`` when the model is admissible, its validation NRMSE is within
-``NOISE_FACTOR`` times the noise floor of the validation recording (or below
-``NRMSE_FLOOR``, whichever is larger) and it has no more fn terms than ``MAX_FN_TERMS``;
+``noise_factor`` times the noise floor of the validation recording (or below
+``nrmse_floor``, whichever is larger) and it has no more fn terms than ``max_fn_terms``
+(recon.estimator.tuning);
 otherwise ``inadequate``, with the reasons. A fallback to a simpler model without hysteresis
 (equivalent-linear, linear) is always inadequate; a fallback of the law's own (Bouc-Wen) form,
 fitted by output error from a generic start, is judged by the same figures as any estimate. The noise floor is the NRMSE a perfect model
@@ -19,13 +20,11 @@ import numpy as np
 
 from recon.differentiation import estimate_spectrum
 from recon.estimator.fallback import HYSTERETIC_KINDS, admissible
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.signals import response_target
 from shakerlab.run_data import Run
 from shakerlab.words import nrmse_text
 
-NOISE_FACTOR = 5.0     # validation NRMSE up to 5 x the noise floor is explained by noise and filter error
-NRMSE_FLOOR = 0.01     # below 1 % NRMSE a model is adequate whatever the noise floor
-MAX_FN_TERMS = 4       # a TMP-like law needs y^2, y^3 and at most two damping terms
 
 
 def noise_floor(run: Run, stage: str | None) -> float | None:
@@ -42,12 +41,13 @@ def noise_floor(run: Run, stage: str | None) -> float | None:
 
 
 def verdict(ok: bool, v: float, floor: float | None, n_fn: int, fitted_on_validation: bool,
-            subject: str = "model", simpler: str | None = None) -> dict:
+            subject: str = "model", simpler: str | None = None, tuning: EstimatorTuning = DEFAULT_TUNING) -> dict:
     """The verdict from its figures: admissibility ``ok``, validation NRMSE ``v``, the record's noise
     floor, the number of fn terms; ``simpler`` names a fallback kind without hysteresis (always
     inadequate). The keys every adequacy in the JSON has."""
     v = float(v) if v is not None else float("nan")
-    limit = max(NOISE_FACTOR * floor, NRMSE_FLOOR) if floor is not None else NRMSE_FLOOR
+    factor, lowest, most = tuning.noise_factor, tuning.nrmse_floor, tuning.max_fn_terms
+    limit = max(factor * floor, lowest) if floor is not None else lowest
     reasons = []
     if not ok:
         reasons.append(f"the {subject} is not physically admissible")
@@ -55,26 +55,28 @@ def verdict(ok: bool, v: float, floor: float | None, n_fn: int, fitted_on_valida
         reasons.append("its validation simulation diverges or was not run")
     elif v > limit:
         reasons.append(f"validation NRMSE {v:.3g} is above {limit:.3g} "
-                       f"(max of {NOISE_FACTOR:g} x the noise floor and {NRMSE_FLOOR:g})")
-    if n_fn > MAX_FN_TERMS:
-        reasons.append(f"{n_fn} fn terms, more than the {MAX_FN_TERMS} a TMP-like law needs")
+                       f"(max of {factor:g} x the noise floor and {lowest:g})")
+    if n_fn > most:
+        reasons.append(f"{n_fn} fn terms, more than the {most} a TMP-like law needs")
     if fitted_on_validation:
         reasons.append("no validation stage: the NRMSE is on the fitted stage")
     if simpler:
         reasons.append(f"the full model was not admissible; this is the simpler {simpler} model")
-    good = ok and math.isfinite(v) and v <= limit and n_fn <= MAX_FN_TERMS and not simpler
+    good = ok and math.isfinite(v) and v <= limit and n_fn <= most and not simpler
     return {"verdict": "adequate" if good else "inadequate", "admissible": ok, "validation_nrmse": v,
-            "noise_floor_nrmse": floor, "nrmse_limit": limit, "fn_terms": n_fn, "reasons": reasons}
+            "noise_floor_nrmse": floor, "nrmse_limit": limit, "fn_terms": n_fn, "max_fn_terms": most,
+            "reasons": reasons}
 
 
-def assess(model, validation: dict, run: Run, fallback: dict | None = None) -> dict:
+def assess(model, validation: dict, run: Run, fallback: dict | None = None,
+           tuning: EstimatorTuning = DEFAULT_TUNING) -> dict:
     """The adequacy verdict of ``model`` (JSON-ready)."""
     # a simpler kind without hysteresis standing in for an inadmissible estimate is always
     # inadequate; one chosen over an inadequate full model on the held-out data is judged by its figures
     simpler = fallback["kind"] if (fallback and fallback.get("used") and fallback.get("trigger") != "inadequate"
                                     and fallback.get("kind") not in HYSTERETIC_KINDS) else None
     out = verdict(admissible(model), validation.get("nrmse"), noise_floor(run, validation.get("stage")),
-                  len(model.fn_m), bool(validation.get("fitted_on_validation_stage")), "model", simpler)
+                  len(model.fn_m), bool(validation.get("fitted_on_validation_stage")), "model", simpler, tuning)
     if out["verdict"] != "adequate":
         out["advice"] = "run `shakerlab diagnose` on this run to locate and name what the model leaves out"
     if fallback:
@@ -119,8 +121,9 @@ def verdict_summary(adequacy: dict | None) -> dict:
         problems.append("its validation simulation diverged")
     elif limit is not None and float(v) > float(limit):
         problems.append(f"its validation NRMSE {nrmse_text(v)} is above the {nrmse_text(limit)} limit")
-    if adequacy.get("fn_terms", 0) > MAX_FN_TERMS:
-        problems.append(f"it has {adequacy['fn_terms']} fn terms (more than {MAX_FN_TERMS})")
+    most = adequacy.get("max_fn_terms", DEFAULT_TUNING.max_fn_terms)
+    if adequacy.get("fn_terms", 0) > most:
+        problems.append(f"it has {adequacy['fn_terms']} fn terms (more than {most})")
     if fb.get("used") and fb.get("kind") not in HYSTERETIC_KINDS:
         problems.append("a model without hysteresis cannot stand for the specimen")
     if any("no validation stage" in r for r in adequacy.get("reasons", [])):

@@ -66,5 +66,5 @@ def fit_drive(result: ReconResult, run: Run, s: ReconSettings) -> ReconResult:
     result.model = new
     if result.validation:
         result.validation = validate(new, run)
-    result.adequacy = assess(new, result.validation, run, (result.adequacy or {}).get("fallback"))
+    result.adequacy = assess(new, result.validation, run, (result.adequacy or {}).get("fallback"), s.tuning)
     return result

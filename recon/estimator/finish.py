@@ -9,6 +9,7 @@ import numpy as np
 from recon.estimator.adequacy import noise_floor
 from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, with_term_scales
 from recon.estimator.result import ReconSettings
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.model import HystereticModel
 from recon.output_error.polish import MAX_NFEV, polish
 from recon.validation import nrmse
@@ -27,12 +28,8 @@ def validate(model: HystereticModel, run: Run, skip: tuple = ()) -> dict:
             "fitted_on_validation_stage": main == "nonlinear"}
 
 
-# A start whose simulation of the nonlinear stage is worse than predicting zero (NRMSE above 1)
-# or diverges cannot be polished: the trust region has no finite neighbourhood to work in.
-START_NRMSE_LIMIT = 1.0
-
-
-def restart_fn_terms(model: HystereticModel, item: tuple, polish_info: dict):
+def restart_fn_terms(model: HystereticModel, item: tuple, polish_info: dict,
+                     tuning: EstimatorTuning = DEFAULT_TUNING):
     """Polish the estimate again from restarted fn terms when the estimate itself does not
     simulate the stage; the term selection by output error (recon.output_error.term_selection)
     then decides the fn terms from a model that simulates.
@@ -40,13 +37,13 @@ def restart_fn_terms(model: HystereticModel, item: tuple, polish_info: dict):
     The fn terms are the least-determined part of the equation-error estimate; the terms in y
     alone are the best determined of them (y is the least noisy column). Two restarts, the
     better admissible polish kept: (a) no fn terms; (b) the stiffness terms y^2 and y^3 (started
-    at 1 % of the elastic force, or at the estimate's value when it has them).
-    On independent recordings (bench/recon_accuracy.py --stress): seed 1 (rig protocol, 40 dB)
-    swapped the true y^3 for y*y'^2 and y'^5 (the harmonic identity y y'^2 = w^2 (A^2 y - y^3)
-    makes them nearly collinear on one tone); that model diverged 9.6 s into the 21 s stage.
-    Restart (a) simulated it (NRMSE 0.031) and the term selection found exactly y^3, every
-    parameter within 1.3 %. Seed 0 (paper protocol, 60 dB, true y^2 and y^3) needs (b): without
-    stiffness terms the Bouc-Wen law imitated the hardening with gamma + delta < 0."""
+    at 1 % of the elastic force, or at the estimate's value when it has them). A usable restart
+    simulates the stage better than ``tuning.start_nrmse_limit`` (1: better than predicting zero;
+    a start that diverges or does worse leaves the trust region no finite neighbourhood).
+    Why both: on one tone, the harmonic identity y y'^2 = w^2 (A^2 y - y^3) makes y y'^2 and y'^5
+    nearly collinear with y^3, and an estimate can swap the true term for them and diverge; from
+    (a) the term selection finds the true term again. Where the truth has hardening terms, (b) is
+    needed: without them the Bouc-Wen law imitates the hardening with gamma + delta < 0."""
     restarts = {}
     stiff = {k: model.fn_m.get(k, 0.0) for k in ("y^2", "y^3")}
     for name, fn in (("without_fn", {}), ("stiffness_terms", stiff)):
@@ -54,7 +51,7 @@ def restart_fn_terms(model: HystereticModel, item: tuple, polish_info: dict):
         trial.fn_m = dict(fn)
         trial = with_term_scales(trial, [item])
         new, info = polish(trial, [item])
-        ok = bool(info["applied"] and admissible(new) and info["nrmse_after"] < START_NRMSE_LIMIT)
+        ok = bool(info["applied"] and admissible(new) and info["nrmse_after"] < tuning.start_nrmse_limit)
         restarts[name] = {"fn_terms": sorted(fn), "admissible": admissible(new), **info, "model": new if ok else None}
     good = [(r["nrmse_after"], name) for name, r in restarts.items() if r["model"] is not None]
     record = {"start_nrmse": polish_info["nrmse_before"], "dropped_terms": sorted(model.fn_m),
@@ -67,28 +64,21 @@ def restart_fn_terms(model: HystereticModel, item: tuple, polish_info: dict):
     return restarts[name]["model"], {**info, "restart": record}
 
 
-# A polished fit whose cost on the nonlinear stage is above this many times the stage's noise floor
-# (recon.estimator.adequacy.noise_floor) may not have found the record's optimum: the polish restarts
-# from generic Bouc-Wen starts (:func:`generic_restarts`), and keeps a restart only where it fits
-# better. On independent recording 6 at 50 dB the polish stopped at 1.9 times the floor (k < 0,
-# alpha 563 % off) and the optimum is at 1.0 times; at 80 dB filter and model errors put even the
-# truth's cost at up to 1.8 times the floor, so there the restarts run and change nothing.
-FLOOR_FACTOR = 1.5
-# the generic starts: the share of the small-amplitude stiffness that is hysteretic, and
-# lambda Y (the nonlinear stage's amplitude Y over the knee 1/lambda)
-ALPHA_SHARES = (0.25, 0.5, 0.75)
-KNEES = (1.0, 3.0)
-SCREEN_NFEV = 20
+# A polished fit whose cost on the nonlinear stage is above ``tuning.floor_factor`` times the stage's
+# noise floor (recon.estimator.adequacy.noise_floor) may not have found the record's optimum: the
+# polish restarts from generic Bouc-Wen starts (:func:`generic_restarts`), and keeps a restart only
+# where it fits better. Filter and model errors can hold even the truth's cost above the floor at a
+# high SNR: there the restarts run and change nothing, which costs time, not answers.
 
 
-def generic_starts(model: HystereticModel, data: list):
+def generic_starts(model: HystereticModel, data: list, tuning: EstimatorTuning = DEFAULT_TUNING):
     """The generic Bouc-Wen starts (share, knee, model) of :func:`generic_restarts` on ``data`` (the
     last item is the nonlinear stage, whose amplitude sets the knee)."""
     amp = float(np.sqrt(2.0) * np.std(data[-1][2])) or 1.0
     K = model.K_m
     stiff = {k: model.fn_m.get(k, 0.0) for k in ("y^2", "y^3")}
-    for share in ALPHA_SHARES:
-        for knee in KNEES:
+    for share in tuning.alpha_shares:
+        for knee in tuning.knees:
             trial = HystereticModel.from_dict(model.to_dict())
             trial.k_m, trial.alpha_m = (1.0 - share) * K, share * K
             trial.gamma = trial.delta = 0.5 * knee / amp
@@ -96,22 +86,22 @@ def generic_starts(model: HystereticModel, data: list):
             yield share, knee, with_term_scales(trial, data)
 
 
-def generic_restarts(model: HystereticModel, item: tuple, polish_info: dict, floor: float):
+def generic_restarts(model: HystereticModel, item: tuple, polish_info: dict, floor: float,
+                     tuning: EstimatorTuning = DEFAULT_TUNING):
     """Polish again from generic starts when the polished model does not fit the nonlinear stage
     to its noise floor: the equation-error estimate put the polish in another basin.
 
     Starts: the small-amplitude stiffness K of the polished model split into alpha = s K,
-    k = (1 - s) K for s in ``ALPHA_SHARES``, the knee at lambda Y in ``KNEES`` (gamma = delta),
-    the polished model's y^2 and y^3 (or 1 % of the elastic force). Each is polished briefly
-    (``SCREEN_NFEV``); the best is polished to the end and kept when it is admissible and fits
-    better than the model it replaces. On independent recording 12 at 60 dB (paper protocol)
-    the pointwise estimate had lambda = 20 against the truth's 2473, its polish stopped at an
-    NRMSE of 0.0147 (noise floor 0.0011) with k < 0; the start s = 0.25, lambda Y = 3 reaches 0.00117,
-    where the fit started at the truth ends."""
+    k = (1 - s) K for s in ``tuning.alpha_shares``, the knee at lambda Y in ``tuning.knees``
+    (gamma = delta), the polished model's y^2 and y^3 (or 1 % of the elastic force). Each is
+    polished briefly (``tuning.screen_nfev``); the best is polished to the end and kept when it is
+    admissible and fits better than the model it replaces. An equation-error estimate whose loop
+    is far too wide or too narrow (lambda a hundred times off) polishes into a basin with k < 0 at
+    ten times the noise floor; a generic start near the true share and knee reaches the floor."""
     screened = []
-    for share, knee, trial in generic_starts(model, [item]):
+    for share, knee, trial in generic_starts(model, [item], tuning):
         try:
-            new, info = polish(trial, [item], max_nfev=SCREEN_NFEV)
+            new, info = polish(trial, [item], max_nfev=tuning.screen_nfev)
         except NUMERICAL_ERRORS:
             continue
         if np.isfinite(info["nrmse_after"]):
@@ -140,21 +130,17 @@ def polished_cost(polish_info: dict) -> float:
     return float(v) if v is not None else float("inf")
 
 
-START_ROUNDS = 2
-CONTINUE_ROUNDS = 3
-
-
-def continue_polish(model: HystereticModel, item: tuple, polish_info: dict):
+def continue_polish(model: HystereticModel, item: tuple, polish_info: dict,
+                    tuning: EstimatorTuning = DEFAULT_TUNING):
     """Polish again from where a polish stopped at its evaluation budget (at most
-    ``CONTINUE_ROUNDS`` more rounds, while the cost falls).
+    ``tuning.continue_rounds`` more rounds, while the cost falls).
 
-    A polish started far from the optimum spends its budget on the way: independent recording 6
-    at 60 dB (paper protocol) started from an equation-error estimate with k 15 against 1200 and
-    stopped after 60 evaluations at NRMSE 0.001222 (the truth: 0.001198), with alpha 5.9 % off.
+    A polish started far from the optimum (an equation-error k a hundred times too small) spends
+    its budget on the way and stops short of the optimum with parameters several per cent off.
     Returns (model, polish_info); ``polish_info["continued"]`` records the rounds."""
     rounds = []
     info = polish_info
-    while info.get("applied") and info.get("nfev", 0) >= MAX_NFEV and len(rounds) < CONTINUE_ROUNDS:
+    while info.get("applied") and info.get("nfev", 0) >= MAX_NFEV and len(rounds) < tuning.continue_rounds:
         try:
             new, info = polish(model, [item])
         except NUMERICAL_ERRORS as exc:
@@ -171,19 +157,19 @@ def continue_polish(model: HystereticModel, item: tuple, polish_info: dict):
     return model, polish_info
 
 
-def refine_start(model: HystereticModel, stage, item: tuple, polish_info: dict):
+def refine_start(model: HystereticModel, stage, item: tuple, polish_info: dict,
+                 tuning: EstimatorTuning = DEFAULT_TUNING):
     """Re-estimate the start state of a stage that starts in motion with the polished model, and
-    polish again from it (at most ``START_ROUNDS`` times, while the cost falls).
+    polish again from it (at most ``tuning.start_rounds`` times, while the cost falls).
 
     The start of such a stage is fitted to its first seconds with the model at hand
     (recon.simulation.start_state); the polish then keeps it fixed. Fitted with the equation-error
-    estimate, it carries that estimate's errors into the polish. On independent recording 24 at
-    80 dB (paper protocol, f_n 49.5 Hz) the start fitted with the estimate had y'0 = 1.2e-3
-    against 6.8e-5 with the truth; the polish ended at NRMSE 0.0015 (noise floor 0.0001) with delta
-    15 % off, and an output-error fit started at the truth from that start ended there too. Returns
+    estimate, it carries that estimate's errors into the polish: a start velocity many times the
+    true one holds the polish, and even a fit started at the truth, at ten times the noise floor
+    with the loop's shape off. Returns
     (model, item, polish_info); ``polish_info["start_refined"]`` records the rounds."""
     rounds = []
-    for _ in range(START_ROUNDS):
+    for _ in range(tuning.start_rounds):
         if model.stage_start(stage, fit=False) == (0.0, 0.0, 0.0):
             break                                   # recorded from rest: no start to refine
         try:
@@ -220,15 +206,16 @@ def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info
         stage = run.stage(s.nonlinear_stage)
         item = model.fit_item(stage)
         model, polish_info = polish(model, [item])
-        model, polish_info = continue_polish(model, item, polish_info)
-        if model.fn_m and not polish_info["applied"] and not polish_info["nrmse_before"] < START_NRMSE_LIMIT:
-            model, polish_info = restart_fn_terms(model, item, polish_info)
-        model, item, polish_info = refine_start(model, stage, item, polish_info)
+        t = s.tuning
+        model, polish_info = continue_polish(model, item, polish_info, t)
+        if model.fn_m and not polish_info["applied"] and not polish_info["nrmse_before"] < t.start_nrmse_limit:
+            model, polish_info = restart_fn_terms(model, item, polish_info, t)
+        model, item, polish_info = refine_start(model, stage, item, polish_info, t)
         floor = noise_floor(run, s.nonlinear_stage)
-        if floor and model.alpha_m > 0 and polished_cost(polish_info) > FLOOR_FACTOR * floor:
-            model, polish_info = generic_restarts(model, item, polish_info, floor)
+        if floor and model.alpha_m > 0 and polished_cost(polish_info) > t.floor_factor * floor:
+            model, polish_info = generic_restarts(model, item, polish_info, floor, t)
             if polish_info["generic_restart"].get("applied"):
-                model, item, polish_info = refine_start(model, stage, item, polish_info)
+                model, item, polish_info = refine_start(model, stage, item, polish_info, t)
         timings["polish"] = time.perf_counter() - tp
     elif s.polish:
         # no polish from an inadmissible start: an estimate whose Bouc-Wen split cancels (k and alpha

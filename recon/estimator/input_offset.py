@@ -10,7 +10,8 @@ even terms on it: on independent-generator recording #9 of the diagnosis stress 
 50.5 dB, a constant force) the linear stage's mean was 9.4 times its rms motion, and the model
 came out with 15 terms and k at 7 % of the truth; with the offset fitted it is exact to 1.4 %.
 
-Rule: on when the linear stage's |mean(y)| exceeds ``DC_SHARE`` of its rms motion about the mean.
+Rule: on when the linear stage's |mean(y)| exceeds ``dc_share`` (recon.estimator.tuning) of its rms
+motion about the mean.
 Measured on the independent generator: 60 records without an offset (37 of the diagnosis stress,
 the first 20 recon stress draws at 60 dB, 3 of the own generator) reach at most 0.022; the three
 offset records of the diagnosis stress have 5.1, 9.4 and 10.6. Force excitation: off (a recorded force
@@ -23,8 +24,6 @@ from dataclasses import replace
 import numpy as np
 
 from shakerlab.run_data import BASE, Run
-
-DC_SHARE = 0.5
 
 
 def resolve_input_offset(run: Run, settings):
@@ -42,8 +41,9 @@ def resolve_input_offset(run: Run, settings):
     mean = float(np.mean(y))
     rms = float(np.std(y))
     share = abs(mean) / rms if rms > 0 else 0.0
-    on = bool(share > DC_SHARE)
+    limit = settings.tuning.dc_share
+    on = bool(share > limit)
     reason = f"the {name} stage's mean relative motion is {share:.3g} times its rms motion "
-    reason += f"(> {DC_SHARE:g}): a DC the base excitation cannot make" if on else f"(<= {DC_SHARE:g})"
+    reason += f"(> {limit:g}): a DC the base excitation cannot make" if on else f"(<= {limit:g})"
     return replace(settings, input_offset=on), {"on": on, "stage": name, "dc_share": share,
-                                                "threshold": DC_SHARE, "reason": reason}
+                                                "threshold": limit, "reason": reason}

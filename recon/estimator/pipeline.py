@@ -23,6 +23,7 @@ from recon.estimator.two_stage import two_stage_polish
 from recon.estimator.input_offset import resolve_input_offset
 from recon.estimator.pointwise import reconstruct_pointwise
 from recon.estimator.result import ReconResult, ReconSettings
+from recon.estimator.tuning import DEFAULT_TUNING
 from recon.estimator.weak_form import reconstruct_weak
 from recon.model import HystereticModel
 from recon.output_error.polish import polish
@@ -132,7 +133,8 @@ def _attempt(name: str, run: Run, s: ReconSettings, validate_model: bool, failur
 def _finish(result: ReconResult, run: Run, failures: dict, fallback: dict | None = None) -> ReconResult:
     if failures:
         result.hysteresis_info["failed_passes"] = dict(failures)
-    result.adequacy = assess(result.model, result.validation, run, fallback)
+    result.adequacy = assess(result.model, result.validation, run, fallback,
+                              getattr(result.settings, "tuning", DEFAULT_TUNING))
     return result
 
 
@@ -146,29 +148,22 @@ def _conclude(result: ReconResult, run: Run, s: ReconSettings, validate_model: b
     return _prefer_simpler(result, run, s, validate_model, failures)
 
 
-# an admissible full model that is inadequate gives way to a simpler model whose held-out NRMSE is
-# at most this share of its own
-SIMPLER_GAIN = 0.5
-# ... and that fits the nonlinear stage at most this many times worse than the full model does: a
-# validation stage at a small amplitude does not judge the terms that act at the nonlinear stage's
-# amplitude: a simpler model can predict such a validation stage better while fitting the nonlinear
-# stage many times worse and diverging past it. The factor was set on the independent generator's
-# stress recordings; see docs/diagnosis.md
-SIMPLER_FIT_SLACK = 2.0
 
 
 def _prefer_simpler(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool,
                     failures: dict) -> ReconResult:
     """The full model when it is adequate; when it is not (its validation NRMSE above the adequacy
     limit), the simpler models of fallback.py are fitted too, and one that predicts the held-out
-    (validation) stages in at most SIMPLER_GAIN of the full model's error is the answer. The
+    (validation) stages in at most ``s.tuning.simpler_gain`` of the full model's error is the answer. The
     estimator's structure can be wrong without being inadmissible: on a system without hysteresis
     the estimate can carry a Bouc-Wen law and validate far above the noise floor, while a simpler
     model's output-error fit reaches the floor. Needs a validation stage (the held-out data decide).
 
-    Only simpler models that fit the nonlinear stage within SIMPLER_FIT_SLACK of the full model's
-    error take part: a validation stage at a fraction of the nonlinear stage's amplitude (the rig
-    protocol's) does not judge the terms that act at the larger one."""
+    Only simpler models that fit the nonlinear stage within ``s.tuning.simpler_fit_slack`` of the
+    full model's error take part: a validation stage at a fraction of the nonlinear stage's
+    amplitude (the rig protocol's) does not judge the terms that act at the larger one; a simpler
+    model can predict such a validation stage better while fitting the nonlinear stage many times
+    worse and diverging past it."""
     names, held = held_out_stages(run, (s.linear_stage, s.nonlinear_stage))
     first = _finish(result, run, failures)
     if not (validate_model and held and first.adequacy["verdict"] != "adequate"):
@@ -186,12 +181,12 @@ def _prefer_simpler(result: ReconResult, run: Run, s: ReconSettings, validate_mo
     # each simpler fit carries its own nonlinear-stage figure (fallback.simpler_models)
     full_nl = score(result.model, run, [s.nonlinear_stage]) if s.nonlinear_stage in run.stages else float("nan")
     good = [f for f in fits if f.model is not None and np.isfinite(f.held_out_nrmse)
-            and (not math.isfinite(full_nl) or f.nonlinear_stage_nrmse <= SIMPLER_FIT_SLACK * full_nl)]
+            and (not math.isfinite(full_nl) or f.nonlinear_stage_nrmse <= s.tuning.simpler_fit_slack * full_nl)]
     best = min(good, key=lambda f: f.held_out_nrmse) if good else None
-    compared = {"full_model_held_out_nrmse": full, "gain_needed": SIMPLER_GAIN,
-                "full_model_nonlinear_stage_nrmse": full_nl, "fit_slack": SIMPLER_FIT_SLACK,
+    compared = {"full_model_held_out_nrmse": full, "gain_needed": s.tuning.simpler_gain,
+                "full_model_nonlinear_stage_nrmse": full_nl, "fit_slack": s.tuning.simpler_fit_slack,
                 "candidates": [f.to_dict() for f in fits]}
-    if best is None or not best.held_out_nrmse < SIMPLER_GAIN * full:
+    if best is None or not best.held_out_nrmse < s.tuning.simpler_gain * full:
         first.adequacy["simpler_models_compared"] = compared
         return first
     fallback = {"used": True, "kind": best.kind, "trigger": "inadequate",

@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 from recon.estimator.adequacy import verdict_text
+from recon.estimator.tuning import EstimatorTuning
 from recon.model import HystereticModel
 from recon.steps.linear import LinearFit
 from shakerlab import __version__
@@ -44,10 +45,16 @@ class ReconSettings:
     # the force channel is the exciter's drive (an amplifier voltage), not a measured force: fit the
     # exciter's distortion and roll-off at the end (recon.exciter, recon.estimator.drive); force only
     drive: bool = False
+    # the estimator's tuned numbers (recon.estimator.tuning); a table of its fields is accepted
+    tuning: EstimatorTuning = field(default_factory=EstimatorTuning)
 
     FORMS = ("joint", "ab", "weak")
 
     def __post_init__(self):
+        try:
+            self.tuning = EstimatorTuning.of(self.tuning)
+        except (ValueError, TypeError) as exc:
+            raise UserFacingError(f"ReconSettings.tuning: {exc}") from None
         if self.form not in self.FORMS:
             raise UserFacingError(f"ReconSettings.form must be one of {self.FORMS}, got {self.form!r}")
         if self.input_offset not in (True, False, "auto"):

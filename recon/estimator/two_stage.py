@@ -12,7 +12,7 @@ Three steps, each kept only on the evidence of the joint fit:
 
 1. :func:`two_stage_polish`: the joint polish from the nonlinear stage's model. Kept when the two
    stages agree: the nonlinear stage's sum of squares rises by at most the chi-square(p) quantile
-   at ``JOINT_FALSE_ALARM``, in noise variances. A larger rise is model error, not noise, and the
+   at ``joint_false_alarm`` (recon.estimator.tuning), in noise variances. A larger rise is model error, not noise, and the
    nonlinear stage's own fit stays.
 2. :func:`drop_terms`: each fn term is dropped in turn and the joint fit repeated; the term whose
    loss costs least goes when that cost is below log(n) noise variances (the BIC price of one
@@ -33,7 +33,7 @@ measured channel, so its noise drives the simulation; near a resonance that is a
 well above the white level). It is measured, not assumed: the stage's own input filter applied to
 white noise at the input channel's noise level (the draws the uncertainty ensemble uses), simulated
 through the model, and compared with the same simulation without it. A fit is at its floor when
-its mean square is within ``FLOOR_RATIO`` of that floor either way (:func:`at_floor`): above it the
+its mean square is within ``floor_ratio`` of that floor either way (:func:`at_floor`): above it the
 residual holds model error; below it the model carries the record's noise in a way the record
 does not show (its dynamics amplify the input noise more than the residual allows), which a right
 model cannot do either.
@@ -50,27 +50,26 @@ from scipy.stats import chi2
 
 from recon.differentiation import estimate_spectrum
 from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, with_term_scales
-from recon.estimator.finish import SCREEN_NFEV, generic_starts
+from recon.estimator.finish import generic_starts
 from recon.estimator.result import ReconSettings
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.model import HystereticModel
 from recon.output_error.polish import decimate, polish
 from recon.output_error.problem import OutputError, item_target, measured_error
 from recon.signals import base_noise_in_target, input_filter, response_target
 from shakerlab.run_data import BASE, Run, Stage
 
-JOINT_FALSE_ALARM = 0.01
-
 
 def measured(st: Stage) -> np.ndarray:
     """The stage's response in its recorded quantity (y of a displacement record)."""
     target = response_target(st)
     return st.y if target is None else target[1]
-# how far (as a ratio, either way) the joint fit's mean square per sample may be from its floor
-# (TwoStages.floor) for the fit to be taken as at its floor: the mean square's sampling spread is
-# sqrt(2/n), under 0.01 for n > 20000, and the floor's own estimate is good to a few per cent, so
-# 10 % off it is model error
-FLOOR_RATIO = 1.1
-FLOOR_DRAWS = 2          # noise draws per stage of the floor's estimate (each: one simulation)
+
+
+# how far (tuning.floor_ratio, either way) the joint fit's mean square per sample may be from its
+# floor (TwoStages.floor) for the fit to be taken as at its floor: the mean square's sampling spread
+# is sqrt(2/n), under 0.01 for n > 20000, and the floor's own estimate is good to a few per cent, so
+# 10 % off it is model error. The floor's noise draws (tuning.floor_draws) are fixed:
 FLOOR_SEED = 20261205    # the draws are fixed: the same record gives the same floor
 STIFFNESS_TERMS = ("y^2", "y^3")
 
@@ -80,6 +79,7 @@ class TwoStages:
     """The linear and the nonlinear stage of a run and the white-noise std of each one's output."""
     stages: list[Stage]
     noise: list[float]
+    tuning: EstimatorTuning = DEFAULT_TUNING
 
     @classmethod
     def of(cls, run: Run, s: ReconSettings) -> "TwoStages | None":
@@ -91,7 +91,7 @@ class TwoStages:
         noise = [float(estimate_spectrum(measured(st), st.dt).noise_std) for st in stages]
         if not all(v > 0 and np.isfinite(v) for v in noise):
             return None
-        return cls(stages, noise)
+        return cls(stages, noise, s.tuning)
 
     @property
     def names(self) -> list[str]:
@@ -129,7 +129,7 @@ class TwoStages:
             f = input_filter(st)
             base = OutputError.item_response(model, d)
             share = []
-            for _ in range(FLOOR_DRAWS):
+            for _ in range(self.tuning.floor_draws):
                 nb = rng.normal(0.0, f.noise_std, st.t.size)
                 un = f(nb)
                 ys = OutputError.item_response(model, d, (item[1] + un)[::q])
@@ -203,7 +203,7 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
         return with_record(model)
     rms = float(np.std(item_target(items[1])[1])) or 1.0
     p = len(OutputError(model, [items[1]]).keys)
-    limit = float(chi2.isf(JOINT_FALSE_ALARM, p))
+    limit = float(chi2.isf(s.tuning.joint_false_alarm, p))
 
     last = {}     # the nonlinear stage's cost under the model rise() saw last, for the record at the end
 
@@ -315,7 +315,7 @@ def restart(model: HystereticModel, two: TwoStages, force: bool = False, known: 
             return model, {"failed": f"{type(exc).__name__}: {exc}"}
     at, floor = at_floor(model, two, sse / n)
     record = {"mean_square_noise_variances": sse / n, "floor_noise_variances": floor,
-              "limit": [floor / FLOOR_RATIO, FLOOR_RATIO * floor], "applied": False}
+              "limit": [floor / two.tuning.floor_ratio, two.tuning.floor_ratio * floor], "applied": False}
     if at and not force:
         return model, record
     trial = HystereticModel.from_dict(model.to_dict())
@@ -341,7 +341,7 @@ def restart(model: HystereticModel, two: TwoStages, force: bool = False, known: 
 
 
 def at_floor(model: HystereticModel, two: TwoStages, mean_square: float) -> tuple[bool, float]:
-    """(whether ``model``'s joint mean square per sample is within FLOOR_RATIO of its floor either
+    """(whether ``model``'s joint mean square per sample is within tuning.floor_ratio of its floor either
     way, the floor): the module doc's test of a fit's basin. A floor that cannot be simulated
     (the model diverges under the input's noise) is no floor: the fit is not at it."""
     try:
@@ -350,7 +350,8 @@ def at_floor(model: HystereticModel, two: TwoStages, mean_square: float) -> tupl
         return False, float("inf")
     if not np.isfinite(floor):
         return False, float("inf")
-    return floor / FLOOR_RATIO <= mean_square <= FLOOR_RATIO * floor, floor
+    ratio = two.tuning.floor_ratio
+    return floor / ratio <= mean_square <= ratio * floor, floor
 
 
 def _generic_fit(model: HystereticModel, two: TwoStages, record: dict):
@@ -358,10 +359,10 @@ def _generic_fit(model: HystereticModel, two: TwoStages, record: dict):
     screened by a short joint polish; (model, sse, n) or None."""
     screened = []
     items = two.items(model)
-    for share, knee, trial in generic_starts(model, items):
+    for share, knee, trial in generic_starts(model, items, two.tuning):
         try:
             new, info = polish(trial, [trial.fit_item(st) for st in two.stages], noise=two.noise,
-                               max_nfev=SCREEN_NFEV)
+                               max_nfev=two.tuning.screen_nfev)
         except NUMERICAL_ERRORS:
             continue
         if np.isfinite(info["nrmse_after"]):
