@@ -15,7 +15,8 @@ from scipy.interpolate import CubicSpline
 from recon import diagnose
 from recon.diagnosis import rank
 from recon.diagnosis.augmented import AugmentedModel
-from recon.diagnosis.diagnose import HARDENING_LIMIT, LOOP_MIN_OPENING, implausible
+from recon.diagnosis.candidates.hysteresis import HARDENING_LIMIT, LOOP_MIN_OPENING
+from recon.diagnosis.diagnose import implausible
 from recon.model import HystereticModel
 from shakerlab.run_data import Run, Stage
 

@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import math
 
+from recon.diagnosis.catalog import AMPLITUDE_DEPENDENT
+
 # what separates a pair: effects whose share of the response changes differently with amplitude
-# are told apart by a second amplitude at the same frequency; effects that trade off at one
-# frequency (a scale error against a stiffness, a delay against damping) by a frequency step
-AMPLITUDE_DEPENDENT = {"coulomb_friction", "quadratic_damping", "amplitude_damping", "contact_stiffness",
-                       "cubic_stiffness", "quadratic_stiffness", "hysteresis", "offset", "exciter_distortion"}
+# (each candidate declares it: Candidate.amplitude_dependent) are told apart by a second amplitude
+# at the same frequency; effects that trade off at one frequency (a scale error against a
+# stiffness, a delay against damping) by a frequency step
 
 PROTOCOL_HEAD = """# shakerlab protocol proposed by `shakerlab diagnose` to separate {a} from {b}
 # (the shipped default protocol, plus the separating validation stage(s) at the end).

@@ -30,7 +30,7 @@ from recon.diagnosis import rank
 from recon.diagnosis.settings import DEFAULT_RULE, DEFAULTS, DiagnosisSettings, SignificanceRule
 from recon.diagnosis.ambiguity import ambiguous_pair, separating_stage
 from recon.diagnosis.augmented import AugmentedModel
-from recon.diagnosis.catalog import CATALOG, MODE_APART, MODE_ZETA_MAX, ZETA2_RANGE
+from recon.diagnosis.catalog import CATALOG, SIGNATURES
 from recon.diagnosis.locate import locate, stage_derivatives
 from recon.diagnosis.sensitivity import detection_limits
 from recon.estimator.tuning import DEFAULT_TUNING
@@ -42,21 +42,6 @@ from recon.output_error.problem import get_parameter, set_parameter
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import BASE, Run
 
-# which located findings support which candidate (evidence, not the decision)
-SIGNATURES = {
-    "coulomb_friction": ("state_near_zero_velocity", "state_cluster"),
-    "quadratic_damping": ("state_cluster", "frequency_harmonic", "correlation_tests"),
-    "contact_stiffness": ("state_beyond_displacement", "frequency_harmonic"),
-    "channel_delay": ("channel",),
-    "sensor_scale": ("channel",),
-    "parameter_drift": ("time_trend", "time_segment"),
-    "higher_mode": ("frequency_resonance", "frequency_band_at_input"),
-    "cubic_stiffness": ("state_beyond_displacement", "frequency_harmonic"),
-    "quadratic_stiffness": ("state_beyond_displacement", "frequency_harmonic"),
-    "hysteresis": ("state_cluster", "correlation_tests"),
-    "offset": ("state_cluster",),
-    "amplitude_damping": ("state_cluster", "frequency_harmonic"),
-}
 
 
 def linear_baseline(run: Run) -> HystereticModel:
@@ -198,18 +183,6 @@ def unexplained_mismatch(fr: rank.FitResult, noise_mse: float, named: list[str])
 # the baseline's parameters a candidate fit frees when it starts from the baseline as given
 GIVEN_FREE = ("c_m", "k_m")
 
-# A Bouc-Wen law with gamma + delta < 0 does not saturate: loaded one way its tangent stiffness
-# grows as alpha exp(|gamma + delta| y). Within a bounded motion that is a hardening loop, and a
-# published one: the Bouc-Wen benchmark (Noel & Schoukens 2016; beta gamma = 800, beta delta = -1100
-# per m) stiffens 4.4 times across its training record. A law that stiffens more than this many
-# times across the recorded displacement range is a stiffening spring in disguise, not a loop
-HARDENING_LIMIT = 10.0
-# A Bouc-Wen law whose loop does not open over the recorded motion: (|gamma| + |delta|) times half the
-# recorded displacement range, the relative change of its tangent stiffness across the range, under
-# this. Such a law is a linear spring alpha y whose state's start, fitted per stage, is a constant
-# force, and can be named in place of an offset. Every true law on the stress bench opens by 1.5
-# or more, so the limit sits far below any real loop
-LOOP_MIN_OPENING = 0.01
 
 
 def _interval(v: float, se) -> list | None:
@@ -239,57 +212,8 @@ def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data, interva
         why.append(f"linear stiffness K_m = {b.K_m:.4g} <= 0")
     if b.c_m < 0 <= r.c_m:
         why.append(f"negative viscous damping c_m = {b.c_m:.4g}")
-    if cid == "channel_delay" and m.get("delay") < 0:
-        why.append(f"negative delay {m.get('delay'):.4g} s")
-    if cid == "contact_stiffness":
-        side = 1.0 if m.get("side") >= 0 else -1.0
-        reach = float(max(np.max(side * d.y) for d in data))
-        beyond = int(sum(np.sum(side * d.y > m.get("gap")) for d in data))
-        if not 0.0 < m.get("gap") < reach or beyond < 10:
-            why.append(f"gap {m.get('gap'):.4g} m outside the recorded displacement range (0, {reach:.4g}) on side "
-                       f"{side:+.0f} ({beyond} samples beyond it)")
-        if m.get("kc") <= 0:
-            why.append(f"contact stiffness kc = {m.get('kc'):.4g} <= 0")
-    if cid == "higher_mode":
-        w1 = math.sqrt(max(b.K_m, 0.0))
-        # (a fit held on that band's edge by its bound, catalog._mode_range, is refused with it)
-        if abs(m.get("w2") - w1) < (MODE_APART + 0.01) * w1:
-            why.append(f"second mode at {m.get('w2') / (2 * math.pi):.4g} Hz is within {MODE_APART:.0%} of the fundamental "
-                       f"{w1 / (2 * math.pi):.4g} Hz")
-        if m.get("zeta2") > MODE_ZETA_MAX:
-            # damped beyond MODE_ZETA_MAX (a quality factor under 2.5), the fitted 'mode' has no
-            # resonance: a broadband filter that takes up whatever the baseline leaves, even on a
-            # clean recording. On the stress bench every second mode named where the truth is a
-            # mode was fitted at 0.157 or less; those fitted above 0.2 were false alarms
-            why.append(f"second mode's damping ratio {m.get('zeta2'):.3g} above {MODE_ZETA_MAX:g}: no resonance")
-        if m.get("zeta2") <= 1.01 * ZETA2_RANGE[0]:
-            # held on the bottom of its range the fit asks for an oscillation that does not decay: a
-            # line in the residual, not a resonance the input drives (on the stress bench every fit
-            # named where the truth is a mode, at its frequency, had 0.0125 or more)
-            why.append(f"second mode's damping ratio {m.get('zeta2'):.3g} at the bottom of its range "
-                       f"({ZETA2_RANGE[0]:g}): an undamped line, not a resonance")
-    if cid == "parameter_drift":
-        t_end = max(float(d.t[-1]) for d in data)
-        if abs(m.get("drift")) * t_end > 0.5:
-            why.append(f"stiffness drift of {m.get('drift') * t_end:+.0%} over the session")
-    if cid == "amplitude_damping" and b.fn_m.get("y^2*dy", 0.0) < 0:
-        why.append(f"negative amplitude-dependent damping {b.fn_m['y^2*dy']:.4g} (feeds energy in)")
-    if cid == "hysteresis":
-        lam = b.gamma + b.delta
-        recorded = max((float(np.ptp(d.y)) for d in data), default=0.0)     # the recorded displacement range
-        span = recorded if lam < 0 else 0.0
-        opening = (abs(b.gamma) + abs(b.delta)) * 0.5 * recorded
-        if not b.alpha_m > 0:
-            why.append(f"inadmissible Bouc-Wen (alpha_m {b.alpha_m:.4g}, gamma + delta {lam:.4g})")
-        elif opening < LOOP_MIN_OPENING:
-            why.append(f"a Bouc-Wen law whose loop does not open: (|gamma| + |delta|) x half the recorded range "
-                       f"is {opening:.3g} (at least {LOOP_MIN_OPENING:g} asked): a linear spring, whose state's "
-                       f"start acts as a constant force")
-        elif -lam * span > math.log(HARDENING_LIMIT):
-            why.append(f"inadmissible Bouc-Wen (alpha_m {b.alpha_m:.4g}, gamma + delta {lam:.4g}): it stiffens "
-                       f"{math.exp(min(-lam * span, 700.0)):.3g} times across the recorded range {span:.4g} m "
-                       f"(at most {HARDENING_LIMIT:g})")
     cand = CATALOG[cid]
+    why += cand.check(m, data)       # the candidate's own physical range (its module)
     k0 = cand.parameters[0]
     if intervals and k0 in fr.stderr:
         iv = _interval(get_parameter(m, k0), fr.stderr[k0])

@@ -11,16 +11,17 @@ the session as on the rig.
 """
 from __future__ import annotations
 
-import math
 
 import numpy as np
 from scipy.interpolate import CubicSpline
 
+from recon.diagnosis.catalog import CATALOG
 from recon.model import HystereticModel
 from recon.testing.truth import Multisine, integrate, model_params
 from shakerlab.run_data import BASE, FORCE, Run, Stage
 
-# effect id -> the truth's extra parameters at unit strength (scaled by ``strength``)
+# the effects the concealed runs of the tests use (every registered candidate with a recipe can be
+# concealed: Candidate.conceal)
 EFFECTS = ("coulomb_friction", "quadratic_damping", "contact_stiffness", "channel_delay", "sensor_scale",
            "parameter_drift", "higher_mode", "cubic_stiffness", "quadratic_stiffness", "hysteresis")
 
@@ -42,39 +43,13 @@ def effect_truth(effect: str | None, strength: float, excitation: str = BASE):
     extras = {}
     baseline = HystereticModel.from_dict(truth.to_dict())
     if effect is None:
-        pass
-    elif effect == "coulomb_friction":
-        extras["mu"] = 0.02 * strength
-    elif effect == "quadratic_damping":
-        extras["c2"] = 30.0 * strength
-    elif effect == "contact_stiffness":
-        extras["kc"] = 1500.0 * strength
-        extras["gap"] = 0.6e-3
-    elif effect == "channel_delay":
-        extras["delay"] = 2.5e-4 * strength
-    elif effect == "sensor_scale":
-        extras["tip_scale"] = 0.02 * strength
-    elif effect == "parameter_drift":
-        extras["drift"] = 5e-4 * strength
-    elif effect == "higher_mode":
-        extras["w2"] = 2 * math.pi * 55.0
-        extras["zeta2"] = 0.02
-        extras["phi2"] = 0.25 * strength
-    elif effect == "cubic_stiffness":
-        truth.fn_m["y^3"] = 8.0e7 * strength
-        baseline.fn_m.pop("y^3")
-    elif effect == "quadratic_stiffness":
-        truth.fn_m["y^2"] = 2.5e5 * strength
-        baseline.fn_m.pop("y^2")
-    elif effect == "hysteresis":
-        truth.alpha_m = 600.0 * strength
-        truth.k_m = 9000.0 - truth.alpha_m
-        for m in (truth, baseline):
-            m.fn_m = {}
-        baseline.alpha_m = baseline.gamma = baseline.delta = 0.0
-        baseline.k_m = 9000.0
-    else:
-        raise ValueError(f"unknown effect {effect!r} (known: {', '.join(EFFECTS)})")
+        return truth, extras, baseline
+    cand = CATALOG.get(effect)
+    if cand is None or cand.conceal is None:
+        known = [c for c, v in CATALOG.items() if v.conceal is not None]
+        raise ValueError(f"unknown effect {effect!r} (known: {', '.join(known)})")
+    # the candidate's own recipe (its module in recon/diagnosis/candidates/)
+    extras = dict(cand.conceal(truth, baseline, strength))
     return truth, extras, baseline
 
 

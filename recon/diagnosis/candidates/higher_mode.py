@@ -1,0 +1,80 @@
+"""higher_mode: a second resonance the one-mode model leaves out, seen in the displacement reading."""
+import math
+
+from recon.diagnosis.candidates.base import Candidate, start_model
+
+# the range a second mode's damping ratio is fitted in, and the most a mode may have: beyond
+# MODE_ZETA_MAX (a quality factor under 2.5) the fitted 'mode' has no resonance
+ZETA2_RANGE = (0.001, 0.3)
+MODE_ZETA_MAX = 0.2
+# a second mode nearer the fundamental than this share of its frequency is refused (check)
+MODE_APART = 0.2
+
+
+def starts(base, ctx):
+    # input-driven starts (a structural mode), then one riding on the measured point (drive2 = 1,
+    # driven by its absolute acceleration); which of the two is kept fixed in the fit: started on
+    # its bound, a free drive2 in [0, 1] stops the trust-region fit at its first step
+    out = []
+    points = [(f, phi, 0.0) for f, phi in ctx["mode_starts"][:3]]
+    above = ctx.get("mode_start_above_band")
+    if above is not None and all(abs(above - f) > 0.1 * f for f, _, _ in points):
+        points.append((above, 0.0, 0.0))
+    points += [(f, phi, 1.0) for f, phi in ctx.get("mode_starts_point", [])[:1]]
+    w1 = math.sqrt(max(base.K_m, 0.0))
+    for f, phi, drive in points:
+        w = 2 * math.pi * f
+        m = start_model(base, {"w2": w, "zeta2": 0.02, "phi2": phi, "drive2": drive}, "higher_mode")
+        out.append((m, ["x:phi2", "x:w2", "x:zeta2"], {"x:phi2": 0.01, "x:w2": 0.02 * w, "x:zeta2": 0.01},
+                    {"x:w2": mode_range(w, w1), "x:zeta2": ZETA2_RANGE}))
+    return out
+
+
+def mode_range(w: float, w1: float) -> tuple[float, float]:
+    """The range a second mode started at ``w`` is fitted in: within a factor 2 of its start, and on
+    the start's side of the band MODE_APART around the fundamental ``w1``, where a fitted mode is
+    refused (check). A fit that may cross into that band settles beside the fundamental and takes
+    up the baseline's error there instead of the mode it started at, and is then refused. A start
+    inside the band keeps the plain range."""
+    lo, hi = 0.5 * w, 2.0 * w
+    if w1 > 0 and w > (1 + MODE_APART) * w1:
+        lo = max(lo, (1 + MODE_APART) * w1)
+    elif w1 > 0 and w < (1 - MODE_APART) * w1:
+        hi = min(hi, (1 - MODE_APART) * w1)
+    return lo, hi
+
+
+def check(m, data) -> list[str]:
+    """A mode apart from the fundamental, with a resonance (not overdamped, not an undamped line)."""
+    why = []
+    w1 = math.sqrt(max(m.baseline.K_m, 0.0))
+    # (a fit held on that band's edge by its bound, mode_range, is refused with it)
+    if abs(m.get("w2") - w1) < (MODE_APART + 0.01) * w1:
+        why.append(f"second mode at {m.get('w2') / (2 * math.pi):.4g} Hz is within {MODE_APART:.0%} of the "
+                   f"fundamental {w1 / (2 * math.pi):.4g} Hz")
+    if m.get("zeta2") > MODE_ZETA_MAX:
+        # damped beyond MODE_ZETA_MAX the fitted 'mode' has no resonance: a broadband filter that
+        # takes up whatever the baseline leaves, even on a clean recording
+        why.append(f"second mode's damping ratio {m.get('zeta2'):.3g} above {MODE_ZETA_MAX:g}: no resonance")
+    if m.get("zeta2") <= 1.01 * ZETA2_RANGE[0]:
+        # held on the bottom of its range the fit asks for an oscillation that does not decay: a
+        # line in the residual, not a resonance the input drives
+        why.append(f"second mode's damping ratio {m.get('zeta2'):.3g} at the bottom of its range "
+                   f"({ZETA2_RANGE[0]:g}): an undamped line, not a resonance")
+    return why
+
+
+def conceal(truth, baseline, strength):
+    return {"w2": 2 * math.pi * 55.0, "zeta2": 0.02, "phi2": 0.25 * strength}
+
+
+CANDIDATE = Candidate(
+    "higher_mode",
+    "a second resonance the one-mode model leaves out shows up in the displacement reading",
+    "model change: extra mode q'' + 2 zeta w q' + w^2 q = g u - drive2 a, reading += phi q "
+    "(a: the measured point's absolute acceleration beyond the input's)",
+    "a second-order oscillator driven by the input (drive2 = 0, a structural mode) or by the measured "
+    "point's motion (drive2 = 1, a resonance riding on it), added to the displacement output",
+    ("x:w2", "x:zeta2", "x:phi2"), starts,
+    check=check, signature=("frequency_resonance", "frequency_band_at_input"), conceal=conceal,
+    screen_keys=1, fit_each="drive2")
