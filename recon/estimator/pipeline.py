@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 
@@ -73,41 +74,67 @@ def reconstruct(run: Run, settings: ReconSettings | None = None, validate_model:
     return result
 
 
+@dataclass(frozen=True)
+class Pass:
+    """One way to make the first estimate: a name, when it runs, and the settings it runs with."""
+    name: Callable[[ReconSettings], str]
+    runs: Callable[[ReconSettings], bool]
+    settings: Callable[[ReconSettings], ReconSettings]
+
+
+# The estimator's passes, in the order they run. The first is the answer when it is trusted
+# (:func:`_trusted`); otherwise every pass that runs is made, and the one :func:`_preference` ranks
+# first is concluded (its terms revised, the two stages fitted together, the simpler models
+# compared when it is inadequate: :func:`_conclude`). When no pass is usable (admissible, with a
+# finite validation), the answer is the best simpler model (:func:`_simpler`).
+PASSES = (
+    # the settings as given; with linear_correction "auto", first without the correction columns
+    Pass(lambda s: "first", lambda s: True,
+         lambda s: replace(s, linear_correction=False) if s.linear_correction == "auto" else s),
+    # the columns that absorb the linear step's c/K error (the hysteresis of a large linear stage
+    # biases them)
+    Pass(lambda s: "linear_correction", lambda s: s.linear_correction == "auto",
+         lambda s: replace(s, linear_correction=True)),
+    # the other form (the weak form's path rows hold where the pointwise regression is noise)
+    Pass(lambda s: f"form={s.fallback_form}", lambda s: bool(s.fallback_form and s.fallback_form != s.form),
+         lambda s: replace(s, form=s.fallback_form, linear_correction=False)),
+)
+
+
+def _preference(r: ReconResult) -> tuple:
+    """The one criterion passes are chosen by (lower first): trusted before untrusted, then the
+    output-error cost of the polished model on the nonlinear stage."""
+    info = r.model.provenance.get("output_error_polish", {})
+    e = info.get("nrmse_after" if info.get("applied") else "nrmse_before", np.inf)
+    return (not _trusted(r), e if np.isfinite(e) else np.inf)
+
+
+def _usable(r: ReconResult, validate_model: bool) -> bool:
+    return bool(admissible(r.model) and (not validate_model or np.isfinite(r.validation.get("nrmse", 0.0))))
+
+
 def _reconstruct_passes(run: Run, s: ReconSettings, validate_model: bool) -> ReconResult:
+    """The PASSES as their module comment says."""
     failures = {}
-    first = _attempt("first", run, replace(s, linear_correction=False) if s.linear_correction == "auto" else s,
-                     validate_model, failures)
-    if first is not None:
-        first.settings = s
-        if _trusted(first):
-            return _conclude(first, run, s, validate_model, failures)
-    candidates = [first] if first is not None else []
-    passes = []
-    if s.linear_correction == "auto":
-        passes.append(("linear_correction", replace(s, linear_correction=True)))
-    if s.fallback_form and s.fallback_form != s.form:
-        passes.append((f"form={s.fallback_form}", replace(s, form=s.fallback_form, linear_correction=False)))
-    for name, ps in passes:
-        progress.step(f"another pass ({name}): the first was not admissible", share=0.1)
-        r = _attempt(name, run, ps, validate_model, failures)
+    made = []           # (name, result) of every pass that gave a result
+    for k, p in enumerate(pass_ for pass_ in PASSES if pass_.runs(s)):
+        name = p.name(s)
+        if k:
+            progress.step(f"another pass ({name}): the first was not admissible", share=0.1)
+        r = _attempt(name, run, p.settings(s), validate_model, failures)
         if r is None:
             continue
         r.settings = s
-        r.hysteresis_info["pass"] = name
-        candidates.append(r)
-
-    def fit_err(r):
-        info = r.model.provenance.get("output_error_polish", {})
-        e = info.get("nrmse_after" if info.get("applied") else "nrmse_before", np.inf)
-        return (not _trusted(r), e if np.isfinite(e) else np.inf)
-
-    usable = [r for r in candidates
-              if admissible(r.model) and (not validate_model or np.isfinite(r.validation.get("nrmse", 0.0)))]
+        if k:
+            r.hysteresis_info["pass"] = name
+        elif _trusted(r):
+            return _conclude(r, run, s, validate_model, failures)
+        made.append((name, r))
+    usable = [(name, r) for name, r in made if _usable(r, validate_model)]
     if not usable:
-        return _simpler(run, s, candidates, failures, validate_model)
-    best = min(usable, key=fit_err)
-    best.hysteresis_info["passes_compared"] = [("first" if r is first else r.hysteresis_info["pass"])
-                                               for r in candidates]
+        return _simpler(run, s, [r for _, r in made], failures, validate_model)
+    _, best = min(usable, key=lambda nr: _preference(nr[1]))
+    best.hysteresis_info["passes_compared"] = [name for name, _ in made]
     best.hysteresis_info.setdefault("pass", "first")
     best.hysteresis_info["linear_correction_pass"] = best.hysteresis_info["pass"] == "linear_correction"
     return _conclude(best, run, s, validate_model, failures)
