@@ -5,9 +5,9 @@ the base sensor's reading differentiated twice, so the sensor's white noise ente
 simulation as a broadband force. Near resonance the structure picks out the part of it at its
 own frequency and answers with a narrow-band random motion that no parameter set can follow: the
 fit then trades damping and the Bouc-Wen shape against it. On one tone per stage this input
-noise, not the output noise, set the error of the parameters (independent generator, stress
-seed 0 at 60 dB: delta 6.9 % off with the input as measured, 0.8 % with the base channel
-noise-free, the fit started at the truth in both cases).
+noise, not the output noise, can set the error of the parameters (several per cent on the loop's
+shape with the input as measured, under 1 % with a noise-free base channel, the fit started at
+the truth in both cases; docs/method.md).
 
 An excitation occupies a band: one tone and its ramps a few hundred coefficients, a sweep or a
 multisine its range, the exciter's harmonics where they rise above the floor. Outside that band

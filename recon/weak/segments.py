@@ -33,8 +33,8 @@ tiles the whole stage.
 In the SDOF estimator (:func:`reconstruct_weak`) this segment regression gives the
 pilot: the fn pattern and lambda. The structured refit and delta are then taken from the
 weak form along the hysteresis path (recon/weak_path.py), whose half-period test functions
-need only psi'' and no sign of z. At 40 dB the segment refit ran to alpha +240 % (seed 0);
-the path form gives 1-3 % with the right pattern.
+need only psi'' and no sign of z. At 40 dB the segment refit can run far from alpha (more than
+twice it) where the path form stays within a few per cent with the right pattern.
 
 A layer is described generically (SDOF base/force and every layer of a chain):
 
