@@ -156,6 +156,18 @@ class StageData:
         return float(np.median(np.diff(self.t)))
 
 
+def session_start(st: Stage) -> float:
+    """Where stage ``st`` starts on the session's clock, the clock a slow change (a stiffness drift)
+    runs on: an imported stage's original start (settings["source_t0"]), else the start the rig's
+    run file records for it (settings["t0"], the acquisition's sample clock), else 0 (a stage whose
+    own times are already on the session clock)."""
+    for key in ("source_t0", "t0"):
+        v = st.settings.get(key)
+        if v is not None and math.isfinite(float(v)):
+            return float(v)
+    return 0.0
+
+
 def stage_output(am: AugmentedModel, d: StageData, initial=None) -> np.ndarray:
     """``am``'s recorded-output prediction of stage ``d`` from ``initial`` (None: from rest)."""
     return am.simulate(d.t, d.u, d.x_in, initial, dt=d.dt)[0]
@@ -190,8 +202,7 @@ def prepare(run: Run, model: HystereticModel, settings: DiagnosisSettings = DEFA
         else:
             floors = {"x": noise_floor(st.channels["x"], st.dt)}
             noise = floors["x"]["std"]
-        # session time (drift): an imported stage keeps its original start in settings["source_t0"]
-        t_session = st.t + float(st.settings.get("source_t0", 0.0) or 0.0)
+        t_session = st.t + session_start(st)
         d = StageData(n, t_session, u, st.channels.get("x_base") if st.excitation == BASE else None, y,
                       fit, held, noise, float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0, noise_parts=floors,
                       fit_model_share=settings.fit_model_share)
