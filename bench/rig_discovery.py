@@ -94,6 +94,11 @@ EFFECTS = {
 }
 
 
+# effects of a kind the reconstructed model itself holds (its library has the term): found when the
+# reconstruction carries the term at the effect's size, not by the diagnosis naming it
+IN_MODEL_CLASS = ("cubic_stiffness", "amplitude_damping")
+
+
 def toml_of(d: dict, prefix: str = "") -> str:
     """A nested dict of numbers as TOML tables."""
     lines, tables = [], []
@@ -160,8 +165,15 @@ def run_case(effect: str, size: float | None, workdir: Path, protocol: Path, rig
         row["expected_id"] = cid
         row["fitted"] = fitted(match, key) if match else None
         row["expected"] = expect(size)
-        row["error_pct"] = (100 * (row["fitted"] / row["expected"] - 1) if row["fitted"] is not None else None)
         row["named_first"] = bool(named) and named[0]["id"] == cid
+        if match is None and not named and effect in IN_MODEL_CLASS:
+            # a term the reconstruction's own library holds is found as a term of the model, not named
+            # as missing: its size is the reconstructed coefficient (the specimen's own is 0 here)
+            fn = ((d.get("augmented_model") or {}).get("baseline") or {}).get("parameters", {}).get("fn_m", {})
+            if key in fn:
+                row["fitted"], row["found_in"] = fn[key], f"the model's {key}"
+                row["named_first"] = True
+        row["error_pct"] = (100 * (row["fitted"] / row["expected"] - 1) if row["fitted"] is not None else None)
     else:
         row["named_first"] = not named
     return row
@@ -213,14 +225,15 @@ def main(argv=None) -> int:
             if "error" in row:
                 print(f"{e:18s} {fmt(row['setting']):>9s} ERROR: {row['error']}", flush=True)
                 continue
-            print(f"{e:18s} {fmt(row['setting']):>9s} {','.join(row['named']) or '(nothing)':28s} "
+            said = ",".join(row["named"]) or (f"(in {row['found_in']})" if row.get("found_in") else "(nothing)")
+            print(f"{e:18s} {fmt(row['setting']):>9s} {said:28s} "
                   f"{fmt(row.get('fitted')):>9s} {fmt(row.get('error_pct'), '+.1f'):>7s} "
                   f"{fmt(row['held_out_before'], '.4g'):>12s} {fmt(row['held_out_after'], '.4g'):>9s} "
                   f"{row['rounds']:>6d} {row['stop']:10s} {row['wall_s']:7.0f}  {','.join(row['stages_added']) or '-'}",
                   flush=True)
     ok = [r for r in rows if r.get("named_first")]
     within = [r for r in rows if r.get("error_pct") is not None and abs(r["error_pct"]) <= 10]
-    print(f"\n{len(ok)}/{len(rows)} named first (clean: nothing named); {len(within)} within 10 % of the setting; "
+    print(f"\n{len(ok)}/{len(rows)} named first (clean: nothing named; a term the model holds: found in it); {len(within)} within 10 % of the setting; "
           f"{sum(1 for r in rows if r.get('rounds'))} needed an added round; total wall time "
           f"{time.monotonic() - t_all:.0f} s")
     return 0
