@@ -32,6 +32,7 @@ from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.catalog import CATALOG, MODE_APART, MODE_ZETA_MAX, ZETA2_RANGE
 from recon.diagnosis.locate import locate, stage_derivatives
 from recon.diagnosis.sensitivity import detection_limits
+from recon.diagnosis.stagewise import held_stage_figures, worse_stages
 from recon.estimator.adequacy import NOISE_FACTOR, NRMSE_FLOOR
 from recon.estimator.linear_start import linear_step
 from recon.estimator.pipeline import reconstruct
@@ -125,6 +126,7 @@ class Diagnosis:
     reference: rank.FitResult | None = None   # the better of the baseline as given and the null model
     ambiguity: dict | None = None             # two candidates the held-out data cannot tell apart
     unexplained: dict | None = None           # the held-out mismatch the final model still leaves, if large
+    partly: dict | None = None                # a candidate better as a whole but worse on a held-out stage
 
     def to_dict(self) -> dict:
         def clean_ctx(c):
@@ -139,7 +141,9 @@ class Diagnosis:
             "mismatch": self.mismatch,
             "missing_physics": self.missing,
             "result": (f"missing physics: {', '.join(m['id'] for m in self.missing)}" if self.missing
+                       else partly_result(self.partly) if self.partly
                        else "nothing found: no candidate explains the held-out mismatch beyond noise"),
+            "partly_explained": self.partly,
             "candidates_tested": self.candidates,
             "correlation_tests": self.context.get("billings_voon", {}),
             "context": clean_ctx(self.context),
@@ -155,6 +159,19 @@ class Diagnosis:
 
 
 Z95 = 1.96
+
+
+def partly_result(p: dict) -> str:
+    """The one-line answer when the best candidate is better on the held-out samples as a whole but
+    worse than the baseline as given on a held-out stage beyond its noise band (stagewise.py)."""
+    return (f"partly explained: {' + '.join(p['ids'])} predicts the held-out samples better as a whole but "
+            f"is worse than the baseline as given on stage {', '.join(p['worse_on_stages'])} beyond its noise band")
+
+
+def partly_entry(ids: list, figures: dict, after: "rank.FitResult", given: "rank.FitResult") -> dict:
+    """``Diagnosis.partly``: the ids, the stages where the model fails, every held-out stage's figures."""
+    return {"ids": list(ids), "worse_on_stages": worse_stages(figures), "held_out_stages": figures,
+            "held_out_nrmse_before": given.nrmse_held, "held_out_nrmse_after": after.nrmse_held}
 
 
 def baseline_note(model: HystereticModel) -> str | None:
@@ -957,6 +974,20 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
                     t.update(rank.score(best_null, fits[t["id"]][0], k_added, noise_mse))
                     t["compared_with_held_out_nrmse"] = best_null.nrmse_held
                     t["compared_with_nested_null"] = True
+    # never an improvement that is worse on a held-out stage (stagewise.py): a candidate significant
+    # on the held-out samples together must also be no worse than the baseline as given on each
+    # held-out stage beyond that stage's noise band; one that is is kept out of the ranking, and the
+    # answer is "partly explained" if nothing else is named
+    partly = []
+    for t in tested:
+        if t.get("significant") and t["id"] in fits:
+            figs = held_stage_figures(given, fits[t["id"]][0], data)
+            t["held_out_stages"] = figs
+            bad = worse_stages(figs)
+            if bad:
+                t["significant"] = False
+                t["worse_on_stages"] = bad
+                partly.append(partly_entry([t["id"]], figs, fits[t["id"]][0], given) | {"explained": t["explained"]})
     # what the record can show: the size at which each candidate's effect, added to it, would be named
     # (an estimate; sensitivity.py)
     progress.step("detection limits", share=0.1)
@@ -977,6 +1008,12 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
 
         sig, combined = joint_pair(tested, fits, nulls + [ref], ref.model, data, noise_mse, max_nfev, refit_on,
                                    unexplained_mismatch(ref, noise_mse, []) is not None)
+        if combined is not None:
+            figs = held_stage_figures(given, combined, data)
+            if worse_stages(figs):      # the pair is held to every held-out stage too
+                partly.append(partly_entry([t["id"] for t in sig], figs, combined, given)
+                              | {"explained": min(t["explained"] for t in sig)})
+                sig, combined = [], None
     ranked = list(sig)
     if len(sig) > 1 and combined is None:
         # forward step: a runner-up is reported only if it still adds on top of the best one
@@ -993,6 +1030,10 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             why = implausible(t["id"], frc, ref.model, data) + implausible(sig[0]["id"], frc, ref.model, data)
             if why:
                 s2 = {**s2, "implausible": why, "significant": False}
+            if s2["significant"]:
+                figs = held_stage_figures(given, frc, data)
+                if worse_stages(figs):      # the two together are held to every held-out stage too
+                    s2 = {**s2, "significant": False, "worse_on_stages": worse_stages(figs)}
             t["on_top_of_best"] = s2
             if s2["significant"]:
                 kept.append(t)
@@ -1028,6 +1069,8 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     else:
         best_fr = ref
     # fit_before: the baseline as given (nrmse, held_out_nrmse); the null model's figures under refit_*
+    partly_explained = (None if missing or not partly
+                        else {k: v for k, v in max(partly, key=lambda p: p["explained"]).items() if k != "explained"})
     fit_before = {"nrmse": before, "refit_nrmse": null.nrmse, "held_out_nrmse": given.nrmse_held,
                   "held_out_nrmse_as_given": given.nrmse_held, "refit_held_out_nrmse": null.nrmse_held,
                   "compared_with": ref_name,
@@ -1041,4 +1084,5 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
     return Diagnosis(baseline=base, baseline_kind=kind, fit_before=fit_before, null=null, mismatch=findings,
                      candidates=tested, missing=missing, best=best_fr.model, best_fit=best_fr, context=ctx,
                      seconds=time.perf_counter() - t0, reference=ref, ambiguity=ambiguity,
-                     unexplained=unexplained_mismatch(best_fr, noise_mse, [m["id"] for m in missing]))
+                     unexplained=unexplained_mismatch(best_fr, noise_mse, [m["id"] for m in missing]),
+                     partly=partly_explained)

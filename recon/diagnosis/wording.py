@@ -66,6 +66,15 @@ def diagnosis_text(d: dict) -> str:
             text += (f"; with {'it' if len(missing) == 1 else 'them'} added the held-out NRMSE {nrmse_text(un.get('held_out_nrmse'))} is still above "
                      f"the {nrmse_text(un.get('nrmse_limit'))} limit: something else is missing too")
         return text
+    partly = d.get("partly_explained") or None
+    if partly:
+        figs = partly.get("held_out_stages") or {}
+        where = "; ".join(f"stage {s!r} {nrmse_text(figs[s].get('nrmse_before'))} -> {nrmse_text(figs[s].get('nrmse_after'))}"
+                          for s in partly.get("worse_on_stages", []) if s in figs)
+        return (f"partly explained: {' + '.join(partly.get('ids', []))} lowers the held-out NRMSE as a whole "
+                f"({nrmse_text(partly.get('held_out_nrmse_before'))} -> {nrmse_text(partly.get('held_out_nrmse_after'))}) "
+                f"but predicts a held-out stage worse than the baseline as given, beyond that stage's noise ({where}): "
+                f"it is not named")
     if un:
         return (f"nothing in the catalog explains the mismatch: the held-out NRMSE "
                 f"{nrmse_text(un.get('held_out_nrmse'))} is above the {nrmse_text(un.get('nrmse_limit'))} limit "
