@@ -33,6 +33,7 @@ from recon.diagnosis.catalog import CATALOG, MODE_APART, MODE_ZETA_MAX, ZETA2_RA
 from recon.diagnosis.locate import locate, stage_derivatives
 from recon.diagnosis.sensitivity import detection_limits
 from recon.diagnosis.stagewise import held_stage_figures, worse_stages
+from recon.diagnosis.wording import friction_reading
 from recon.estimator.adequacy import NOISE_FACTOR, NRMSE_FLOOR
 from recon.estimator.linear_start import linear_step
 from recon.estimator.pipeline import reconstruct
@@ -1062,6 +1063,11 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             "baseline_terms_dropped": t.get("baseline_terms_dropped", []),
             "hysteresis_dropped": bool(t.get("hysteresis_dropped", False)),
         })
+        if t["id"] == "hysteresis":
+            # a named loop that slides within the record's travel is a friction law (wording.py)
+            b = fr.model.baseline
+            travel = max((float(np.ptp(d.y)) for d in data), default=0.0)
+            missing[-1]["as_friction"] = friction_reading(b.alpha_m, b.gamma, b.delta, travel)
     if combined is not None:
         best_fr = combined
     elif missing:
