@@ -21,5 +21,7 @@ def test_a_saturating_loop_within_the_travel_reads_as_a_friction_law():
 def test_a_loop_that_never_slides_or_stiffens_is_not_called_friction():
     # a travel shorter than the sliding distance: presliding only
     assert friction_reading(alpha_m=4e4, gamma=600.0, delta=400.0, travel=1e-3) is None
+    # Dahl's law (gamma = delta), fitted a hair either side of it, reads as friction both ways
+    assert friction_reading(4e4, 1242.36, 1242.53, 0.02) and friction_reading(4e4, 1242.53, 1242.36, 0.02)
     # the Bouc-Wen benchmark's hardening loop (gamma + delta < 0) does not saturate
     assert friction_reading(alpha_m=5e4, gamma=800.0, delta=-1100.0, travel=0.02) is None

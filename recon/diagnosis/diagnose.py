@@ -624,6 +624,45 @@ def every_parameter(base: AugmentedModel) -> list[str]:
     return rank.baseline_keys(base.baseline) + [f"x:{k}" for k in base.extras if k not in ("v0", "side")]
 
 
+def friction_from_loop(tested: list, fits: dict, references: dict, data, ctx: dict, fit_candidate,
+                       ref_model: AugmentedModel, full_free: list, bkeys: list, noise_mse: float) -> None:
+    """Friction competes with a friction-like loop from the same start. A Bouc-Wen loop that slides
+    within the record's travel is a friction law with presliding (wording.friction_reading); where
+    the hysteresis candidate's fit is such a loop, coulomb_friction is fitted again from that fit
+    with the loop taken out (its baseline's c, k and terms as fitted beside the loop, friction's own
+    starts for mu and v0), and the better of its two fits on the held-out samples is scored by the
+    same rule against the same reference. ``tested`` and ``fits`` are updated in place."""
+    cid = "coulomb_friction"
+    entry = next((t for t in tested if t["id"] == cid and cid in fits and cid in references), None)
+    if entry is None or "hysteresis" not in fits:
+        return
+    loop = fits["hysteresis"][0].model
+    b = loop.baseline
+    travel = max((float(np.ptp(d.y)) for d in data), default=0.0)
+    if friction_reading(b.alpha_m, b.gamma, b.delta, travel) is None:
+        return
+    src_model = without_terms(loop, ())
+    src_model.baseline.alpha_m = src_model.baseline.gamma = src_model.baseline.delta = 0.0
+    src_model.added = [a for a in src_model.added if a != "hysteresis"]
+    free = [k for k in full_free if k not in HYSTERESIS_KEYS]
+    try:
+        src = rank.fit(src_model, [], data)
+        fr, keys, sc, bnd = fit_candidate(cid, CATALOG[cid], src, free, [k for k in bkeys if k not in HYSTERESIS_KEYS])
+    except CANDIDATE_FAILURES:
+        return
+    if not (math.isfinite(fr.mse_held) and fr.mse_held < fits[cid][0].mse_held):
+        return
+    against, k_added = references[cid]
+    fits[cid] = (fr, keys, sc, bnd, free)
+    entry.update(rank.score(against, fr, k_added, noise_mse))
+    entry.update(held_out_nrmse=fr.nrmse_held, started_from="hysteresis_fit_without_its_loop")
+    why = implausible(cid, fr, ref_model, data)
+    entry.pop("implausible", None)
+    if why:
+        entry["implausible"] = why
+        entry["significant"] = False
+
+
 def _reference_fits(run: Run, base: AugmentedModel, max_nfev: int):
     """(stage data, the null model: every baseline parameter refitted, the baseline as given scored
     the same way with no parameter moved)."""
@@ -964,6 +1003,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             entry["implausible"] = why
             entry["significant"] = False
         tested.append(entry)
+    friction_from_loop(tested, fits, references, data, ctx, fit_candidate, ref.model, full_free, bkeys, noise_mse)
     # the best null model found anywhere (the reference, or a candidate's fit with its term off
     # and the baseline refitted) is the one every candidate must beat: scored again against it
     if nulls:

@@ -63,12 +63,13 @@ SLIDING_SHARE = 0.95
 
 def friction_reading(alpha_m: float, gamma: float, delta: float, travel: float) -> dict | None:
     """A fitted Bouc-Wen loop read as a friction law, {presliding_stiffness_m [1/s^2], sliding_force_m
-    [m/s^2], sliding_after_m [m], travel_m [m]} (per unit mass), when the loop saturates (gamma + delta > 0,
-    gamma >= |delta|: a loop that does not stiffen after a reversal beyond its presliding stiffness
-    twice) and ``travel`` (the record's largest peak-to-peak displacement) reaches its sliding force;
-    else None."""
+    [m/s^2], sliding_after_m [m], travel_m [m]} (per unit mass), when the loop saturates (gamma + delta > 0)
+    with a positive stiffness after every reversal (gamma > 0: from the sliding force -alpha / (gamma +
+    delta) the slope is alpha (1 + (gamma - delta) / (gamma + delta)) = 2 gamma alpha / (gamma + delta);
+    Dahl's law has gamma = delta) and ``travel`` (the record's largest peak-to-peak displacement) reaches
+    its sliding force; else None."""
     lam = gamma + delta
-    if not (alpha_m > 0.0 and lam > 0.0 and gamma >= abs(delta)
+    if not (alpha_m > 0.0 and lam > 0.0 and gamma > 0.0
             and all(math.isfinite(v) for v in (alpha_m, gamma, delta, travel))):
         return None
     after = -math.log(1.0 - SLIDING_SHARE) / lam

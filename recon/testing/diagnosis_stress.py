@@ -45,7 +45,9 @@ def _ambiguous_ids(out: dict) -> list[str] | None:
 
 
 # a structural catalog id and the truth's term it stands for
-STRUCTURAL_TERMS = {"quadratic_stiffness": "y^2", "cubic_stiffness": "y^3"}
+STRUCTURAL_TERMS = {"quadratic_stiffness": "y^2", "cubic_stiffness": "y^3",
+                    # a system with its own y^2 y' damping (the issue 76 corner's)
+                    "amplitude_damping": "y^2*dy"}
 
 
 def baseline_lacks(model, truth: dict) -> list[str]:
