@@ -2,6 +2,8 @@
 is read as a friction law, its parameters as a presliding stiffness and a sliding force."""
 import math
 
+import pytest
+
 from recon.diagnosis.wording import diagnosis_text, friction_reading
 
 
@@ -25,3 +27,30 @@ def test_a_loop_that_never_slides_or_stiffens_is_not_called_friction():
     assert friction_reading(4e4, 1242.36, 1242.53, 0.02) and friction_reading(4e4, 1242.53, 1242.36, 0.02)
     # the Bouc-Wen benchmark's hardening loop (gamma + delta < 0) does not saturate
     assert friction_reading(alpha_m=5e4, gamma=800.0, delta=-1100.0, travel=0.02) is None
+
+
+@pytest.mark.slow
+def test_a_presliding_friction_against_a_linear_baseline_is_said_to_be_a_friction_law():
+    """Dahl's friction (a Bouc-Wen loop with gamma = delta that slides within the stroke) on a linear
+    system, diagnosed against the linear baseline (the issue's positioning-system case): the loop is
+    named, read as a presliding stiffness and a sliding force near the truth's, and coulomb_friction
+    is fitted from the loop's fit too (it loses: a velocity law has no presliding stiffness)."""
+    import warnings
+
+    import numpy as np
+
+    from recon.diagnosis.diagnose import diagnose
+    from recon.testing import independent as ind
+    from recon.testing.runs import to_run
+
+    warnings.filterwarnings("ignore")
+    s = ind.random_system(np.random.default_rng([2, 78]), hysteresis=False, quadratic=False, cubic=False)
+    alpha, lam = 0.3 * s["k"], 6.0 / s["Y"]
+    s.update(alpha=alpha, k=s["k"] - alpha, gamma=0.5 * lam, delta=0.5 * lam)
+    rec = ind.add_noise(ind.simulate(s, "paper", 1000.0, "none", 1.0, seed=2), 60.0, 2)
+    out = diagnose(to_run(rec), baseline="linear", candidates=["coulomb_friction", "hysteresis"]).to_dict()
+    assert [m["id"] for m in out["missing_physics"]] == ["hysteresis"], out["result"]
+    f = out["missing_physics"][0]["as_friction"]
+    assert f["sliding_force_m"] == pytest.approx(alpha / s["m"] / lam, rel=0.05)
+    assert f["presliding_stiffness_m"] == pytest.approx(alpha / s["m"], rel=0.05)
+    assert "friction law" in diagnosis_text(out)
