@@ -1054,6 +1054,8 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int) -> Diagnosis:
             if worse_stages(figs):      # the pair is held to every held-out stage too
                 partly.append(partly_entry([t["id"] for t in sig], figs, combined, given)
                               | {"explained": min(t["explained"] for t in sig)})
+                for t in sig:
+                    t.update(significant=False, worse_on_stages=worse_stages(figs), held_out_stages=figs)
                 sig, combined = [], None
     ranked = list(sig)
     if len(sig) > 1 and combined is None:
