@@ -8,6 +8,7 @@
     python bench/diagnose.py --stress --from-jsonl a.jsonl b.jsonl   # the table of saved rows, joined
     python bench/diagnose.py --stress --rows 6 45 54 --workers 2 --jsonl r.jsonl   # chosen recordings
     python bench/diagnose.py --stress --oracle-of a.jsonl --jsonl o.jsonl   # saved rows' oracle (below)
+    python bench/diagnose.py --stress --corner --rows 0 1 2 --workers 2   # issue 76's corner, reported apart
 
 --stress: recordings of recon/testing/independent.py (no code shared with recon): random
 systems, protocols (paper, rig, sweep, multisine), sample rates, SNR and effect strengths,
@@ -65,6 +66,10 @@ def main(argv=None) -> int:
     ap.add_argument("--rescore", nargs="+", default=None, metavar="JSONL",
                     help="--stress: put the diagnosis's current rule to the stored candidate figures of these "
                          "rows and list the verdicts that change and the rows to run again (no diagnosis run)")
+    ap.add_argument("--corner", action="store_true",
+                    help="--stress: the recordings of issue 76's corner (recon.testing.stress.corner_draw: negative "
+                         "delta with a hardening cubic, 5 kHz, sub-micron noise, validation above resonance, a "
+                         "second mode above 3 f_n) instead of the random block; their rows carry 'corner'")
     ap.add_argument("--rows", nargs="+", type=int, default=None, metavar="I",
                     help="--stress: these recording indices (instead of --first/--n)")
     args = ap.parse_args(argv)

@@ -10,7 +10,22 @@ import multiprocessing as mp
 import os
 import time
 
-from recon.testing.diagnosis_stress import oracle_of_stored, report, rescore, run_one
+from recon.testing.diagnosis_stress import oracle_of_stored, report, rescore, run_one, run_one_corner
+
+
+def report_apart(rows: list[dict]) -> list[str]:
+    """The report of the random block's rows and, apart, of each corner's rows (``row["corner"]``):
+    figures on one do not transfer to the other."""
+    groups = {}
+    for r in rows:
+        groups.setdefault(r.get("corner"), []).append(r)
+    out = []
+    for name in sorted(groups, key=lambda k: (k is not None, str(k))):
+        rs = groups[name]
+        if len(groups) > 1 or name is not None:
+            out += ["", f"== {'the random block' if name is None else 'corner ' + name}: {len(rs)} rows =="]
+        out += report(rs)
+    return out
 
 
 def load_rows(paths: list[str]) -> list[dict]:
@@ -55,7 +70,7 @@ def main(args) -> int:
                             f"({o['held_out_nrmse']:.5f} vs {o['reference_held_out_nrmse']:.5f})"), flush=True)
         if pool:
             pool.close()
-        print("\n".join(report(done)))
+        print("\n".join(report_apart(done)))
         return 0
     if getattr(args, "rescore", None):
         rows = load_rows(args.rescore)
@@ -70,7 +85,7 @@ def main(args) -> int:
         idx = [r["index"] for r in rows]
         print(f"{len(rows)} saved rows of the independent generator (#{min(idx)}..#{max(idx)}) from "
               f"{', '.join(args.from_jsonl)}")
-        print("\n".join(report(rows)))
+        print("\n".join(report_apart(rows)))
         return 0
     ids = list(args.rows) if getattr(args, "rows", None) else list(range(args.first, args.first + args.n))
     n = len(ids)
@@ -87,14 +102,15 @@ def main(args) -> int:
     if workers > 1:     # a process per core: the fits' finite differences on one thread each
         os.environ.setdefault("SHAKERLAB_THREADS", "1")
     pool = mp.get_context("fork").Pool(workers) if workers > 1 else None
-    it = pool.imap_unordered(run_one, ids) if pool else map(run_one, ids)
+    one = run_one_corner if getattr(args, "corner", False) else run_one
+    it = pool.imap_unordered(one, ids) if pool else map(one, ids)
     for k, r in enumerate(it, 1):
         rows.append(r)
         if out:
             out.write(json.dumps(r, default=float) + "\n")
             out.flush()
         print(f"[{k}/{n}] #{r['index']} {r['effect']} ({r['strength']:.2f}) {r['protocol']} fs {r['fs']:g} "
-              f"snr {r['snr']:g}: {r['status']} first={r.get('first')} named={r.get('named')} "
+              + (f"snr {r['snr']:g}" if r.get("snr") is not None else f"noise {r.get('noise_m', 0) * 1e6:.2g} um") + f": {r['status']} first={r.get('first')} named={r.get('named')} "
               f"sim {r.get('sim_seconds', 0):.1f} s diag {r.get('seconds', 0):.1f} s"
               + (f" ERROR {r['error'][:120]}" if "error" in r else ""), flush=True)
     if pool:
@@ -104,5 +120,5 @@ def main(args) -> int:
         out.close()
     print(f"\n{n} recordings of the independent generator (#{min(ids)}..#{max(ids)}), {workers} worker(s), "
           f"wall {time.perf_counter() - t0:.0f} s")
-    print("\n".join(report(rows)))
+    print("\n".join(report_apart(rows)))
     return 0

@@ -304,3 +304,23 @@ def test_effect_signature_sees_a_contact_the_fitting_samples_never_reach(monkeyp
     sig = {i: signature(i, split) for i in (957, 1061)}
     assert sig[957]["fit_over_noise"] > 5 and sig[957]["held_over_noise"] > 5, sig
     assert sig[1061]["fit_over_noise"] < 0.1 and sig[1061]["held_over_noise"] > 100, sig
+
+
+def test_the_corner_of_issue_76_negative_delta_cubic_sub_micron_noise_validation_above_resonance():
+    """The corner recordings (recon.testing.stress.corner_draw): a Bouc-Wen law with negative delta
+    beside a hardening cubic and y^2 y' damping, 5 kHz, the same sub-micron noise on both channels,
+    the validation tone above the resonance, a second mode above 3 f_n."""
+    gen = _load()
+    s = gen.corner_system(np.random.default_rng(5))
+    assert s["delta"] < 0 < s["gamma"] + s["delta"] and s["k3"] > 0 and s["b2"] > 0
+    tr = gen.truth_per_unit_mass(s)
+    assert tr["fn_m"]["y^2*dy"] == pytest.approx(s["b2"] / s["m"]) and tr["fn_m"]["y^3"] > 0
+    rec = gen.simulate(s, "paper_above", 5000.0, "higher_mode", 1.0, seed=3, mode_ratio=(3.2, 4.0))
+    assert rec["effect_parameters"]["w2"] / (2 * math.pi * s["f_n"]) > 3.2
+    assert rec["stages"]["validation"]["description"]["f_hz"] > 1.1 * s["f_n"]
+    assert "_mode_ratio" not in rec["system"]
+    noisy = gen.add_noise(rec, None, seed=1, noise_std=2e-7)
+    for st, clean in zip(noisy["stages"].values(), rec["stages"].values()):
+        assert np.median(np.diff(st["t"])) == pytest.approx(2e-4)
+        for ch in ("x_base", "x_tip"):
+            assert np.std(st[ch] - clean[ch]) == pytest.approx(2e-7, rel=0.05)

@@ -33,6 +33,8 @@ from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.catalog import CATALOG, SIGNATURES
 from recon.diagnosis.locate import locate, stage_derivatives
 from recon.diagnosis.sensitivity import detection_limits
+from recon.diagnosis.stagewise import held_stage_figures, worse_stages
+from recon.diagnosis.wording import friction_reading
 from recon.estimator.tuning import DEFAULT_TUNING
 from recon.estimator.linear_start import linear_step
 from recon.estimator.pipeline import reconstruct
@@ -112,6 +114,7 @@ class Diagnosis:
     reference: rank.FitResult | None = None   # the better of the baseline as given and the null model
     ambiguity: dict | None = None             # two candidates the held-out data cannot tell apart
     unexplained: dict | None = None           # the held-out mismatch the final model still leaves, if large
+    partly: dict | None = None                # a candidate better as a whole but worse on a held-out stage
 
     def to_dict(self) -> dict:
         def clean_ctx(c):
@@ -126,7 +129,9 @@ class Diagnosis:
             "mismatch": self.mismatch,
             "missing_physics": self.missing,
             "result": (f"missing physics: {', '.join(m['id'] for m in self.missing)}" if self.missing
+                       else partly_result(self.partly) if self.partly
                        else "nothing found: no candidate explains the held-out mismatch beyond noise"),
+            "partly_explained": self.partly,
             "candidates_tested": self.candidates,
             "correlation_tests": self.context.get("billings_voon", {}),
             "context": clean_ctx(self.context),
@@ -142,6 +147,19 @@ class Diagnosis:
 
 
 Z95 = 1.96
+
+
+def partly_result(p: dict) -> str:
+    """The one-line answer when the best candidate is better on the held-out samples as a whole but
+    worse than the baseline as given on a held-out stage beyond its noise band (stagewise.py)."""
+    return (f"partly explained: {' + '.join(p['ids'])} predicts the held-out samples better as a whole but "
+            f"is worse than the baseline as given on stage {', '.join(p['worse_on_stages'])} beyond its noise band")
+
+
+def partly_entry(ids: list, figures: dict, after: "rank.FitResult", given: "rank.FitResult") -> dict:
+    """``Diagnosis.partly``: the ids, the stages where the model fails, every held-out stage's figures."""
+    return {"ids": list(ids), "worse_on_stages": worse_stages(figures), "held_out_stages": figures,
+            "held_out_nrmse_before": given.nrmse_held, "held_out_nrmse_after": after.nrmse_held}
 
 
 def baseline_note(model: HystereticModel) -> str | None:
@@ -534,6 +552,46 @@ def every_parameter(base: AugmentedModel) -> list[str]:
     return rank.baseline_keys(base.baseline) + [f"x:{k}" for k in base.extras if k not in ("v0", "side")]
 
 
+def friction_from_loop(tested: list, fits: dict, references: dict, data, ctx: dict, fit_candidate,
+                       ref_model: AugmentedModel, full_free: list, bkeys: list, noise_mse: float,
+                       rule: SignificanceRule = DEFAULT_RULE) -> None:
+    """Friction competes with a friction-like loop from the same start. A Bouc-Wen loop that slides
+    within the record's travel is a friction law with presliding (wording.friction_reading); where
+    the hysteresis candidate's fit is such a loop, coulomb_friction is fitted again from that fit
+    with the loop taken out (its baseline's c, k and terms as fitted beside the loop, friction's own
+    starts for mu and v0), and the better of its two fits on the held-out samples is scored by the
+    same rule against the same reference. ``tested`` and ``fits`` are updated in place."""
+    cid = "coulomb_friction"
+    entry = next((t for t in tested if t["id"] == cid and cid in fits and cid in references), None)
+    if entry is None or "hysteresis" not in fits:
+        return
+    loop = fits["hysteresis"][0].model
+    b = loop.baseline
+    travel = max((float(np.ptp(d.y)) for d in data), default=0.0)
+    if friction_reading(b.alpha_m, b.gamma, b.delta, travel) is None:
+        return
+    src_model = without_terms(loop, ())
+    src_model.baseline.alpha_m = src_model.baseline.gamma = src_model.baseline.delta = 0.0
+    src_model.added = [a for a in src_model.added if a != "hysteresis"]
+    free = [k for k in full_free if k not in HYSTERESIS_KEYS]
+    try:
+        src = rank.fit(src_model, [], data)
+        fr, keys, sc, bnd = fit_candidate(cid, CATALOG[cid], src, free, [k for k in bkeys if k not in HYSTERESIS_KEYS])
+    except CANDIDATE_FAILURES:
+        return
+    if not (math.isfinite(fr.mse_held) and fr.mse_held < fits[cid][0].mse_held):
+        return
+    against, k_added = references[cid]
+    fits[cid] = (fr, keys, sc, bnd, free)
+    entry.update(rank.score(against, fr, k_added, noise_mse, rule))
+    entry.update(held_out_nrmse=fr.nrmse_held, started_from="hysteresis_fit_without_its_loop")
+    why = implausible(cid, fr, ref_model, data)
+    entry.pop("implausible", None)
+    if why:
+        entry["implausible"] = why
+        entry["significant"] = False
+
+
 def _reference_fits(run: Run, base: AugmentedModel, max_nfev: int, settings: DiagnosisSettings = DEFAULTS):
     """(stage data, the null model: every baseline parameter refitted, the baseline as given scored
     the same way with no parameter moved)."""
@@ -881,6 +939,8 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
             entry["implausible"] = why
             entry["significant"] = False
         tested.append(entry)
+    friction_from_loop(tested, fits, references, data, ctx, fit_candidate, ref.model, full_free, bkeys, noise_mse,
+                       rule)
     # the best null model found anywhere (the reference, or a candidate's fit with its term off
     # and the baseline refitted) is the one every candidate must beat: scored again against it
     if nulls:
@@ -892,6 +952,20 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
                     t.update(rank.score(best_null, fits[t["id"]][0], k_added, noise_mse, rule))
                     t["compared_with_held_out_nrmse"] = best_null.nrmse_held
                     t["compared_with_nested_null"] = True
+    # never an improvement that is worse on a held-out stage (stagewise.py): a candidate significant
+    # on the held-out samples together must also be no worse than the baseline as given on each
+    # held-out stage beyond that stage's noise band; one that is is kept out of the ranking, and the
+    # answer is "partly explained" if nothing else is named
+    partly = []
+    for t in tested:
+        if t.get("significant") and t["id"] in fits:
+            figs = held_stage_figures(given, fits[t["id"]][0], data)
+            t["held_out_stages"] = figs
+            bad = worse_stages(figs)
+            if bad:
+                t["significant"] = False
+                t["worse_on_stages"] = bad
+                partly.append(partly_entry([t["id"]], figs, fits[t["id"]][0], given) | {"explained": t["explained"]})
     # what the record can show: the size at which each candidate's effect, added to it, would be named
     # (an estimate; sensitivity.py)
     progress.step("detection limits", share=0.1)
@@ -912,6 +986,14 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
 
         sig, combined = joint_pair(tested, fits, nulls + [ref], ref.model, data, noise_mse, max_nfev, refit_on,
                                    unexplained_mismatch(ref, noise_mse, []) is not None, rule)
+        if combined is not None:
+            figs = held_stage_figures(given, combined, data)
+            if worse_stages(figs):      # the pair is held to every held-out stage too
+                partly.append(partly_entry([t["id"] for t in sig], figs, combined, given)
+                              | {"explained": min(t["explained"] for t in sig)})
+                for t in sig:
+                    t.update(significant=False, worse_on_stages=worse_stages(figs), held_out_stages=figs)
+                sig, combined = [], None
     ranked = list(sig)
     if len(sig) > 1 and combined is None:
         # forward step: a runner-up is reported only if it still adds on top of the best one
@@ -928,6 +1010,10 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
             why = implausible(t["id"], frc, ref.model, data) + implausible(sig[0]["id"], frc, ref.model, data)
             if why:
                 s2 = {**s2, "implausible": why, "significant": False}
+            if s2["significant"]:
+                figs = held_stage_figures(given, frc, data)
+                if worse_stages(figs):      # the two together are held to every held-out stage too
+                    s2 = {**s2, "significant": False, "worse_on_stages": worse_stages(figs)}
             t["on_top_of_best"] = s2
             if s2["significant"]:
                 kept.append(t)
@@ -956,6 +1042,11 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
             "baseline_terms_dropped": t.get("baseline_terms_dropped", []),
             "hysteresis_dropped": bool(t.get("hysteresis_dropped", False)),
         })
+        if t["id"] == "hysteresis":
+            # a named loop that slides within the record's travel is a friction law (wording.py)
+            b = fr.model.baseline
+            travel = max((float(np.ptp(d.y)) for d in data), default=0.0)
+            missing[-1]["as_friction"] = friction_reading(b.alpha_m, b.gamma, b.delta, travel)
     if combined is not None:
         best_fr = combined
     elif missing:
@@ -963,6 +1054,8 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
     else:
         best_fr = ref
     # fit_before: the baseline as given (nrmse, held_out_nrmse); the null model's figures under refit_*
+    partly_explained = (None if missing or not partly
+                        else {k: v for k, v in max(partly, key=lambda p: p["explained"]).items() if k != "explained"})
     fit_before = {"nrmse": before, "refit_nrmse": null.nrmse, "held_out_nrmse": given.nrmse_held,
                   "held_out_nrmse_as_given": given.nrmse_held, "refit_held_out_nrmse": null.nrmse_held,
                   "compared_with": ref_name,
@@ -976,4 +1069,5 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
     return Diagnosis(baseline=base, baseline_kind=kind, fit_before=fit_before, null=null, mismatch=findings,
                      candidates=tested, missing=missing, best=best_fr.model, best_fit=best_fr, context=ctx,
                      seconds=time.perf_counter() - t0, reference=ref, ambiguity=ambiguity,
-                     unexplained=unexplained_mismatch(best_fr, noise_mse, [m["id"] for m in missing]))
+                     unexplained=unexplained_mismatch(best_fr, noise_mse, [m["id"] for m in missing]),
+                     partly=partly_explained)

@@ -51,6 +51,41 @@ def finding_text(f: dict) -> str:
     return f"stage {f.get('stage')!r}, {kind}{' ' + where if where else ''}{amount}"
 
 
+# A Bouc-Wen loop (n = 1) loaded one way from z = 0 follows dz/dy = alpha - (gamma + delta) z: it is
+# stiff (alpha) at first, then z approaches alpha / (gamma + delta) as 1 - exp(-(gamma + delta) y).
+# That is a friction law with presliding (Dahl's): a presliding stiffness alpha, and a sliding force
+# alpha / (gamma + delta) reached, within SLIDING_SHARE, after a travel of -ln(1 - SLIDING_SHARE) /
+# (gamma + delta). A record shows both regimes when its largest travel between reversals (the
+# peak-to-peak displacement) is longer than that: the loop slides there, and presliding holds at
+# every reversal.
+SLIDING_SHARE = 0.95
+
+
+def friction_reading(alpha_m: float, gamma: float, delta: float, travel: float) -> dict | None:
+    """A fitted Bouc-Wen loop read as a friction law, {presliding_stiffness_m [1/s^2], sliding_force_m
+    [m/s^2], sliding_after_m [m], travel_m [m]} (per unit mass), when the loop saturates (gamma + delta > 0)
+    with a positive stiffness after every reversal (gamma > 0: from the sliding force -alpha / (gamma +
+    delta) the slope is alpha (1 + (gamma - delta) / (gamma + delta)) = 2 gamma alpha / (gamma + delta);
+    Dahl's law has gamma = delta) and ``travel`` (the record's largest peak-to-peak displacement) reaches
+    its sliding force; else None."""
+    lam = gamma + delta
+    if not (alpha_m > 0.0 and lam > 0.0 and gamma > 0.0
+            and all(math.isfinite(v) for v in (alpha_m, gamma, delta, travel))):
+        return None
+    after = -math.log(1.0 - SLIDING_SHARE) / lam
+    if travel < after:
+        return None
+    return {"presliding_stiffness_m": float(alpha_m), "sliding_force_m": float(alpha_m / lam),
+            "sliding_after_m": float(after), "travel_m": float(travel)}
+
+
+def friction_text(f: dict) -> str:
+    """:func:`friction_reading` in words."""
+    return (f"the loop acts as a friction law: presliding stiffness {f['presliding_stiffness_m']:.4g} 1/s^2 and "
+            f"sliding force {f['sliding_force_m']:.4g} m/s^2 (per unit mass), sliding after "
+            f"{1e3 * f['sliding_after_m']:.3g} mm of travel (the record travels {1e3 * f['travel_m']:.3g} mm)")
+
+
 def diagnosis_text(d: dict) -> str:
     """The result of a diagnosis (``Diagnosis.to_dict()``) in one statement, consistent with the
     mismatch it located: what was named and how much it helps, else why nothing was named."""
@@ -62,10 +97,22 @@ def diagnosis_text(d: dict) -> str:
         after = ev[-1].get("held_out_nrmse_after")
         text = (f"missing physics: {', '.join(m['id'] for m in missing)} (held-out NRMSE {nrmse_text(before)} "
                 f"-> {nrmse_text(after)})")
+        for m in missing:
+            if m.get("as_friction"):
+                text += f"; {m['id']}: {friction_text(m['as_friction'])}"
         if un:
             text += (f"; with {'it' if len(missing) == 1 else 'them'} added the held-out NRMSE {nrmse_text(un.get('held_out_nrmse'))} is still above "
                      f"the {nrmse_text(un.get('nrmse_limit'))} limit: something else is missing too")
         return text
+    partly = d.get("partly_explained") or None
+    if partly:
+        figs = partly.get("held_out_stages") or {}
+        where = "; ".join(f"stage {s!r} {nrmse_text(figs[s].get('nrmse_before'))} -> {nrmse_text(figs[s].get('nrmse_after'))}"
+                          for s in partly.get("worse_on_stages", []) if s in figs)
+        return (f"partly explained: {' + '.join(partly.get('ids', []))} lowers the held-out NRMSE as a whole "
+                f"({nrmse_text(partly.get('held_out_nrmse_before'))} -> {nrmse_text(partly.get('held_out_nrmse_after'))}) "
+                f"but predicts a held-out stage worse than the baseline as given, beyond that stage's noise ({where}): "
+                f"it is not named")
     if un:
         return (f"nothing in the catalog explains the mismatch: the held-out NRMSE "
                 f"{nrmse_text(un.get('held_out_nrmse'))} is above the {nrmse_text(un.get('nrmse_limit'))} limit "

@@ -26,7 +26,7 @@ from recon.diagnosis.diagnose import diagnose
 from recon.diagnosis.settings import DEFAULT_RULE
 from recon.output_error.problem import get_parameter
 from recon.testing.runs import model_of, to_run, true_model
-from recon.testing.stress import draw, effect_cycle, recording
+from recon.testing.stress import CORNER_EFFECTS, corner_draw, corner_recording, draw, effect_cycle, recording
 
 
 def _ambiguous_ids(out: dict) -> list[str] | None:
@@ -46,7 +46,9 @@ def _ambiguous_ids(out: dict) -> list[str] | None:
 
 
 # a structural catalog id and the truth's term it stands for
-STRUCTURAL_TERMS = {"quadratic_stiffness": "y^2", "cubic_stiffness": "y^3"}
+STRUCTURAL_TERMS = {"quadratic_stiffness": "y^2", "cubic_stiffness": "y^3",
+                    # a system with its own y^2 y' damping (the issue 76 corner's)
+                    "amplitude_damping": "y^2*dy"}
 
 
 def baseline_lacks(model, truth: dict) -> list[str]:
@@ -188,16 +190,27 @@ FIT_SIGNATURE_SHARE = 0.1
 # what each row keeps of every tested candidate (to study the decision rule offline)
 CANDIDATE_KEYS = ("id", "significant", "explained", "gain_over_noise", "relative_gain", "blocks_improved", "dbic", "held_out_nrmse",
                   "compared_with_held_out_nrmse", "baseline_terms_dropped", "implausible", "failed",
-                  "detection_limit", "started_from", "compared_with_nested_null", "before_nested_null", "jointly_with", "alone")
+                  "detection_limit", "started_from", "compared_with_nested_null", "before_nested_null", "jointly_with", "alone",
+                  "held_out_stages", "worse_on_stages", "on_top_of_best")
 
 
 def run_one(i: int) -> dict:
+    """The row of stress recording i (:func:`recon.testing.stress.draw`)."""
+    return run_row(draw(i), recording)
+
+
+def run_one_corner(i: int) -> dict:
+    """The row of corner recording i (:func:`recon.testing.stress.corner_draw`: issue 76's corner)."""
+    return run_row(corner_draw(i), corner_recording)
+
+
+def run_row(d: dict, make) -> dict:
+    """A row of the draw ``d``, its recording made by ``make(d)``."""
     warnings.filterwarnings("ignore")
-    d = draw(i)
     row = {k: v for k, v in d.items()}
     t0 = time.perf_counter()
     try:
-        rec = recording(d)
+        rec = make(d)
     except Exception as exc:  # noqa: BLE001
         row.update(status="generator failed", error=f"{type(exc).__name__}: {exc}")
         return row
@@ -239,6 +252,7 @@ def run_one(i: int) -> dict:
                parameters={m["id"]: {k: v["value"] for k, v in m["parameters"].items()}
                            for m in out["missing_physics"]},
                result=out["result"], unexplained=bool(out.get("unexplained_mismatch")),
+               partly=out.get("partly_explained"),
                baseline_fallback=bool(out.get("baseline_note")),
                candidates=[{k: c[k] for k in CANDIDATE_KEYS if k in c} for c in out.get("candidates_tested", [])])
     size = true_size(rec, out)
@@ -256,8 +270,7 @@ def report(rows: list[dict]) -> list[str]:
     ok = [r for r in rows if r["status"] == "ok"]
     cols = sorted({r["first"] for r in ok} - {"none", "ambiguous"})
     cols = cols + ["none", "ambiguous", "error"]
-    trues = [e for e in effect_cycle() if e != "none" or True]
-    trues = list(dict.fromkeys(trues))
+    trues = list(dict.fromkeys(effect_cycle() + list(CORNER_EFFECTS)))
     out = ["| true \\ named first | n | " + " | ".join(cols) + " | right first |",
            "| --- | --- | " + " | ".join("---" for _ in cols) + " | --- |"]
     for t in trues:
@@ -449,7 +462,7 @@ def oracle_of_stored(row: dict) -> dict:
     i = row["index"]
     if row.get("status") != "ok" or row["effect"] == "none":
         return row
-    rec = recording(draw(i))
+    rec = corner_recording(corner_draw(i)) if row.get("corner") else recording(draw(i))
     n = sum(int(s["t"].size) for s in rec["stages"].values())
     if n != row.get("samples"):
         row["oracle"] = {"stale": f"the recording has {n} samples now, {row.get('samples')} when diagnosed"}

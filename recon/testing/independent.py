@@ -110,6 +110,25 @@ def random_system(rng, hysteresis: bool | None = True, quadratic: bool | None = 
     return sys_
 
 
+def corner_system(rng, fn_range=(18.0, 32.0)) -> dict:
+    """A system of the corner issue 76 names: a Bouc-Wen law with negative delta beside a
+    hardening cubic spring and damping that grows with the amplitude (y^2 y'), f_n near 24 Hz.
+
+    The scales are :func:`random_system`'s; what is fixed is the corner: the law's delta / gamma
+    is -0.15 to -0.4 (gamma 400 /m, delta -100 /m on a design amplitude of 2.5-10 mm: lambda Y =
+    (gamma + delta) Y in 0.75-3), the cubic stiffens the spring by 5-30 % at Y, and b2 dissipates
+    10-40 % of the viscous damping's energy per cycle at Y."""
+    s = random_system(rng, hysteresis=False, quadratic=False, cubic=True, fn_range=fn_range)
+    K, Y = s["k"], s["Y"]
+    a = float(rng.uniform(0.2, 0.6)) * K
+    ratio = float(rng.uniform(-0.4, -0.15))           # delta / gamma
+    lam = float(rng.uniform(0.75, 3.0)) / Y           # gamma + delta
+    gamma = lam / (1.0 + ratio)
+    s.update(alpha=a, k=K - a, gamma=float(gamma), delta=float(ratio * gamma), bw_kind="delta<0",
+             b2=float(rng.uniform(0.1, 0.4)) * 4 * s["c"] / Y ** 2)
+    return s
+
+
 def truth_per_unit_mass(s: dict, excitation: str = "base") -> dict:
     """The system in shakerlab's per-unit-mass names (model JSON ``parameters``)."""
     m = s["m"]
@@ -118,6 +137,8 @@ def truth_per_unit_mass(s: dict, excitation: str = "base") -> dict:
         fn["y^2"] = s["k2"] / m
     if s["k3"]:
         fn["y^3"] = s["k3"] / m
+    if s.get("b2"):
+        fn["y^2*dy"] = s["b2"] / m
     out = {"c_m": s["c"] / m, "k_m": s["k"] / m, "alpha_m": s["alpha"] / m, "gamma": s["gamma"],
            "delta": s["delta"], "fn_m": fn}
     if excitation == "force":
@@ -249,7 +270,8 @@ def _glide(prev, f1):
 def _rhs_factory(s: dict, eff: dict, excitation: str, seg: Segment):
     m, c, k, alpha, gamma, delta, k2, k3 = (s["m"], s["c"], s["k"], s["alpha"], s["gamma"], s["delta"],
                                             s["k2"], s["k3"])
-    Fc, v_eps, c2, b2 = eff.get("Fc", 0.0), eff.get("v_eps", 1.0), eff.get("c2", 0.0), eff.get("b2", 0.0)
+    Fc, v_eps, c2 = eff.get("Fc", 0.0), eff.get("v_eps", 1.0), eff.get("c2", 0.0)
+    b2 = eff.get("b2", 0.0) + s.get("b2", 0.0)       # the effect's and the system's own y^2 y' damping
     kc, gap, side = eff.get("kc", 0.0), eff.get("gap", 0.0), eff.get("side", 1.0)
     rate, F0 = eff.get("drift_rate", 0.0), eff.get("F0", 0.0)
     w2, zeta2, d2 = eff.get("w2", 0.0), eff.get("zeta2", 0.0), eff.get("drive2", 0.0)
@@ -363,7 +385,8 @@ def effect_parameters(effect: str, strength: float, s: dict, rng, peaks=None) ->
     if effect == "channel_delay":             # 0.4 % of the natural period
         return {"tau": 0.004 * strength / s["f_n"]}
     if effect == "higher_mode":
-        return {"w2": float(rng.uniform(2.5, 3.5)) * wn, "zeta2": float(rng.uniform(0.01, 0.03)),
+        lo, hi = s.get("_mode_ratio", (2.5, 3.5))
+        return {"w2": float(rng.uniform(lo, hi)) * wn, "zeta2": float(rng.uniform(0.01, 0.03)),
                 "phi2": 0.25 * strength}
     if effect == "parameter_drift":           # 0.05 %/s of session time, either sign
         return {"drift_rate": sg * 5e-4 * strength}
@@ -507,6 +530,25 @@ def _paper(sim, s, rng):
         sim.record(name, ramped_tone(sim.t, f, a, hold, ramp, rng.uniform(0, 2 * math.pi)),
                    {"kind": "tone", "f_hz": f, "amplitude": a, "hold_s": hold, "ramp_s": ramp})
         desc[name] = f
+    return peaks
+
+
+def _paper_above(sim, s, rng):
+    """The paper's protocol (one tone per stage) with its validation stage driven above the
+    resonance (1.15-1.35 f_n), at a drive whose linear response is 0.15-0.5 of the nonlinear
+    stage's design amplitude Y: off resonance a validation stage moves less than the nonlinear
+    one, and a hardening system driven harder there can jump to its upper branch (a record the
+    fitting stages say nothing about)."""
+    fn, Y = s["f_n"], s["Y"]
+    f_lin, f_nl, f_val = (fn * rng.uniform(0.45, 0.55), fn * rng.uniform(0.86, 0.94), fn * rng.uniform(1.15, 1.35))
+    amp_nl, peaks = _calibrate(sim, f_nl, Y, Y / _gain(s, f_nl))
+    amp_lin = Y * rng.uniform(0.01, 0.05) / _gain(s, f_lin)
+    amp_val = Y * rng.uniform(0.15, 0.5) / _gain(s, f_val)
+    for name, f, a, periods, lo, hi in (("linear", f_lin, amp_lin, 40, 3, 10), ("nonlinear", f_nl, amp_nl, 80, 4, 12),
+                                        ("validation", f_val, amp_val, 50, 3, 10)):
+        hold, ramp = _durations(f, periods, lo, hi), _durations(f, 5, 0.3, 2.0)
+        sim.record(name, ramped_tone(sim.t, f, a, hold, ramp, rng.uniform(0, 2 * math.pi)),
+                   {"kind": "tone", "f_hz": f, "amplitude": a, "hold_s": hold, "ramp_s": ramp})
     return peaks
 
 
@@ -687,6 +729,9 @@ def _multisine(sim, s, rng):
 
 
 _PROTOCOL_FNS = {"paper": _paper, "rig": _rig, "sweep": _sweep, "multisine": _multisine}
+# protocols outside the random draws (PROTOCOLS), for a corner's recordings
+MORE_PROTOCOLS = ("paper_above",)
+_PROTOCOL_FNS["paper_above"] = _paper_above
 
 
 # --------------------------------------------------------------------------- recordings
@@ -703,16 +748,20 @@ def simulate_tone(system: dict, f: float, amplitude: float, hold_s: float, fs: f
 
 
 def simulate(system: dict, protocol: str = "paper", fs: float = 2000.0, effect: str = "none",
-             strength: float = 1.0, excitation: str = "base", seed: int = 0, mode_drive: float = 0.0) -> dict:
+             strength: float = 1.0, excitation: str = "base", seed: int = 0, mode_drive: float = 0.0,
+             mode_ratio: tuple | None = None) -> dict:
     """A noise-free recording (plain dict). ``seed`` draws the protocol's random choices and
     the effect's sign, side and gap. ``mode_drive`` (effect higher_mode): the share d2 of the
-    tip's absolute acceleration in the second mode's drive (see the module docstring)."""
-    if protocol not in PROTOCOLS:
-        raise ValueError(f"unknown protocol {protocol!r} (known: {', '.join(PROTOCOLS)})")
+    tip's absolute acceleration in the second mode's drive (see the module docstring);
+    ``mode_ratio``: the range of the second mode's frequency over f_n (default 2.5-3.5)."""
+    if protocol not in PROTOCOLS + MORE_PROTOCOLS:
+        raise ValueError(f"unknown protocol {protocol!r} (known: {', '.join(PROTOCOLS + MORE_PROTOCOLS)})")
     if effect not in EFFECTS:
         raise ValueError(f"unknown effect {effect!r} (known: {', '.join(EFFECTS)})")
     rng = np.random.default_rng(seed)
     s = dict(system, _excitation=excitation)
+    if mode_ratio is not None:
+        s["_mode_ratio"] = tuple(mode_ratio)
     baseline = None
     if effect in STRUCTURAL_EFFECTS:
         s, baseline = apply_structural(effect, strength, s, rng)
@@ -730,7 +779,7 @@ def simulate(system: dict, protocol: str = "paper", fs: float = 2000.0, effect: 
         sim = _Sim(s, eff, excitation, fs, f_max)
     _PROTOCOL_FNS[protocol](sim, s, rng)
     rec = {"generator": "recon.testing.independent", "excitation": excitation, "fs": float(fs),
-           "protocol": protocol, "stages": sim.stages, "system": {k: v for k, v in s.items() if k != "_excitation"},
+           "protocol": protocol, "stages": sim.stages, "system": {k: v for k, v in s.items() if not k.startswith("_")},
            "truth": truth_per_unit_mass(s, excitation), "effect": effect, "strength": float(strength),
            "effect_parameters": eff, "snr_db": None, "seed": int(seed)}
     if baseline is not None:
@@ -739,9 +788,11 @@ def simulate(system: dict, protocol: str = "paper", fs: float = 2000.0, effect: 
 
 
 def add_noise(rec: dict, snr_db: float | None, seed: int, quantisation: float | None = None,
-              quantity: str = "displacement", flicker_share: float = 0.5) -> dict:
+              quantity: str = "displacement", flicker_share: float = 0.5, noise_std: float | None = None) -> dict:
     """A copy with white sensor noise at ``snr_db`` of each channel's rms (per stage) and an
     optional quantisation step ``quantisation`` (as a fraction of the noise std).
+    ``noise_std`` (in the channel's unit) in place of ``snr_db``: one noise level for every channel
+    and stage, as a sensor's own resolution (sub-micron on a laser displacement sensor).
 
     ``quantity``: how the response (x_tip, or x under force excitation) is recorded: "displacement",
     "velocity" (a laser vibrometer: v_tip, v) or "acceleration" (a_tip, a; white noise), at ``snr_db``
@@ -754,7 +805,8 @@ def add_noise(rec: dict, snr_db: float | None, seed: int, quantisation: float | 
         raise ValueError(f"unknown quantity {quantity!r} (known: {', '.join(QUANTITIES)})")
     rng = np.random.default_rng(seed)
     flicker_rng = np.random.default_rng([seed, 1])
-    out = dict(rec, stages={}, snr_db=snr_db, noise_seed=int(seed), quantisation=quantisation, quantity=quantity)
+    out = dict(rec, stages={}, snr_db=snr_db, noise_seed=int(seed), quantisation=quantisation, quantity=quantity,
+               **({"noise_std": float(noise_std)} if noise_std is not None else {}))
     response = "x_tip" if rec["excitation"] == "base" else "x"
     velocity = "v" + response[1:]
     recorded = {"displacement": response, "velocity": velocity, "acceleration": "a" + response[1:]}[quantity]
@@ -764,8 +816,9 @@ def add_noise(rec: dict, snr_db: float | None, seed: int, quantisation: float | 
         chans = tuple(recorded if c == response else c for c in chans)
         for ch in chans:
             x = st[ch]
-            if snr_db is not None:
-                sd = float(np.sqrt(np.mean(x ** 2))) / 10 ** (snr_db / 20)
+            if snr_db is not None or noise_std is not None:
+                sd = (float(noise_std) if noise_std is not None
+                      else float(np.sqrt(np.mean(x ** 2))) / 10 ** (snr_db / 20))
                 if ch == velocity:
                     x = (x + rng.normal(0.0, sd * math.sqrt(1.0 - flicker_share), x.size)
                          + flicker_noise(flicker_rng, x.size, sd * math.sqrt(flicker_share)))

@@ -81,7 +81,7 @@ def true_model(rec: dict):
     elif effect == "quadratic_damping":
         extras, k = {"c2": e["c2"] / m}, 1
     elif effect == "amplitude_damping":
-        truth["fn_m"]["y^2*dy"] = e["b2"] / m
+        truth["fn_m"]["y^2*dy"] = truth["fn_m"].get("y^2*dy", 0.0) + e["b2"] / m
         k = 1
     elif effect == "channel_delay":
         extras, k = {"delay": e["tau"]}, 1

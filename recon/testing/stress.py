@@ -55,6 +55,34 @@ def recording(d: dict) -> dict:
     return ind.add_noise(rec, d["snr"], i, d["quantisation"])
 
 
+# The corner of issue 76 (a system outside the random draws' reach): a Bouc-Wen law with negative
+# delta beside a hardening cubic and y^2 y' damping, f_n near 24 Hz, sampled at 5 kHz with a
+# sensor noise of 0.1-0.5 um on both channels, the paper's one-tone stages with the validation
+# stage above the resonance, a second mode at 3.2-4 f_n. Its effects in turn:
+CORNER_EFFECTS = ("none", "none", "coulomb_friction", "quadratic_damping", "higher_mode", "sensor_scale",
+                  "channel_delay", "contact_stiffness", "parameter_drift")
+CORNER_FS = 5000.0
+CORNER_MODE_RATIO = (3.2, 4.0)
+
+
+def corner_draw(i: int) -> dict:
+    """The recording parameters of corner recording i (independent of :func:`draw`'s rows)."""
+    rng = np.random.default_rng([i, 76])
+    return {"index": i, "corner": "issue76", "system": ind.corner_system(rng), "protocol": "paper_above",
+            "fs": CORNER_FS, "snr": None, "noise_m": float(rng.uniform(0.1e-6, 0.5e-6)), "quantisation": None,
+            "effect": CORNER_EFFECTS[i % len(CORNER_EFFECTS)], "strength": float(rng.uniform(0.3, 1.5)),
+            "mode_drive": float(rng.random() < 0.5)}
+
+
+def corner_recording(d: dict) -> dict:
+    """The noisy recording of the corner draw ``d`` (:func:`corner_draw`)."""
+    i = d["index"]
+    rec = ind.simulate(d["system"], d["protocol"], d["fs"], d["effect"], d["strength"], seed=i,
+                       mode_drive=d["mode_drive"] if d["effect"] == "higher_mode" else 0.0,
+                       mode_ratio=CORNER_MODE_RATIO)
+    return ind.add_noise(rec, None, i, None, noise_std=d["noise_m"])
+
+
 def stress_system(seed: int, protocols=("paper", "rig")) -> tuple[dict, str, float]:
     """System, protocol and sample rate of the reconstruction stress bench's ``seed`` (reproducible)."""
     rng = np.random.default_rng([seed, 18])

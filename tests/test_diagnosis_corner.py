@@ -1,0 +1,55 @@
+"""Issue 76's corner, on recordings of the independent generator (recon.testing.stress.corner_draw):
+a Bouc-Wen law with negative delta beside a hardening cubic and y^2 y' damping, f_n near 24 Hz,
+5 kHz, sub-micron sensor noise, the paper's one-tone stages with the validation stage above the
+resonance, a second mode above 3 f_n. One test per miss class of the issue's table; each is a
+full diagnosis of a 5 kHz record (slow tier)."""
+import warnings
+
+import pytest
+
+from recon.diagnosis.diagnose import diagnose
+from recon.testing.runs import to_run
+from recon.testing.stress import corner_draw, corner_recording
+
+
+def _diagnose(i: int, candidates=None) -> dict:
+    warnings.filterwarnings("ignore")
+    d = corner_draw(i)
+    return diagnose(to_run(corner_recording(d)), candidates=candidates).to_dict()
+
+
+@pytest.mark.slow
+def test_corner_clean_names_nothing():
+    """The issue's clean row named coulomb_friction with a fit worse than the baseline's."""
+    out = _diagnose(1)
+    assert out["missing_physics"] == [], out["result"]
+
+
+@pytest.mark.slow
+def test_corner_friction_is_named_friction():
+    """The issue's friction row named channel_delay (better on validation, worse on the nonlinear stage)."""
+    out = _diagnose(2)
+    assert [m["id"] for m in out["missing_physics"]][:1] == ["coulomb_friction"], out["result"]
+
+
+@pytest.mark.slow
+def test_corner_second_mode_is_named_and_a_scale_that_is_worse_on_a_stage_is_not():
+    """The issue's second-mode row named sensor_scale: validation better, the nonlinear stage 18 x worse.
+    With the whole catalog the mode is named; with the sensor scale alone it is never named where it
+    predicts a held-out stage worse than the baseline as given beyond that stage's noise band."""
+    out = _diagnose(4)
+    assert [m["id"] for m in out["missing_physics"]][:1] == ["higher_mode"], out["result"]
+    alone = _diagnose(4, candidates=["sensor_scale"])
+    scale = next(c for c in alone["candidates_tested"] if c["id"] == "sensor_scale")
+    for stage, f in (scale.get("held_out_stages") or {}).items():
+        if f["worse"]:
+            assert alone["missing_physics"] == [] and alone["result"].startswith("partly explained")
+
+
+@pytest.mark.slow
+def test_corner_quadratic_damping_gets_no_false_name():
+    """The issue's quadratic-damping row named nothing. On this record the truth itself does not pass the
+    rule (the reconstructed baseline's c and y^2 y' take the effect up on one-tone stages, and the validation
+    stage above the resonance hardly shows damping): nothing else may be named in its place."""
+    out = _diagnose(3)
+    assert [m["id"] for m in out["missing_physics"]] in ([], ["quadratic_damping"]), out["result"]
