@@ -959,7 +959,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
     partly = []
     for t in tested:
         if t.get("significant") and t["id"] in fits:
-            figs = held_stage_figures(given, fits[t["id"]][0], data)
+            figs = held_stage_figures(given, fits[t["id"]][0], data, rule.stage_level)
             t["held_out_stages"] = figs
             bad = worse_stages(figs)
             if bad:
@@ -987,7 +987,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
         sig, combined = joint_pair(tested, fits, nulls + [ref], ref.model, data, noise_mse, max_nfev, refit_on,
                                    unexplained_mismatch(ref, noise_mse, []) is not None, rule)
         if combined is not None:
-            figs = held_stage_figures(given, combined, data)
+            figs = held_stage_figures(given, combined, data, rule.stage_level)
             if worse_stages(figs):      # the pair is held to every held-out stage too
                 partly.append(partly_entry([t["id"] for t in sig], figs, combined, given)
                               | {"explained": min(t["explained"] for t in sig)})
@@ -1011,7 +1011,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
             if why:
                 s2 = {**s2, "implausible": why, "significant": False}
             if s2["significant"]:
-                figs = held_stage_figures(given, frc, data)
+                figs = held_stage_figures(given, frc, data, rule.stage_level)
                 if worse_stages(figs):      # the two together are held to every held-out stage too
                     s2 = {**s2, "significant": False, "worse_on_stages": worse_stages(figs)}
             t["on_top_of_best"] = s2

@@ -49,6 +49,9 @@ class SignificanceRule:
                               "noise variances", 0.0, 1e6)
     complete_rel_gain: float = _f(0.02, "unanimous route: relative cut of the held-out NRMSE", "fraction",
                                   0.0, 1.0)
+    stage_level: float = _f(0.01, "never worse on a held-out stage: the chance, shared among the held-out "
+                            "stages, that noise alone makes a model no worse than the baseline look worse "
+                            "on one (recon.diagnosis.stagewise)", "probability", 0.0, 1.0, lo_open=True)
 
     def __post_init__(self):
         _check(self)

@@ -29,9 +29,12 @@ import math
 import numpy as np
 from scipy.stats import norm
 
+from recon.diagnosis.settings import DEFAULT_RULE
+
 # the chance, over every held-out stage of a record, that the noise alone makes a model that is no
 # worse than the baseline as given look worse on some stage: a test's level, not a fitted margin
-STAGE_LEVEL = 0.01
+# (SignificanceRule.stage_level, recon.diagnosis.settings)
+STAGE_LEVEL = DEFAULT_RULE.stage_level
 
 
 def stage_band_z(n_stages: int, level: float = STAGE_LEVEL) -> float:
