@@ -61,8 +61,16 @@ def _longest_silence(lines, total) -> float:
     return max(b - a for a, b in zip(times, times[1:]))
 
 
+@pytest.fixture(scope="module")
+def quiet_reconstruct(short_run):
+    """`reconstruct SHORT --no-polish --json --quiet`, run once for the module: (stderr lines, stdout,
+    exit status). The progress test checks its silence, the verdict test reads its JSON."""
+    lines, out, code, _ = _timed_stderr(["reconstruct", str(short_run), "--no-polish", "--json", "--quiet"])
+    return lines, out, code
+
+
 @pytest.mark.parametrize("command", [["reconstruct", "--no-polish"], ["diagnose", "--baseline", "linear"]])
-def test_progress_never_silent_and_json_stays_clean(short_run, command):
+def test_progress_never_silent_and_json_stays_clean(short_run, command, request):
     lines, out, code, total = _timed_stderr([command[0], str(short_run), *command[1:], "--json"])
     assert code == 0, lines
     d = json.loads(out)                      # stdout is one JSON object, nothing else
@@ -76,12 +84,11 @@ def test_progress_never_silent_and_json_stays_clean(short_run, command):
         assert any("candidate" in x for x in steps) and d["result_text"] == diagnosis_text(d)
     else:
         assert any("fitting the two stages together" in x or "revising" in x or "first estimate" in x for x in steps)
-    quiet, out_q, code_q, _ = _timed_stderr([command[0], str(short_run), *command[1:], "--json", "--quiet"]) \
-        if command[0] == "reconstruct" else ([], out, 0, 0)
+    quiet, out_q, code_q = request.getfixturevalue("quiet_reconstruct") if command[0] == "reconstruct" else ([], out, 0)
     assert code_q == 0 and quiet == [] and json.loads(out_q)
 
 
-def test_reconstruct_verdict_one_sentence_everywhere_and_no_escape_codes(short_run):
+def test_reconstruct_verdict_one_sentence_everywhere_and_no_escape_codes(short_run, quiet_reconstruct):
     """The text line and the JSON key are the same sentence; on a terminal the output holds no escape code."""
     master, slave = pty.openpty()
     proc = subprocess.Popen([sys.executable, "-m", "shakerlab.cli", "reconstruct", str(short_run), "--no-polish"],
@@ -104,7 +111,8 @@ def test_reconstruct_verdict_one_sentence_everywhere_and_no_escape_codes(short_r
     assert "\x1b" not in text, repr(text[-200:])
     verdicts = [x for x in text.replace("\r\n", "\n").split("\n") if x.startswith("verdict: ")]
     assert len(verdicts) == 1
-    lines, out, code, _ = _timed_stderr(["reconstruct", str(short_run), "--no-polish", "--json", "--quiet"])
+    _, out, code = quiet_reconstruct
+    assert code == 0
     d = json.loads(out)
     assert verdicts[0] == f"verdict: {d['verdict_text']}" == f"verdict: {verdict_summary(d['adequacy'])['text']}"
     assert "admissible" in d["verdict_text"] and "adequacy" in d and "verdict" in d["adequacy"]

@@ -6,6 +6,7 @@ import pytest
 from recon.testing.truth import sdof_run
 from shakerlab.cli import main
 from shakerlab.runfile.reader import save_npz
+from helpers import check_weak_form_at_40db
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +37,17 @@ def test_reconstruct_json(run_file, capsys, tmp_path):
     assert json.loads((tmp_path / "model.json").read_text())["parameters"]["k_m"] == d["parameters"]["k_m"]
 
 
-def test_reconstruct_text_and_order(run_file, capsys):
-    path, _ = run_file
+@pytest.fixture(scope="module")
+def short_file(tmp_path_factory):
+    """4 s at 1 kHz: enough for the text output's lines (the 10 s run is for the JSON's accuracy)."""
+    path = tmp_path_factory.mktemp("recon_short") / "short.npz"
+    run, _ = sdof_run("base", snr_db=80.0, seed=7, duration=4.0, fs=1000.0)
+    save_npz(run, path)
+    return path
+
+
+def test_reconstruct_text_and_order(short_file, capsys):
+    path = short_file
     assert main(["reconstruct", str(path), "--library-order", "3", "--no-polish"]) == 0
     out = capsys.readouterr().out
     assert "z' =" in out and "validation NRMSE" in out and "window" in out
@@ -60,8 +70,8 @@ def test_reconstruct_weak_form_at_40db(tmp_path, capsys):
     assert main(["reconstruct", str(path), "--json", "--form", "weak"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["settings"]["form"] == "weak"
-    assert set(d["parameters"]["fn_m"]) == set(truth.fn_m)
-    assert abs(d["parameters"]["alpha_m"] / truth.alpha_m - 1) < 0.05
+    # the record is test_recon_weak_path.py's seed 1: its accuracy checks, made here on the JSON
+    check_weak_form_at_40db(d["parameters"], d["nonlinear_step"]["hysteresis"]["path_form"]["rows"], truth)
     with pytest.raises(SystemExit) as exc:           # argparse names the allowed forms
         main(["reconstruct", str(path), "--form", "nonsense"])
     assert exc.value.code == 2 and "invalid choice" in capsys.readouterr().err

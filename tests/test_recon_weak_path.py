@@ -9,6 +9,7 @@ import recon.weak.path as P
 from recon.model import HystereticModel
 from recon import ReconSettings, reconstruct
 from recon.testing.truth import sdof_run
+from helpers import check_weak_form_at_40db
 
 CORE = ("c_m", "k_m", "alpha_m", "gamma", "delta")
 
@@ -63,20 +64,13 @@ def test_stepwise_selection_finds_the_pattern_from_nothing_at_60db():
     assert abs(fit.alpha / truth.alpha_m - 1) < 0.02 and abs(fit.gamma / truth.gamma - 1) < 0.02
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+# seed 1 is the same reconstruction through the CLI: test_recon_cli.py::test_reconstruct_weak_form_at_40db
+# makes the same checks on its JSON (one weak-form fit of the record, not two)
+@pytest.mark.parametrize("seed", [0, 2])
 def test_weak_form_at_40db(seed):
-    # the aim: at 40 dB SNR the weak form (path rows, then output-error polish and
-    # term selection) gives the exact pattern, the Bouc-Wen parameters within 5 % and the fn
-    # coefficients within 10 % (8 seeds in bench/recon_accuracy.py: core <= 2.3 %, fn <= 7.9 %)
     run, truth = sdof_run("base", snr_db=40.0, seed=seed)
     res = reconstruct(run, ReconSettings(form="weak"))
-    m = res.model
-    assert set(m.fn_m) == set(truth.fn_m)
-    for k in CORE:
-        assert abs(getattr(m, k) / getattr(truth, k) - 1) < 0.05, (k, getattr(m, k))
-    for k, v in truth.fn_m.items():
-        assert abs(m.fn_m[k] / v - 1) < 0.10, (k, m.fn_m[k])
-    assert res.model.provenance["weak_form"]["path_form"]["rows"] > 500
+    check_weak_form_at_40db(res.to_dict()["parameters"], res.model.provenance["weak_form"]["path_form"]["rows"], truth)
 
 
 def test_a_stage_from_rest_starts_from_rest_at_40db():
