@@ -242,8 +242,8 @@ def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data, interva
         why.append(f"negative delay {m.get('delay'):.4g} s")
     if cid == "contact_stiffness":
         side = 1.0 if m.get("side") >= 0 else -1.0
-        reach = float(max(np.max(side * d.y) for d in data))
-        beyond = int(sum(np.sum(side * d.y > m.get("gap")) for d in data))
+        reach = float(max(np.max(side * d.displacement) for d in data))
+        beyond = int(sum(np.sum(side * d.displacement > m.get("gap")) for d in data))
         if not 0.0 < m.get("gap") < reach or beyond < 10:
             why.append(f"gap {m.get('gap'):.4g} m outside the recorded displacement range (0, {reach:.4g}) on side "
                        f"{side:+.0f} ({beyond} samples beyond it)")
@@ -275,7 +275,7 @@ def implausible(cid: str, fr: rank.FitResult, ref: AugmentedModel, data, interva
         why.append(f"negative amplitude-dependent damping {b.fn_m['y^2*dy']:.4g} (feeds energy in)")
     if cid == "hysteresis":
         lam = b.gamma + b.delta
-        recorded = max((float(np.ptp(d.y)) for d in data), default=0.0)     # the recorded displacement range
+        recorded = max((float(np.ptp(d.displacement)) for d in data), default=0.0)     # the recorded displacement range
         span = recorded if lam < 0 else 0.0
         opening = (abs(b.gamma) + abs(b.delta)) * 0.5 * recorded
         if not b.alpha_m > 0:
