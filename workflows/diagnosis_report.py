@@ -32,7 +32,7 @@ def write_report(diag, run, outdir: Path) -> list[Path]:
         ax.plot(d.t, 1e3 * ya, lw=0.7, ls=":", label="augmented")
         ax.set_title(f"{d.name}: NRMSE {diag.null.nrmse[d.name]:.3g} -> {diag.best_fit.nrmse[d.name]:.3g}")
         ax.set_xlabel("t [s]")
-        ax.set_ylabel("y [mm]")
+        ax.set_ylabel("y' [mm/s]" if d.order else "y [mm]")     # the recorded quantity (rank.StageData)
         ax.legend(loc="upper right", fontsize=7)
         ax = axes[i, 1]
         fs = 1.0 / d.dt
@@ -42,7 +42,7 @@ def write_report(diag, run, outdir: Path) -> list[Path]:
                 f, p = welch(r, fs=fs, nperseg=n)
                 ax.semilogy(f, p, lw=0.7, label=lab)
         ax.set_xlabel("f [Hz]")
-        ax.set_ylabel("PSD [m^2/Hz]")
+        ax.set_ylabel("PSD [(m/s)^2/Hz]" if d.order else "PSD [m^2/Hz]")
         ax.legend(loc="upper right", fontsize=7)
     fig.tight_layout()
     p = outdir / "overlays_and_spectra.png"

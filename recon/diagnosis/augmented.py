@@ -19,6 +19,11 @@ What the sensors report (the output the model is compared with):
     base:  y_rec(t) = (1 + tip_scale) x_tip(t - delay) - x_base(t),  x_tip = x_base + y + phi2 q
     force: y_rec(t) = (1 + tip_scale) (y + phi2 q)(t - delay)
 
+in the quantity the response was recorded in: a velocity record (``order`` 1) reads the same
+with every motion differentiated once (x_tip' = x_base' + y' + phi2 q', x_base' the base's
+velocity as recon.signals.response_target takes it away), so the channel's delay, the sensor's
+scale and the higher mode's reading act on the velocity the vibrometer measured.
+
 ``t`` in the drift term is the stage's recorded time (session time when the
 recording keeps it). Every extra is off when its parameter is 0, so an
 ``AugmentedModel`` with no extras simulates exactly like its baseline.
@@ -102,14 +107,17 @@ class AugmentedModel:
 
     # --------------------------------------------------------------- simulation
     def simulate(self, t: np.ndarray, u: np.ndarray, x_in: np.ndarray | None = None, initial=None,
-                 dt: float | None = None):
+                 dt: float | None = None, order: int = 0):
         """Recorded-output prediction for input ``u`` on time base ``t`` (from rest, or from
         ``initial`` = (y0, y'0, z0); the higher mode always starts at rest).
 
-        ``x_in`` is the base displacement (base excitation; needed for the tip-scale
+        ``order``: the recorded quantity, 0 displacement, 1 velocity (the module docstring).
+        ``x_in`` is the base motion in that quantity (base excitation; needed for the tip-scale
         and delay output terms); ``dt`` the sampling interval of ``t`` if the caller has it
-        (the median interval). Returns (y_rec, states) with states = (y, y', z, q).
+        (the median interval). Returns (y_rec, states) with states = (y, y', z, q, q').
         """
+        if order not in (0, 1):
+            raise ValueError(f"augmented model: output order {order} (0 displacement, 1 velocity)")
         m = self.baseline
         t = np.asarray(t, float)
         if dt is None:
@@ -132,7 +140,7 @@ class AugmentedModel:
                       1.0 if m.excitation == BASE else 1.0 - self.get("drive2")], float)
         y0, dy0, z0 = (0.0, 0.0, 0.0) if initial is None else (float(v) for v in initial)
         st = simulate_extended(np.ascontiguousarray(u, float), float(t[0]), dt, int(n_sub), P, coef, p, r, y0, dy0, z0)
-        y = st[0] + self.get("phi2") * st[3]
+        y = st[order] + self.get("phi2") * st[3 + order]
         scale = 1.0 + self.get("tip_scale")
         delay = self.get("delay")
         if m.excitation == BASE and x_in is not None:

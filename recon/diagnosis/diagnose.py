@@ -567,7 +567,7 @@ def friction_from_loop(tested: list, fits: dict, references: dict, data, ctx: di
         return
     loop = fits["hysteresis"][0].model
     b = loop.baseline
-    travel = max((float(np.ptp(d.y)) for d in data), default=0.0)
+    travel = max((float(np.ptp(d.displacement)) for d in data), default=0.0)
     if friction_reading(b.alpha_m, b.gamma, b.delta, travel) is None:
         return
     src_model = without_terms(loop, ())
@@ -1045,7 +1045,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
         if t["id"] == "hysteresis":
             # a named loop that slides within the record's travel is a friction law (wording.py)
             b = fr.model.baseline
-            travel = max((float(np.ptp(d.y)) for d in data), default=0.0)
+            travel = max((float(np.ptp(d.displacement)) for d in data), default=0.0)
             missing[-1]["as_friction"] = friction_reading(b.alpha_m, b.gamma, b.delta, travel)
     if combined is not None:
         best_fr = combined

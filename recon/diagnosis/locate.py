@@ -178,7 +178,7 @@ def scan_modes(data, residuals, gain, f_lo, f_hi, n=40, zeta=0.02, motions=None,
     (f, explained share, phi), best first.
 
     ``input_scan`` is for a mode driven by the input. ``point_scan`` (None without ``motions``,
-    the model's displacement y per stage) is for a mode driven by the measured point's absolute
+    the model's output per stage: y, or y' for a velocity record, whose regressors are then q') is for a mode driven by the measured point's absolute
     acceleration (augmented.py, drive2 = 1): under base excitation by g u - y'', under force
     excitation by -y''. Both come from one pass: the input-driven response is computed once per
     frequency and stage."""
@@ -190,6 +190,8 @@ def scan_modes(data, residuals, gain, f_lo, f_hi, n=40, zeta=0.02, motions=None,
             if not d.fit.any() or not np.all(np.isfinite(r)):
                 continue
             q_in = mode_response(d.u, d.dt, w, zeta, gain)
+            if d.order:          # a velocity record reads the mode's q' (augmented.py)
+                q_in = np.gradient(q_in, d.dt)
             rr = r[d.fit]
             regressors = [(0, q_in)]
             if motions is not None and np.all(np.isfinite(motions[i])):
@@ -214,7 +216,7 @@ def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
     findings = []
     bv_all = {}
     derivs = derivs or stage_derivatives(run, data)
-    y_fit = np.concatenate([d.y[d.fit] for d in data if d.fit.any()])
+    y_fit = np.concatenate([d.displacement[d.fit] for d in data if d.fit.any()])
     m = am.baseline
     f_res = math.sqrt(max(m.K_m, 1.0)) / (2 * math.pi)
     mode_freqs = []
@@ -262,7 +264,7 @@ def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
                 mode_freqs.append(f)
         # ---- per channel (base excitation): feedthrough of a channel and a time skew
         if st.excitation == BASE:
-            xb = st.channels["x_base"]
+            xb = d.x_in          # the base channel in the recorded quantity
             dyr = np.gradient(d.y, d.dt)
             A = np.column_stack([xb, dyr * d.dt])
             coef, *_ = np.linalg.lstsq(A, r, rcond=None)
@@ -315,7 +317,7 @@ def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
         if bad:
             findings.append({"kind": "correlation_tests", "stage": d.name, "region": {"tests_failed": bad},
                              "size": float(max(bv[k]["max_abs"] for k in bad))})
-    y_all = np.concatenate([d.y for d in data])
+    y_all = np.concatenate([d.displacement for d in data])
     ctx = {
         "y_max_pos": float(max(np.max(y_fit), 1e-12)), "y_max_neg": float(max(-np.min(y_fit), 1e-12)),
         "y_rms": float(np.sqrt(np.mean(y_all ** 2))),

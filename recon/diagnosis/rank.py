@@ -75,8 +75,10 @@ from recon.output_error.problem import (DIVERGED_RESIDUAL, FD_STEP, get_paramete
                                         parameter_scales, set_parameter)
 from recon.output_error.stopping import stop_for_stages
 from recon.regression.criteria import effective_samples
+from recon.signals import base_motion, response_target
 from recon.diagnosis.settings import DEFAULT_RULE, DEFAULTS, DiagnosisSettings, SignificanceRule
 from recon.threads import fd_map
+from shakerlab.quantities import DISPLACEMENT, VELOCITY, channel_name
 from shakerlab.run_data import BASE, Run, Stage
 
 # the significance rule, the held-out split, the burn-in and the stages' weighting are settings
@@ -134,11 +136,15 @@ def noise_floor(x: np.ndarray, dt: float) -> dict:
 
 @dataclass
 class StageData:
+    """One stage as the diagnosis compares models with it, in the quantity the response was
+    recorded in (``order``: 0 displacement, 1 velocity; recon.signals.response_target): ``y``,
+    ``x_in``, ``noise`` and ``rms`` are in that quantity, ``motion`` is the relative displacement
+    (for what a displacement decides: a contact's reach, the recorded range)."""
     name: str
     t: np.ndarray
     u: np.ndarray
-    x_in: np.ndarray | None
-    y: np.ndarray
+    x_in: np.ndarray | None  # the base motion in the recorded quantity (base excitation)
+    y: np.ndarray            # the recorded relative motion in the recorded quantity
     fit: np.ndarray          # boolean mask of fitting samples
     held: np.ndarray         # boolean mask of held-out samples
     noise: float             # white-noise std of the recorded y
@@ -149,11 +155,33 @@ class StageData:
     edge_model: HystereticModel | None = None    # the model whose force balance gave ``edge``'s z
     noise_parts: dict = field(default_factory=dict)   # per channel: spectral, differences, resolution
     fit_model_share: float = DEFAULTS.fit_model_share  # the model-error allowance of fit_scale (settings)
+    order: int = 0                     # the recorded quantity: 0 displacement, 1 velocity
+    motion: np.ndarray | None = None   # the relative displacement when y is not it
 
     @functools.cached_property
     def dt(self) -> float:
         """The median sampling interval (taken once: every simulation of the stage needs it)."""
         return float(np.median(np.diff(self.t)))
+
+    @property
+    def displacement(self) -> np.ndarray:
+        """The stage's relative displacement y (integrated from a velocity record)."""
+        return self.y if self.motion is None else self.motion
+
+    @functools.cached_property
+    def displacement_rms(self) -> float:
+        return self.rms if self.motion is None else float(np.sqrt(np.mean((self.motion - self.motion.mean()) ** 2))) or 1.0
+
+
+def velocity_offset(ys: np.ndarray, y: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """``ys`` with the constant that best matches it to the recorded velocity ``y`` over ``mask``
+    (None: every sample) added: a velocity sensor's constant offset (and the mean of its
+    low-frequency noise over the samples) is a nuisance parameter of every comparison in velocity,
+    as in reconstruct's fits (recon.output_error.problem.measured_error)."""
+    sel = slice(None) if mask is None or not mask.any() else mask
+    with np.errstate(all="ignore"):
+        offset = float(np.mean(y[sel] - ys[sel]))
+    return ys + offset if math.isfinite(offset) else ys
 
 
 def session_start(st: Stage) -> float:
@@ -169,8 +197,11 @@ def session_start(st: Stage) -> float:
 
 
 def stage_output(am: AugmentedModel, d: StageData, initial=None) -> np.ndarray:
-    """``am``'s recorded-output prediction of stage ``d`` from ``initial`` (None: from rest)."""
-    return am.simulate(d.t, d.u, d.x_in, initial, dt=d.dt)[0]
+    """``am``'s recorded-output prediction of stage ``d`` from ``initial`` (None: from rest), in the
+    recorded quantity; in velocity with its constant offset fitted over the stage's fitting samples
+    (all of them on a held-out stage)."""
+    ys = am.simulate(d.t, d.u, d.x_in, initial, dt=d.dt, order=d.order)[0]
+    return ys if d.order == 0 else velocity_offset(ys, d.y, d.fit)
 
 
 def prepare(run: Run, model: HystereticModel, settings: DiagnosisSettings = DEFAULTS) -> list[StageData]:
@@ -185,7 +216,10 @@ def prepare(run: Run, model: HystereticModel, settings: DiagnosisSettings = DEFA
         # effect fitted on the changed input (a channel delay) can stop short of the truth while
         # another candidate is named in its place (docs/diagnosis.md)
         u = model.stage_input(st, band=False)
-        y = st.y
+        measured = response_target(st)
+        # judged in the quantity the response was recorded in: a velocity record in velocity, never
+        # on its integrated displacement, whose drift (the integrated sensor noise) is no motion
+        order, y = (0, st.y) if measured is None else measured
         fit = np.ones(y.size, bool)
         held = np.zeros(y.size, bool)
         if n not in partly:
@@ -193,19 +227,24 @@ def prepare(run: Run, model: HystereticModel, settings: DiagnosisSettings = DEFA
                 fit[:] = False
                 held[:] = True
         else:
-            cut = hold_cut(y, settings)
+            cut = hold_cut(st.y, settings)      # as fitting_part cuts it
             fit[cut:] = False
             held[cut:] = True
+        x_in = None
         if st.excitation == BASE:
-            floors = {c: noise_floor(st.channels[c], st.dt) for c in ("x_tip", "x_base")}
-            noise = math.hypot(floors["x_tip"]["std"], floors["x_base"]["std"])
+            x_in = st.channels["x_base"] if order == 0 else base_motion(st, order)
+            tip = channel_name("x_tip", st.quantities.get("x_tip", DISPLACEMENT)) if order else "x_tip"
+            floors = {tip: noise_floor(st.measured[tip] if order else st.channels[tip], st.dt),
+                      ("x_base" if order == 0 else channel_name("x_base", VELOCITY)): noise_floor(x_in, st.dt)}
+            noise = math.hypot(*(f["std"] for f in floors.values()))
         else:
-            floors = {"x": noise_floor(st.channels["x"], st.dt)}
-            noise = floors["x"]["std"]
+            name = "x" if order == 0 else channel_name("x", st.quantities["x"])
+            floors = {name: noise_floor(y, st.dt)}
+            noise = floors[name]["std"]
         t_session = st.t + session_start(st)
-        d = StageData(n, t_session, u, st.channels.get("x_base") if st.excitation == BASE else None, y,
+        d = StageData(n, t_session, u, x_in, y,
                       fit, held, noise, float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0, noise_parts=floors,
-                      fit_model_share=settings.fit_model_share)
+                      fit_model_share=settings.fit_model_share, order=order, motion=None if order == 0 else st.y)
         # the edge estimate, not a start fitted with the baseline: a fitted start absorbs what an
         # output effect (a channel delay, a tip-scale error) does to the first seconds, and the
         # candidate that models it is then scored from a start made for the model without it
@@ -401,8 +440,11 @@ def _held_start(am: AugmentedModel, d: StageData) -> tuple:
     first = slice(0, max(int(START_FIT_SHARE * d.y.size), 10))
 
     def first_error(state):
-        ys = am.simulate(d.t[first], d.u[first], None if d.x_in is None else d.x_in[first], tuple(state))[0]
+        ys = am.simulate(d.t[first], d.u[first], None if d.x_in is None else d.x_in[first], tuple(state),
+                         order=d.order)[0]
         r = ys - d.y[first]
+        if d.order:
+            r = r - r.mean()       # the velocity offset (stage_output)
         return r if np.all(np.isfinite(r)) else np.full(r.size, DIVERGED_RESIDUAL * d.rms)
 
     def sq(r):
@@ -427,7 +469,7 @@ def _held_start(am: AugmentedModel, d: StageData) -> tuple:
             best = sq(first_error(s0)) if best is None else best
             scan = min((sq(first_error(st)), i, st) for i, st in enumerate(
                 np.array([s0[0], s0[1], zc]) for zc in
-                z_reach(b, d.y[first]) * np.array([-1.0, -0.5, -0.25, 0.25, 0.5, 1.0])))
+                z_reach(b, d.displacement[first]) * np.array([-1.0, -0.5, -0.25, 0.25, 0.5, 1.0])))
         if scan[0] < best:
             other = _start_fit(am, d, scan[2], initial, first_error, free)
             if _stage_error(am, d, other) < _stage_error(am, d, out):
@@ -454,7 +496,8 @@ def _start_fit(am: AugmentedModel, d: StageData, s0: np.ndarray, initial: tuple,
     b = am.baseline
     base_state = tuple(float(v) for v in s0)
     w = math.sqrt(max(b.K_m, 1e-12))
-    scale = np.maximum(np.abs(s0[:free]), 0.01 * d.rms * np.array([1.0, w, max(abs(b.alpha_m), 1e-12)])[:free])
+    scale = np.maximum(np.abs(s0[:free]),
+                       0.01 * d.displacement_rms * np.array([1.0, w, max(abs(b.alpha_m), 1e-12)])[:free])
 
     def state(p):
         out = s0.copy()

@@ -88,9 +88,9 @@ def cubic_weights(n_sub):
 
 @njit(cache=True, nogil=True)
 def simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
-    """States (y, y', z, q) as a (4, n) array; NaN from the first non-finite step on."""
+    """States (y, y', z, q, q') as a (5, n) array; NaN from the first non-finite step on."""
     n = u.size
-    out = np.zeros((4, n))
+    out = np.zeros((5, n))
     y = y0
     v = v0
     z = z0
@@ -141,6 +141,7 @@ def simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
         out[1, i + 1] = v
         out[2, i + 1] = z
         out[3, i + 1] = q
+        out[4, i + 1] = w
     return out
 
 
@@ -285,14 +286,15 @@ def _source(c, y, v, z, q, w, t, u, acc, P, p, r):
 def simulate_sensitivities(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0, cols, S0):
     """:func:`simulate_extended` and the sensitivities of y and q to theta[cols], theta = (P, coef),
     from the initial sensitivities S0 (5 x len(cols): of y, y', z, q, q' at the first sample).
-    Returns (states (4, n), dy/dtheta (n, m), dq/dtheta (n, m)); NaN from the first non-finite step.
+    Returns (states (5, n) as simulate_extended's, dy/dtheta (n, m), dq/dtheta (n, m)); NaN from the first
+    non-finite step.
 
     The states' RK4 step does not depend on the sensitivities: each step computes the four stages'
     states and Jacobians once, then advances every column's sensitivity through the same four
     stages with the column's own source terms."""
     n = u.size
     m = cols.size
-    out = np.zeros((4, n))
+    out = np.zeros((5, n))
     Sy_out = np.zeros((n, m))
     Sq_out = np.zeros((n, m))
     y = y0
@@ -413,6 +415,7 @@ def simulate_sensitivities(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0, cols, S0
         out[1, i + 1] = v
         out[2, i + 1] = z
         out[3, i + 1] = q
+        out[4, i + 1] = w
         for c in range(m):
             Sy_out[i + 1, c] = S[c, 0]
             Sq_out[i + 1, c] = S[c, 3]

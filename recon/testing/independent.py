@@ -749,11 +749,14 @@ def simulate_tone(system: dict, f: float, amplitude: float, hold_s: float, fs: f
 
 def simulate(system: dict, protocol: str = "paper", fs: float = 2000.0, effect: str = "none",
              strength: float = 1.0, excitation: str = "base", seed: int = 0, mode_drive: float = 0.0,
-             mode_ratio: tuple | None = None) -> dict:
+             mode_ratio: tuple | None = None, also: tuple = ()) -> dict:
     """A noise-free recording (plain dict). ``seed`` draws the protocol's random choices and
     the effect's sign, side and gap. ``mode_drive`` (effect higher_mode): the share d2 of the
     tip's absolute acceleration in the second mode's drive (see the module docstring);
-    ``mode_ratio``: the range of the second mode's frequency over f_n (default 2.5-3.5)."""
+    ``mode_ratio``: the range of the second mode's frequency over f_n (default 2.5-3.5).
+    ``also``: further (effect, strength) pairs concealed together with ``effect`` (two effects at
+    once), each a physical effect other than the contact (whose gap is calibrated on its own);
+    their signs are drawn apart from ``effect``'s, so ``effect`` keeps the values it has alone."""
     if protocol not in PROTOCOLS + MORE_PROTOCOLS:
         raise ValueError(f"unknown protocol {protocol!r} (known: {', '.join(PROTOCOLS + MORE_PROTOCOLS)})")
     if effect not in EFFECTS:
@@ -768,6 +771,11 @@ def simulate(system: dict, protocol: str = "paper", fs: float = 2000.0, effect: 
     eff = {} if effect in STRUCTURAL_EFFECTS else effect_parameters(effect, strength, s, rng)
     if effect == "higher_mode" and mode_drive:
         eff["drive2"] = float(mode_drive)
+    for other, other_strength in also:
+        if other not in PHYSICAL_EFFECTS or other in (effect, "contact_stiffness"):
+            raise ValueError(f"a second concealed effect must be another physical effect than the contact, "
+                             f"got {other!r}")
+        eff.update(effect_parameters(other, float(other_strength), s, np.random.default_rng([seed, 31])))
     f_max = max(2.0 * s["f_n"], eff.get("w2", 0.0) / (2 * math.pi))   # highest drive / mode frequency
     sim = _Sim(s, {k: v for k, v in eff.items() if k not in ("kc",)}, excitation, fs, f_max)
     if effect == "contact_stiffness":
@@ -781,7 +789,8 @@ def simulate(system: dict, protocol: str = "paper", fs: float = 2000.0, effect: 
     rec = {"generator": "recon.testing.independent", "excitation": excitation, "fs": float(fs),
            "protocol": protocol, "stages": sim.stages, "system": {k: v for k, v in s.items() if not k.startswith("_")},
            "truth": truth_per_unit_mass(s, excitation), "effect": effect, "strength": float(strength),
-           "effect_parameters": eff, "snr_db": None, "seed": int(seed)}
+           "effect_parameters": eff, "snr_db": None, "seed": int(seed),
+           **({"also": [[str(e), float(x)] for e, x in also]} if also else {})}
     if baseline is not None:
         rec["baseline"] = truth_per_unit_mass(baseline, excitation)
     return rec

@@ -18,8 +18,8 @@ def check(m, data) -> list[str]:
     """The gap inside the recorded range on its side with at least 10 samples beyond it; kc > 0."""
     why = []
     side = 1.0 if m.get("side") >= 0 else -1.0
-    reach = float(max(np.max(side * d.y) for d in data))
-    beyond = int(sum(np.sum(side * d.y > m.get("gap")) for d in data))
+    reach = float(max(np.max(side * d.displacement) for d in data))
+    beyond = int(sum(np.sum(side * d.displacement > m.get("gap")) for d in data))
     if not 0.0 < m.get("gap") < reach or beyond < 10:
         why.append(f"gap {m.get('gap'):.4g} m outside the recorded displacement range (0, {reach:.4g}) on side "
                    f"{side:+.0f} ({beyond} samples beyond it)")

@@ -61,7 +61,7 @@ def check(m, data) -> list[str]:
     most HARDENING_LIMIT times across it."""
     b = m.baseline
     lam = b.gamma + b.delta
-    recorded = max((float(np.ptp(d.y)) for d in data), default=0.0)     # the recorded displacement range
+    recorded = max((float(np.ptp(d.displacement)) for d in data), default=0.0)     # the recorded displacement range
     span = recorded if lam < 0 else 0.0
     opening = (abs(b.gamma) + abs(b.delta)) * 0.5 * recorded
     if not b.alpha_m > 0:
