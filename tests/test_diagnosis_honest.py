@@ -823,7 +823,9 @@ def test_friction_found_with_every_parameter_where_c_and_k_alone_predict_a_littl
     dg = diagnose(run, baseline=base, candidates=["coulomb_friction"])
     c = dg.candidates[0]
     assert dg.fit_before["refit_held_out_nrmse"] > 2 * dg.fit_before["held_out_nrmse"]
-    assert c["significant"] and c["started_from"] == "as_given_then_refit", c
+    # found with every baseline parameter free: from the null model, or refitted from the fit with c
+    # and k free (which of the two ends lower on the held-out samples is a matter of the fits' ends)
+    assert c["significant"] and c["started_from"] in ("as_given_then_refit", "refit"), c
     truth, _ = true_model(rec)
     assert dg.best.get("mu") == pytest.approx(truth.get("mu"), rel=0.02)
     assert c["held_out_nrmse"] < 1.05 * rank.fit(truth, [], rank.prepare(run, base)).nrmse_held
