@@ -65,7 +65,7 @@ def _fit_of(law: HystereticModel) -> rank.FitResult:
 
 def test_a_loop_that_stiffens_beyond_the_limit_across_the_record_is_refused():
     ref = AugmentedModel(HystereticModel("force", 5.0, 2.5e4, 0.0, 0.0, 0.0, inv_m=0.5))
-    data = [SimpleNamespace(y=np.array([-0.002, 0.002]))]      # a 4 mm range
+    data = [SimpleNamespace(displacement=np.array([-0.002, 0.002]))]      # a 4 mm range
     lam_ok = -0.9 * math.log(HARDENING_LIMIT) / 0.004
     lam_bad = -1.1 * math.log(HARDENING_LIMIT) / 0.004
     ok = HystereticModel("force", 5.0, 2.5e4, 2.5e4, 800.0, lam_ok - 800.0, inv_m=0.5)
@@ -81,7 +81,7 @@ def test_a_law_whose_loop_does_not_open_over_the_record_is_refused():
     # stress #958: alpha at 99 % of K, gamma -0.21 and delta 0.29 per m over a 0.66 mm range: a
     # linear spring whose per-stage start z0 is a constant force
     ref = AugmentedModel(HystereticModel("base", 10.5, 1.15e5, 0.0, 0.0, 0.0))
-    data = [SimpleNamespace(y=np.array([-0.00033, 0.00033]))]
+    data = [SimpleNamespace(displacement=np.array([-0.00033, 0.00033]))]
     flat = HystereticModel("base", 10.5, 880.0, 1.142e5, -0.21, 0.29)
     why = implausible("hysteresis", _fit_of(flat), ref, data, intervals=False)
     assert why and "does not open" in why[0], why
