@@ -74,6 +74,7 @@ def test_output_effects_act_on_the_velocity():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1500)      # two full diagnoses against reconstructed baselines
 def test_velocity_record_named_as_displacement():
     """The same draw recorded as displacement and as velocity: the concealed effect is named in
     both. On the code that compared the integrated velocity in displacement the velocity record's
