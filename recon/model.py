@@ -304,11 +304,16 @@ class HystereticModel:
         # the edge estimate's z0 comes from the noisy edge y'': the start is fitted to the
         # stage's first seconds instead, with rest as the other candidate (recon.simulation.start_state)
         t = stage.t - stage.t[0]
+        return self._fitted_start(stage, edge, v_rms, lambda init, n: self.simulate(t[:n], u[:n], initial=init)[0],
+                                  stage.y)
+
+    def _fitted_start(self, stage: Stage, edge: tuple, v_rms: float, simulate, target: np.ndarray) -> tuple:
+        """The start (y, y', z) fitted to the stage's first seconds of ``target`` (what ``simulate``
+        gives), from the edge estimate, each on the scale of its motion (recon.simulation.start_state)."""
         y_rms = float(np.std(stage.y)) or 1.0
         scales = (max(abs(edge[0]), 0.05 * y_rms), max(abs(edge[1]), 0.05 * v_rms),
                   max(abs(edge[2]), 0.05 * abs(self.alpha_m) * y_rms, 1e-12))
-        start, _ = fit_start(lambda init, n: self.simulate(t[:n], u[:n], initial=init)[0], stage.y, stage.dt,
-                             edge, scales, n_free=2 if self.alpha_m == 0.0 else 3)
+        start, _ = fit_start(simulate, target, stage.dt, edge, scales, n_free=2 if self.alpha_m == 0.0 else 3)
         return start
 
     def measured_start(self, stage: Stage, u: np.ndarray, fit: bool = True):
@@ -338,11 +343,8 @@ class HystereticModel:
         if not fit:
             return edge
         t = stage.t - stage.t[0]
-        y_rms = float(np.std(stage.y)) or 1.0
-        scales = (max(abs(edge[0]), 0.05 * y_rms), max(abs(edge[1]), 0.05 * v_rms),
-                  max(abs(edge[2]), 0.05 * abs(self.alpha_m) * y_rms, 1e-12))
-        start, _ = fit_start(lambda init, n: self.simulate_quantity(t[:n], u[:n], init, order), x, stage.dt,
-                             edge, scales, n_free=2 if self.alpha_m == 0.0 else 3)
+        start = self._fitted_start(stage, edge, v_rms, lambda init, n: self.simulate_quantity(t[:n], u[:n], init, order),
+                                   x)
         return start
 
     def simulate_quantity(self, t, u, initial=None, order: int = 0) -> np.ndarray:
