@@ -157,11 +157,28 @@ class StageData:
     fit_model_share: float = DEFAULTS.fit_model_share  # the model-error allowance of fit_scale (settings)
     order: int = 0                     # the recorded quantity: 0 displacement, 1 velocity
     motion: np.ndarray | None = None   # the relative displacement when y is not it
+    fit_step: int = 1                  # a fit's iterations take every fit_step-th sample (settings.fit_rate)
 
     @functools.cached_property
     def dt(self) -> float:
         """The median sampling interval (taken once: every simulation of the stage needs it)."""
         return float(np.median(np.diff(self.t)))
+
+    def thinned(self) -> "StageData":
+        """The stage as a fit's iterations see it: every ``fit_step``-th sample (the whole stage when
+        1). The input is a Savitzky-Golay-smoothed derivative or a force in the response's band, so
+        taking every q-th sample at no less than settings.fit_rate does not alias the response band
+        (as reconstruct's polish decimates, recon.output_error.polish.decimate); the parameters a
+        fit finds on it differ from the full record's by far less than their standard errors, and
+        every figure the rule reads is taken again on every sample (:func:`fit`)."""
+        q = self.fit_step
+        if q <= 1:
+            return self
+        cut = slice(None, None, q)
+        return dataclasses.replace(
+            self, t=self.t[cut], u=self.u[cut], x_in=None if self.x_in is None else self.x_in[cut],
+            y=self.y[cut], fit=self.fit[cut], held=self.held[cut],
+            motion=None if self.motion is None else self.motion[cut], fit_step=1)
 
     @property
     def displacement(self) -> np.ndarray:
@@ -242,9 +259,12 @@ def prepare(run: Run, model: HystereticModel, settings: DiagnosisSettings = DEFA
             floors = {name: noise_floor(y, st.dt)}
             noise = floors[name]["std"]
         t_session = st.t + session_start(st)
+        # (a sampling interval read from the times is 8 kHz to within rounding: 7999.99999 is 8 kHz)
+        step = max(1, int(math.floor(1.0 / (st.dt * settings.fit_rate) + 1e-6))) if settings.fit_rate > 0 else 1
         d = StageData(n, t_session, u, x_in, y,
                       fit, held, noise, float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0, noise_parts=floors,
-                      fit_model_share=settings.fit_model_share, order=order, motion=None if order == 0 else st.y)
+                      fit_model_share=settings.fit_model_share, order=order, motion=None if order == 0 else st.y,
+                      fit_step=step)
         # the edge estimate, not a start fitted with the baseline: a fitted start absorbs what an
         # output effect (a channel delay, a tip-scale error) does to the first seconds, and the
         # candidate that models it is then scored from a start made for the model without it
@@ -437,12 +457,14 @@ def _held_start(am: AugmentedModel, d: StageData) -> tuple:
         return initial, None
     free = 3 if am.baseline.alpha_m != 0.0 else 2
     b = am.baseline
-    first = slice(0, max(int(START_FIT_SHARE * d.y.size), 10))
+    # the start is fitted on the stage's thinned samples (StageData.thinned), judged on all of them
+    th = d.thinned()
+    first = slice(0, max(int(START_FIT_SHARE * th.y.size), 10))
 
     def first_error(state):
-        ys = am.simulate(d.t[first], d.u[first], None if d.x_in is None else d.x_in[first], tuple(state),
-                         order=d.order)[0]
-        r = ys - d.y[first]
+        ys = am.simulate(th.t[first], th.u[first], None if th.x_in is None else th.x_in[first], tuple(state),
+                         order=th.order)[0]
+        r = ys - th.y[first]
         if d.order:
             r = r - r.mean()       # the velocity offset (stage_output)
         return r if np.all(np.isfinite(r)) else np.full(r.size, DIVERGED_RESIDUAL * d.rms)
@@ -469,7 +491,7 @@ def _held_start(am: AugmentedModel, d: StageData) -> tuple:
             best = sq(first_error(s0)) if best is None else best
             scan = min((sq(first_error(st)), i, st) for i, st in enumerate(
                 np.array([s0[0], s0[1], zc]) for zc in
-                z_reach(b, d.displacement[first]) * np.array([-1.0, -0.5, -0.25, 0.25, 0.5, 1.0])))
+                z_reach(b, th.displacement[first]) * np.array([-1.0, -0.5, -0.25, 0.25, 0.5, 1.0])))
         if scan[0] < best:
             other = _start_fit(am, d, scan[2], initial, first_error, free)
             if _stage_error(am, d, other) < _stage_error(am, d, out):
@@ -606,8 +628,8 @@ def fit_residual(am: AugmentedModel, data: list[StageData]) -> np.ndarray:
 
 def fit_cost(am: AugmentedModel, data: list[StageData]) -> float:
     """:attr:`FitResult.cost_fit` of ``am`` as it is, from the fitting stages alone (each stage
-    started as :func:`fit` starts it: :func:`own_starts`)."""
-    r = fit_residual(am, own_starts(am, data))
+    started as :func:`fit` starts it: :func:`own_starts`, on the samples it fits, StageData.thinned)."""
+    r = fit_residual(am, own_starts(am, [d.thinned() for d in data]))
     return float(r @ r) / max(len([d for d in data if d.fit.any()]), 1)
 
 
@@ -629,9 +651,14 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
         max_nfev: int = 40, bounds: dict | None = None) -> FitResult:
     """Output-error least squares of ``keys`` (start: ``am``'s values)."""
     t0 = time.perf_counter()
+    full = data
     scales = scales or {}
     bounds = bounds or {}
-    data = own_starts(am, data)
+    # the iterations, and the choice of each stage's start, on its thinned samples
+    # (StageData.thinned); every figure after them on all of them, from the start chosen
+    data = own_starts(am, [d.thinned() for d in data])
+    full = [dataclasses.replace(f, initial=d.initial, start_model=d.start_model) if d.initial is not f.initial
+            or d.start_model is not f.start_model else f for f, d in zip(full, data)]
     x0 = np.array([get_parameter(am, k) for k in keys], float)
     sc = parameter_scales(keys, x0, am.baseline.gamma + am.baseline.delta, scales)
     lo = np.array([(bounds.get(k, (-np.inf, np.inf))[0] - x0[i]) / sc[i] for i, k in enumerate(keys)])
@@ -677,6 +704,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
         cost = float(r @ r)
         stderr = {}
     m = build(p)
+    data = full
     sims = simulate_all(m, data)
     held = [(ys - d.y)[d.held] for d, ys in zip(data, sims)]
     rh = np.concatenate(held) if held else np.zeros(0)

@@ -97,6 +97,9 @@ class DiagnosisSettings:
     fit_model_share: float = _f(1e-3, "each stage's fitting error is divided by hypot(noise floor, this "
                                 "share of its rms): an allowance for model error beside the noise",
                                 "fraction of rms", 0.0, 1.0)
+    fit_rate: float = _f(2000.0, "the fits' iterations simulate a stage sampled faster than twice this rate "
+                         "on every q-th sample (rate >= this); the start choice and every held-out figure "
+                         "use every sample (0: never thin)", "Hz", 0.0, 1e7)
 
     def __post_init__(self):
         if not isinstance(self.rule, SignificanceRule):
