@@ -112,6 +112,9 @@ def predicted_mse(window: int, order: int, deriv: int, dt: float, spectra: list[
     return noise + bias
 
 
+BIAS_BLOCK = 256     # spectral lines per block of choose_window's table (memory: 256 x 2001 complex)
+
+
 def choose_window(channels: dict[str, np.ndarray], dt: float, deriv: int = 3, window: int | None = None,
                   order: int | None = None, for_regression: bool = True,
                   coefficients=filter_coefficients) -> DiffChoice:
@@ -141,13 +144,8 @@ def choose_window(channels: dict[str, np.ndarray], dt: float, deriv: int = 3, wi
     lows = [s.freqs[0] for s in spectra.values() if s.freqs.size]
     if lows and min(lows) > 0:
         max_win = min(max_win, int(1.5 / (min(lows) * dt)))
-    # exp(i w k dt) for the longest window once per channel; shorter windows use its centre
-    kmax = max_win // 2
-    kk = np.arange(-kmax, kmax + 1) * dt
-    tables = [(sp, np.exp(1j * np.outer(2 * np.pi * sp.freqs, kk)), (1j * 2 * np.pi * sp.freqs) ** deriv)
-              for sp in spectra.values()]
     noise_var = sum(sp.noise_std ** 2 for sp in spectra.values())
-    best = None
+    trials = []                       # (order, window, coefficients) in the order they are judged
     for order in ORDERS:
         if order < deriv:
             continue
@@ -159,17 +157,30 @@ def choose_window(channels: dict[str, np.ndarray], dt: float, deriv: int = 3, wi
             win = int(win)
             if win <= order or win > max_win:
                 continue
-            c = coefficients(win, order, deriv, float(dt))
-            half = win // 2
-            noise = noise_var * float(c @ c)
-            bias = 0.0
-            for sp, E, target in tables:
-                if sp.freqs.size:
-                    h = E[:, kmax - half:kmax + half + 1] @ c
-                    bias += float(np.sum(sp.power * np.abs(h - target) ** 2))
-            crit = bias + (noise / n if for_regression else noise)
-            if best is None or crit < best[0]:
-                best = (crit, win, order, noise + bias)
+            trials.append((order, win, coefficients(win, order, deriv, float(dt))))
+    # each trial's bias: sum over a channel's significant lines of power |H(w) - (i w)^deriv|^2,
+    # H(w) = sum_k c_k exp(i w k dt). The table exp(i w k dt) is made for the longest window (shorter
+    # ones use its centre) a block of lines at a time, so its memory stays bounded however many
+    # lines a long fast record has (300,000 samples at 10 kHz: thousands of lines, 200 MB at once)
+    kmax = max_win // 2
+    kk = np.arange(-kmax, kmax + 1) * dt
+    bias = np.zeros(len(trials))
+    for sp in spectra.values():
+        for lo in range(0, sp.freqs.size, BIAS_BLOCK):
+            w = 2 * np.pi * sp.freqs[lo:lo + BIAS_BLOCK]
+            E = np.exp(1j * np.outer(w, kk))
+            target = (1j * w) ** deriv
+            power = sp.power[lo:lo + BIAS_BLOCK]
+            for j, (_, win, c) in enumerate(trials):
+                half = win // 2
+                h = E[:, kmax - half:kmax + half + 1] @ c
+                bias[j] += float(np.sum(power * np.abs(h - target) ** 2))
+    best = None
+    for (order, win, c), b in zip(trials, bias):
+        noise = noise_var * float(c @ c)
+        crit = b + (noise / n if for_regression else noise)
+        if best is None or crit < best[0]:
+            best = (crit, win, order, noise + b)
     if best is None:
         raise UserFacingError(f"too few samples ({n}) to differentiate {deriv} times")
     return DiffChoice(
