@@ -14,9 +14,10 @@ The diagnosis is a sequence of named steps, each a function of this module readi
 2. :func:`locate_step`: where the reference misses (:mod:`.locate`).
 3. :func:`.references.candidate_origins`: where candidate fits start, and the null models found
    on the way.
-4. :func:`score_candidate` for each catalog candidate (:mod:`.catalog`): fitted from each origin
+4. :func:`score_candidates`: each catalog candidate (:mod:`.catalog`) fitted from each origin
    (:mod:`.candidate_fit`), refitted without the baseline terms that absorbed it and scored on the
-   held-out samples against its reference and its nested null (:mod:`.refits`, :mod:`.rank`).
+   held-out samples against its reference and its nested null (:func:`score_candidate`,
+   :mod:`.refits`, :mod:`.rank`).
 5. :func:`rescore_against_best_null`, :func:`hold_to_every_stage`: every candidate must beat the best
    null model found anywhere, and be no worse on any held-out stage (:mod:`.stagewise`).
 6. :func:`pair_search`, :func:`forward_step`: two candidates together when none is significant

@@ -5,8 +5,9 @@ meaning, unit and allowed range (checked when the object is made):
 
 - :class:`SignificanceRule`: when a candidate's held-out improvement over its reference counts
   (recon.diagnosis.rank's module doc gives the figures it reads);
-- :class:`DiagnosisSettings`: the rule, and how a record is split into fitting and held-out
-  samples, how its stages are weighted, and how a stage recorded in motion starts.
+- :class:`DiagnosisSettings`: the rule, how a record is split into fitting and held-out
+  samples, how its stages are weighted, how a stage recorded in motion starts, and the search's
+  own numbers (where candidate fits start, which refits are tried, how long a screening fit runs).
 
 ``recon.diagnose(run, settings=DiagnosisSettings(...))`` uses them; the defaults are the
 calibrated ones (docs/diagnosis.md, "How the rule was set"). A test or a study that asks another
@@ -81,7 +82,8 @@ class SignificanceRule:
 
 @dataclass(frozen=True)
 class DiagnosisSettings:
-    """The significance rule, and how the diagnosis splits, weights and starts a record's stages."""
+    """The significance rule, how the diagnosis splits, weights and starts a record's stages, and
+    the numbers its search for candidate fits is tuned with."""
     rule: SignificanceRule = field(default_factory=SignificanceRule)
     hold_fraction: float = _f(0.3, "share at the end of a stage held out when the run has no validation "
                               "stage reaching it", "fraction", 0.0, 1.0, lo_open=True)
