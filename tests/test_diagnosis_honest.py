@@ -298,11 +298,13 @@ def test_a_candidate_is_refitted_without_the_baseline_terms_that_absorbed_it():
     # a baseline that absorbed friction into y'^3 and y'^5 (fitted to the friction recording, as a
     # reconstruction without friction in its library does): friction fitted next to them explains
     # little; refitted without them it recovers mu and predicts the held-out stage far better
-    from recon.diagnosis.diagnose import prune_absorbed
+    from recon.diagnosis.candidate_fit import CandidateFit
+    from recon.diagnosis.refits import prune_absorbed
 
     extras, _, data, absorbed, given, fr, sc, b = _friction_beside_absorbing_terms([], {})
     assert abs(fr.model.get("mu") / extras["mu"] - 1) > 0.5          # next to y'^3, y'^5: far off
-    best, free, drop, against = prune_absorbed(fr, ["x:mu"], sc, b, ["c_m", "k_m"], given, data, 30)
+    pruned, drop, against = prune_absorbed(CandidateFit(fr, ["x:mu"], sc, b, ["c_m", "k_m"]), given, data, 30)
+    best = pruned.fit
     # the absorbing terms go: dropped, or (kept and refitted beside the candidate) near 0
     assert drop and set(drop) <= {"dy^3", "dy^5"}
     for t in ("dy^3", "dy^5"):
@@ -313,19 +315,21 @@ def test_a_candidate_is_refitted_without_the_baseline_terms_that_absorbed_it():
     assert against.mse_held <= given.mse_held
     assert rank.score(against, best, 1, given.mse_held * 1e-6)["significant"]
     # a candidate that explains little of the fitting mismatch is left as it is
-    assert prune_absorbed(given, ["x:mu"], sc, b, ["c_m", "k_m"], given, data, 30)[2] == ()
+    assert prune_absorbed(CandidateFit(given, ["x:mu"], sc, b, ["c_m", "k_m"]), given, data, 30)[1] == ()
 
 
 def test_the_baseline_terms_kept_beside_the_absorbing_ones_are_refitted_with_the_candidate():
     # the baseline absorbed friction into y'^3, y'^5 and its own y^2 y' (moved from 3e6 to about
     # 4e6); once friction is in, y^2 y' is refitted with it and returns to its true value
-    from recon.diagnosis.diagnose import prune_absorbed
+    from recon.diagnosis.candidate_fit import CandidateFit
+    from recon.diagnosis.refits import prune_absorbed
 
     extras, baseline, data, absorbed, given, fr, sc, b = _friction_beside_absorbing_terms(["fn:y^2*dy"],
                                                                                          {"fn:y^2*dy": 1e6})
     true_y2dy = baseline.fn_m["y^2*dy"]
     assert abs(absorbed.baseline.fn_m["y^2*dy"] / true_y2dy - 1) > 0.2
-    best, free, drop, against = prune_absorbed(fr, ["x:mu"], sc, b, ["c_m", "k_m"], given, data, 30)
+    pruned, drop, against = prune_absorbed(CandidateFit(fr, ["x:mu"], sc, b, ["c_m", "k_m"]), given, data, 30)
+    best, free = pruned.fit, pruned.free
     assert drop and "fn:y^2*dy" in free and "y^2*dy" not in drop
     assert abs(best.model.baseline.fn_m["y^2*dy"] / true_y2dy - 1) < 0.05
     assert abs(best.model.get("mu") / extras["mu"] - 1) < 0.05
@@ -335,7 +339,7 @@ def test_the_baseline_terms_kept_beside_the_absorbing_ones_are_refitted_with_the
 
 
 def test_drop_sets_take_out_each_parity_class_of_the_velocity_terms():
-    from recon.diagnosis.diagnose import drop_sets
+    from recon.diagnosis.refits import drop_sets
 
     terms = ["y^2", "y^3", "y^2*dy", "dy^3", "y^5", "y^4*dy", "dy^5"]
     sets = drop_sets(terms)
@@ -491,7 +495,8 @@ def test_a_candidate_whose_term_does_nothing_gets_no_credit_for_where_its_fit_en
     # reached. Here: a clean independent recording, a baseline 4 % stiff as the reference, and a
     # "friction" fit whose mu is nil but whose c and k are the truth's
     from recon.testing.runs import model_of, to_run
-    from recon.diagnosis.diagnose import nested_null
+    from recon.diagnosis.candidate_fit import CandidateFit
+    from recon.diagnosis.refits import nested_null
     from recon.testing import independent as ind
 
     system = ind.random_system(np.random.default_rng(3), hysteresis=False, quadratic=False, cubic=False)
@@ -505,7 +510,7 @@ def test_a_candidate_whose_term_does_nothing_gets_no_credit_for_where_its_fit_en
     fr = rank.fit(idle, ["x:mu", "c_m", "k_m"], data, max_nfev=5)
     noise = rank.held_noise_mse(data)
     assert rank.score(ref, fr, 1, noise)["significant"]       # against the reference it "explains" a lot
-    nn = nested_null(fr, ["x:mu"], ["c_m", "k_m"], "coulomb_friction", ref.model, data, 30)
+    nn = nested_null(CandidateFit(fr, ["x:mu"], {}, {}, ["c_m", "k_m"]), "coulomb_friction", ref.model, data, 30)
     assert "mu" not in nn.model.extras and "v0" not in nn.model.extras
     assert "coulomb_friction" not in nn.model.added
     assert nn.mse_held < 1.05 * fr.mse_held
@@ -527,7 +532,7 @@ def test_a_candidate_keeps_its_score_from_before_its_nested_null(monkeypatch):
     truth, _ = true_model(rec)
     asked = []
 
-    def truth_as_nested_null(fr, keys, free, cid, ref_model, data, max_nfev):
+    def truth_as_nested_null(cf, cid, ref_model, data, max_nfev):
         asked.append(cid)
         return rank.fit(truth, [], data)
 
@@ -594,7 +599,7 @@ def test_a_contact_the_baseline_took_up_as_even_stiffness_is_fitted_without_it()
     # from the baseline without its even stiffness terms it is named, against that core as a null
     from recon.testing.stress import draw, recording
     from recon.testing.runs import model_of, to_run, true_model
-    from recon.diagnosis.diagnose import even_stiffness_terms
+    from recon.diagnosis.references import even_stiffness_terms
 
     rec = recording(draw(801))
     base = model_of({"c_m": 5.83743725285157, "k_m": 20647.266580348132, "alpha_m": 29064.499749910967,
@@ -779,7 +784,8 @@ def test_a_pair_on_top_of_the_cheapest_fit_takes_only_members_plausible_alone():
     # whose stiffness interval held 0 when fitted alone was fitted on top of exciter_distortion and
     # named with it, a stop the beam does not have. Far above the floor, only the candidates
     # plausible alone are fitted on top of the one that lowers the fitting cost most
-    from recon.diagnosis.diagnose import joint_pair
+    from recon.diagnosis.candidate_fit import CandidateFit
+    from recon.diagnosis.refits import joint_pair
     from recon.model import HystereticModel
 
     base = HystereticModel("base", c_m=2.0, k_m=1.0e4, alpha_m=0.0, gamma=0.0, delta=0.0)
@@ -793,9 +799,9 @@ def test_a_pair_on_top_of_the_cheapest_fit_takes_only_members_plausible_alone():
               {"id": "coulomb_friction", "compared_with_held_out_nrmse": 0.20},
               {"id": "contact_stiffness", "compared_with_held_out_nrmse": 0.20,
                "implausible": ["the 95 % interval of kc [-19.68, 91.78] holds 0"]}]
-    fits = {"exciter_distortion": (fr(0.5, 0.197), [], {}, {}, []),
-            "coulomb_friction": (fr(0.9, 0.203), [], {}, {}, []),
-            "contact_stiffness": (fr(0.8, 0.206), [], {}, {}, [])}
+    fits = {"exciter_distortion": CandidateFit(fr(0.5, 0.197), [], {}, {}, []),
+            "coulomb_friction": CandidateFit(fr(0.9, 0.203), [], {}, {}, []),
+            "contact_stiffness": CandidateFit(fr(0.8, 0.206), [], {}, {}, [])}
     tried = []
 
     def refit_on(cid, first):
@@ -1020,7 +1026,7 @@ def test_a_fitting_stage_in_motion_may_start_with_the_law_at_rest():
     # scored 0.48 on that stage, and the offset candidate's fit traded the offset against it
     from recon.testing.stress import draw, recording
     from recon.testing.runs import to_run, true_model
-    from recon.diagnosis.diagnose import without_terms
+    from recon.diagnosis.references import without_terms
 
     rec = recording(draw(542))
     truth, _ = true_model(rec)

@@ -92,15 +92,16 @@ def nominal_model(ref: AugmentedModel, fitted: AugmentedModel, keys: list[str], 
 
 def detection_limits(ref: rank.FitResult, fits: dict, data: list, noise_mse: float, failures: tuple,
                      rule: SignificanceRule = DEFAULT_RULE) -> dict:
-    """:func:`detection_limit` of every fitted candidate, ``fits`` {id: (FitResult, keys, scales,
-    ...)}; the parts every candidate shares (the rule's smallest D per number of added parameters,
+    """:func:`detection_limit` of every fitted candidate, ``fits`` {id: CandidateFit} (its fit, keys
+    and scales are read); the parts every candidate shares (the rule's smallest D per number of added parameters,
     the held-out mean square) computed once. A candidate whose simulation raises one of ``failures``
     gets value None and the failure as its note."""
     held = [d.y[d.held] - d.y[d.held].mean() for d in data if d.held.any()]
     ms_y = float(np.mean(np.concatenate(held) ** 2)) if held else 0.0
     d_min = {}
     out = {}
-    for cid, (fr, keys, scales, *_) in fits.items():
+    for cid, cf in fits.items():
+        fr, keys, scales = cf.fit, cf.keys, cf.scales
         if len(keys) not in d_min:
             d_min[len(keys)] = smallest_detectable_mse(ref, len(keys), noise_mse, rule)
         try:

@@ -5,8 +5,9 @@ meaning, unit and allowed range (checked when the object is made):
 
 - :class:`SignificanceRule`: when a candidate's held-out improvement over its reference counts
   (recon.diagnosis.rank's module doc gives the figures it reads);
-- :class:`DiagnosisSettings`: the rule, and how a record is split into fitting and held-out
-  samples, how its stages are weighted, and how a stage recorded in motion starts.
+- :class:`DiagnosisSettings`: the rule, how a record is split into fitting and held-out
+  samples, how its stages are weighted, how a stage recorded in motion starts, and the search's
+  own numbers (where candidate fits start, which refits are tried, how long a screening fit runs).
 
 ``recon.diagnose(run, settings=DiagnosisSettings(...))`` uses them; the defaults are the
 calibrated ones (docs/diagnosis.md, "How the rule was set"). A test or a study that asks another
@@ -81,7 +82,8 @@ class SignificanceRule:
 
 @dataclass(frozen=True)
 class DiagnosisSettings:
-    """The significance rule, and how the diagnosis splits, weights and starts a record's stages."""
+    """The significance rule, how the diagnosis splits, weights and starts a record's stages, and
+    the numbers its search for candidate fits is tuned with."""
     rule: SignificanceRule = field(default_factory=SignificanceRule)
     hold_fraction: float = _f(0.3, "share at the end of a stage held out when the run has no validation "
                               "stage reaching it", "fraction", 0.0, 1.0, lo_open=True)
@@ -100,11 +102,35 @@ class DiagnosisSettings:
     fit_rate: float = _f(2000.0, "the fits' iterations simulate a stage sampled faster than twice this rate "
                          "on every q-th sample (rate >= this); the start choice and every held-out figure "
                          "use every sample (0: never thin)", "Hz", 0.0, 1e7)
+    # where candidate fits start and what they are refitted without (recon.diagnosis.references,
+    # candidate_fit, refits)
+    linear_core_nrmse: float = _f(0.7, "a reference whose held-out NRMSE is above this explains less than half "
+                                  "of the held-out variance: candidate fits also start from the baseline's "
+                                  "linear core (fn terms at 0, c and k refitted)", "NRMSE", 0.0, 1e3)
+    follow_on_share: float = _f(0.5, "a candidate fitted from the baseline as given (c and k free) that leaves "
+                                "at most this share of its start's fitting cost is fitted again with every "
+                                "baseline parameter free", "fraction", 0.0, 1.0)
+    prune_fit_share: float = _f(0.9, "a candidate whose fit leaves at most this share of the reference's "
+                                "fitting cost is refitted without the baseline fn terms that may have "
+                                "absorbed it", "fraction", 0.0, 1.0)
+    prune_pairs_up_to: int = _f(5, "baseline fn terms up to which a candidate is also refitted without each "
+                                "pair of them", "terms", 0, 100)
+    start_screen_nfev: int = _f(5, "short output-error fit of a candidate's new terms that ranks its starts",
+                                "function evaluations", 1, 1000)
+    output_screen_nfev: int = _f(8, "short output-error fit that ranks starts differing in a fixed shape "
+                                 "parameter, or a start moved inside its term's physical bound",
+                                 "function evaluations", 1, 1000)
+    shape_screen_nfev: int = _f(6, "short output-error fit of the new terms that ranks equation-stepped "
+                                "starts differing in a fitted shape parameter", "function evaluations", 1, 1000)
 
     def __post_init__(self):
         if not isinstance(self.rule, SignificanceRule):
             raise ValueError(f"DiagnosisSettings.rule must be a SignificanceRule, not {type(self.rule).__name__}")
         _check(self)
+        for name in ("prune_pairs_up_to", "start_screen_nfev", "output_screen_nfev", "shape_screen_nfev"):
+            v = getattr(self, name)
+            if int(v) != v:
+                raise ValueError(f"DiagnosisSettings.{name} must be a whole number, not {v!r}")
 
 
 DEFAULT_RULE = SignificanceRule()

@@ -32,11 +32,11 @@ from shakerlab.words import nrmse_text
 # the diagnosis's steps as the child sees them called: (file, function, share of the run where the
 # step starts, message). One fit per catalog candidate fills CANDIDATES_SPAN (their count is known).
 STEPS = (("diagnose.py", "resolve_baseline", 0.00, "reconstructing the baseline model"),
-         ("diagnose.py", "_reference_fits", 0.25, "refitting the baseline (null model)"),
+         ("references.py", "reference_fits", 0.25, "refitting the baseline (null model)"),
          ("locate.py", "locate", 0.35, "locating the mismatch"),
-         ("diagnose.py", "fit_candidate", 0.40, "fitting candidate"),
+         ("candidate_fit.py", "fit_candidate", 0.40, "fitting candidate"),
          ("sensitivity.py", "detection_limits", 0.90, "estimating detection limits"),
-         ("diagnose.py", "joint_pair", 0.93, "trying pairs of candidates"))
+         ("refits.py", "joint_pair", 0.93, "trying pairs of candidates"))
 CANDIDATES_SPAN = (0.40, 0.90)
 POLL_S = 0.1
 
