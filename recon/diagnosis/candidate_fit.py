@@ -142,7 +142,8 @@ def screen_starts(cand, starts: list, dctx: DiagnosisContext) -> tuple:
     """(model, keys, scales, bounds) of the best of ``starts`` after a short fit of the new terms
     (the candidate's first ``screen_keys`` of them)."""
     n = dctx.settings.start_screen_nfev
-    fits = [rank.fit(m, keys[:cand.screen_keys], dctx.data, sc, max_nfev=n, bounds=b) for m, keys, sc, b in starts]
+    fits = [rank.fit(m, keys[:cand.screen_keys], dctx.data, sc, max_nfev=n, bounds=b, scored=False)
+            for m, keys, sc, b in starts]
     i = int(np.argmin([f.cost_fit for f in fits]))
     return (fits[i].model,) + tuple(starts[i][1:])
 
@@ -172,7 +173,7 @@ def equation_stepped_start(cand, starts: list, step_keys: list, dctx: DiagnosisC
             mm.extras[keys[0][2:]] = lo + mult * sc[keys[0]]
             tries.append(mm)
         tried = [rank.fit(mm, [keys[0], "c_m", "k_m"], data, sc, max_nfev=dctx.settings.output_screen_nfev,
-                          bounds=b) for mm in tries]
+                          bounds=b, scored=False) for mm in tries]
         m = tried[int(np.argmin([f.cost_fit for f in tried]))].model
     return m, keys, sc, b
 
@@ -189,7 +190,8 @@ def rank_by_output_error(starts: list, stepped: list, dctx: DiagnosisContext) ->
     for mm, keys, sc, b in starts:
         mm = mm.copy()
         set_parameter(mm, keys[0], sc[keys[0]])
-        scr.append(rank.fit(mm, [keys[0]], data, sc, max_nfev=dctx.settings.output_screen_nfev, bounds=b))
+        scr.append(rank.fit(mm, [keys[0]], data, sc, max_nfev=dctx.settings.output_screen_nfev, bounds=b,
+                            scored=False))
     i = int(np.argmin([f.cost_fit for f in scr]))
     step_cost = [rank.fit_cost(mm, data) if within_bound(mm, starts[j][1][0], starts[j][3]) else math.inf
                  for j, (mm, _) in enumerate(stepped)]
@@ -218,7 +220,7 @@ def first_step_inside_bound(starts: list, stepped: list, dctx: DiagnosisContext)
                 _, kj, scj, bj = starts[j]
                 try:
                     short = rank.fit(stepped[j][0], kj, data, scj, max_nfev=dctx.settings.shape_screen_nfev,
-                                     bounds=bj)
+                                     bounds=bj, scored=False)
                 except CANDIDATE_FAILURES:
                     continue    # that start is ranked by its step alone
                 if math.isfinite(short.cost_fit) and short.cost_fit < cost[j]:

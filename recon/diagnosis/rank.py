@@ -648,8 +648,12 @@ class FitResult:
 
 
 def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict | None = None,
-        max_nfev: int = 40, bounds: dict | None = None) -> FitResult:
-    """Output-error least squares of ``keys`` (start: ``am``'s values)."""
+        max_nfev: int = 40, bounds: dict | None = None, scored: bool = True) -> FitResult:
+    """Output-error least squares of ``keys`` (start: ``am``'s values).
+
+    ``scored=False``: a screen, which ranks starts by the fitting cost alone: the result holds the
+    fitted model and ``cost_fit`` (the same as a scored fit's), without the standard errors and the
+    held-out simulation (``mse_held`` nan, no ``sims``)."""
     t0 = time.perf_counter()
     full = data
     scales = scales or {}
@@ -686,6 +690,8 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
         cost = float(sol.fun @ sol.fun)
         stderr = {}
         try:
+            if not scored:
+                raise ValueError("a screen takes no standard errors")
             J = sol.jac
             if not np.all(np.any(J != 0.0, axis=0)):
                 # a column of zeros in the solver's last Jacobian (seen with friction's mu and v0
@@ -705,6 +711,10 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
         stderr = {}
     m = build(p)
     data = full
+    if not scored:
+        return FitResult(model=m, cost_fit=cost / max(len([d for d in data if d.fit.any()]), 1),
+                         mse_held=float("nan"), nrmse={}, nrmse_held=float("nan"), n_held=0,
+                         seconds=time.perf_counter() - t0)
     sims = simulate_all(m, data)
     held = [(ys - d.y)[d.held] for d, ys in zip(data, sims)]
     rh = np.concatenate(held) if held else np.zeros(0)
