@@ -243,13 +243,16 @@ def test_ambiguous_pair_rule():
 def test_ambiguous_pair_when_model_error_dominates():
     """A lead the BIC margin counts as clear (n_eff 5000: 5000 ln 1.05 = 244) is still ambiguous when
     it is small beside the mismatch the first candidate leaves over the noise floor."""
-    from recon.diagnosis.ambiguity import MODEL_ERROR_SHARE, ambiguous_pair
+    from recon.diagnosis.ambiguity import ambiguous_pair
     ranked = [{"id": "parameter_drift", "n_eff": 5000.0}, {"id": "quadratic_damping", "n_eff": 5000.0}]
     mse = {"parameter_drift": 1.0, "quadratic_damping": 1.05}
     assert ambiguous_pair(ranked, set(), mse, 10.0) is None           # the BIC margin alone
     # half the first one's held-out MSE is model error: a lead of 0.05 is 10 % of it
-    assert 0.05 < MODEL_ERROR_SHARE * 0.5
+    assert 0.05 < DEFAULTS.model_error_share * 0.5
     assert ambiguous_pair(ranked, set(), mse, 10.0, noise_mse=0.5) == ["parameter_drift", "quadratic_damping"]
+    # the share is a setting: with 5 % of the excess, a lead of 10 % of it tells the two apart
+    strict = dataclasses.replace(DEFAULTS, model_error_share=0.05)
+    assert ambiguous_pair(ranked, set(), mse, 10.0, noise_mse=0.5, settings=strict) is None
     # near the floor (0.1 of model error left) the same lead is 50 % of it: the first is better
     assert ambiguous_pair(ranked, set(), mse, 10.0, noise_mse=0.9) is None
     # a runner-up kept by the forward step is never a rival

@@ -28,6 +28,10 @@ def test_settings_out_of_range_are_refused_and_the_rule_must_be_a_rule():
         DiagnosisSettings(hold_fraction=0.0)
     with pytest.raises(ValueError, match="burn_in_decays"):
         DiagnosisSettings(burn_in_decays=-3.0)
+    with pytest.raises(ValueError, match="sliding_share must be below 1"):
+        DiagnosisSettings(sliding_share=1.0)
+    with pytest.raises(ValueError, match="time_segments must be a whole number"):
+        DiagnosisSettings(time_segments=2.5)
     with pytest.raises(ValueError, match="rule must be a SignificanceRule"):
         DiagnosisSettings(rule={"bic_margin": 10.0})
     with pytest.raises(dataclasses.FrozenInstanceError):

@@ -46,7 +46,7 @@ def test_a_model_better_as_a_whole_but_worse_on_one_stage_fails_there():
 
 def test_a_model_that_differs_by_less_than_the_noise_is_not_called_worse():
     """Two models equally far from the truth on every stage, on either side of it: called worse on
-    some stage at most about as often as the band's level says (STAGE_LEVEL over every held-out stage)."""
+    some stage at most about as often as the band's level says (the rule's stage_level over every held-out stage)."""
     rng = np.random.default_rng(2)
     calls = 0
     trials = 200

@@ -217,11 +217,82 @@ def test_no_test_or_bench_rewrites_a_recon_setting():
 
 
 def test_the_diagnosis_rule_and_split_live_in_its_settings():
-    """recon.diagnosis.rank holds no number of the significance rule, the held-out split, the burn-in
-    or the stages' weighting: those are DiagnosisSettings fields (each with meaning, unit, range)."""
-    from recon.diagnosis import rank
-    from recon.diagnosis.settings import describe, DEFAULTS
+    """No module of recon.diagnosis holds a number of the significance rule, the held-out split, the
+    burn-in, the stages' weighting, the search, the location or the wording under a settings field's
+    name: those are DiagnosisSettings / SignificanceRule fields, and every field of both is made with
+    recon.settings_fields.bounded (a meaning, a unit and a range, so that describe lists it)."""
+    import dataclasses
 
+    from recon.diagnosis.settings import describe, DEFAULTS, DiagnosisSettings, SignificanceRule
+
+    for cls in (DiagnosisSettings, SignificanceRule):
+        for f in dataclasses.fields(cls):
+            if f.name == "rule":
+                continue
+            m = f.metadata
+            assert m.get("meaning") and m.get("unit") and len(m.get("range", ())) == 2, \
+                f"{cls.__name__}.{f.name} is not described (meaning, unit, range: settings_fields.bounded)"
     fields = {r["name"].split(".")[-1].upper() for r in describe(DEFAULTS)}
-    left = sorted(n for n in vars(rank) if n in fields)
-    assert not left, f"recon.diagnosis.rank still defines {left}"
+    left = sorted(f"{mod}.{name}" for mod, (name, _, _) in _diagnosis_constants() if name in fields)
+    assert not left, f"recon.diagnosis still defines {left} (a DiagnosisSettings field)"
+
+
+# The module-level numbers recon.diagnosis keeps outside its settings (settings.py and each candidate
+# under candidates/, which owns its ranges and starts, aside): none is a tuned choice. Each entry
+# says why; a new module-level number is either a DiagnosisSettings field or added here with its reason.
+DIAGNOSIS_NUMBERS_ALLOWED = {
+    ("recon.diagnosis.candidate_fit", "Z95"): "statistical: the two-sided 95 % normal quantile of an interval",
+    ("recon.diagnosis.rank", "RESOLUTION_FRACTION"): "physical: no displacement reading resolves better than "
+                                                     "1e-5 of its peak (100 dB)",
+    ("recon.diagnosis.rank", "DIFF_ORDERS"): "numerical: the difference orders the model-free noise estimate "
+                                             "takes the smallest over",
+    ("recon.diagnosis.sensitivity", "SEARCH_STEPS"): "numerical: a cap on a bisection that stops at its own "
+                                                     "tolerance",
+}
+
+
+def _is_number(node) -> bool:
+    """A literal int or float (signed), or a tuple of them."""
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
+        node = node.operand
+    if isinstance(node, ast.Constant):
+        return isinstance(node.value, (int, float)) and not isinstance(node.value, bool)
+    if isinstance(node, ast.Tuple):
+        return bool(node.elts) and all(_is_number(e) for e in node.elts)
+    return False
+
+
+def _diagnosis_constants():
+    """(module, (NAME, value node, line)) for every module-level UPPER_CASE assignment in
+    recon/diagnosis/ (settings.py and candidates/ aside)."""
+    folder = ROOT / "recon" / "diagnosis"
+    for path in sorted(folder.glob("*.py")):
+        if path.name == "settings.py":
+            continue
+        mod = "recon.diagnosis" if path.stem == "__init__" else f"recon.diagnosis.{path.stem}"
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, ast.Assign):
+                targets, value = node.targets, node.value
+            elif isinstance(node, ast.AnnAssign) and node.value is not None:
+                targets, value = [node.target], node.value
+            else:
+                continue
+            for t in targets:
+                for name in ([t] if isinstance(t, ast.Name) else getattr(t, "elts", [])):
+                    if isinstance(name, ast.Name) and name.id.isupper():
+                        yield mod, (name.id, value, node.lineno)
+
+
+def test_no_tuned_constant_outside_the_diagnosis_settings():
+    """Every module-level UPPER_CASE number (an int, a float, or a tuple of them) in recon/diagnosis/
+    (settings.py and candidates/ aside) is in DIAGNOSIS_NUMBERS_ALLOWED with the reason it is not a
+    tuned choice (statistical, numerical, physical); a tuned number is a DiagnosisSettings field."""
+    found = {(mod, name): line for mod, (name, value, line) in _diagnosis_constants() if _is_number(value)}
+    new = sorted(f"{mod}.{name} (line {line})" for (mod, name), line in found.items()
+                 if (mod, name) not in DIAGNOSIS_NUMBERS_ALLOWED)
+    assert not new, ("module-level numbers in recon.diagnosis that are neither DiagnosisSettings fields nor "
+                     f"allowed with a reason: {new}")
+    stale = sorted(f"{mod}.{name}" for mod, name in DIAGNOSIS_NUMBERS_ALLOWED if (mod, name) not in found)
+    assert not stale, f"allowed numbers no longer defined (drop them from the list): {stale}"
+    for key, reason in DIAGNOSIS_NUMBERS_ALLOWED.items():
+        assert reason.split(":")[0] in ("statistical", "numerical", "physical") and "\n" not in reason, key

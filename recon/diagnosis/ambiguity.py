@@ -4,8 +4,9 @@ stage that would separate them, as a protocol TOML that `shakerlab acquire --pro
 
 Two significant candidates A (ranked first) and B are *ambiguous* when B does not add on top of A
 (the forward step did not keep it) and A is not significantly better than B on the held-out
-samples: n_eff ln(MSE_B / MSE_A) < BIC_MARGIN, or A's lead over B is less than MODEL_ERROR_SHARE of
-the excess A itself leaves over the noise floor: MSE_B - MSE_A < MODEL_ERROR_SHARE (MSE_A - noise).
+samples: n_eff ln(MSE_B / MSE_A) < bic_margin, or A's lead over B is less than model_error_share
+(DiagnosisSettings) of the excess A itself leaves over the noise floor:
+MSE_B - MSE_A < model_error_share (MSE_A - noise).
 The BIC margin counts the held-out residual as noise; where the first candidate leaves much of the
 mismatch unexplained, the residual is mostly model error, and a lead small beside it says which fit
 copes better with that error, not which effect is there (for example, under quadratic damping a
@@ -17,6 +18,7 @@ from __future__ import annotations
 import math
 
 from recon.diagnosis.catalog import AMPLITUDE_DEPENDENT
+from recon.diagnosis.settings import DEFAULTS, DiagnosisSettings
 
 # what separates a pair: effects whose share of the response changes differently with amplitude
 # (each candidate declares it: Candidate.amplitude_dependent) are told apart by a second amplitude
@@ -80,18 +82,15 @@ amplitude_fraction = 1.0
 duration_s = 6.0
 """
 
-# the share of the excess left by the first candidate within which a runner-up's held-out MSE makes
-# the pair ambiguous (see the module docstring)
-MODEL_ERROR_SHARE = 0.2
-
-
 def ambiguous_pair(ranked: list[dict], kept: set, mse: dict, bic_margin: float,
-                   noise_mse: float | None = None) -> list[str] | None:
+                   noise_mse: float | None = None, settings: DiagnosisSettings = DEFAULTS) -> list[str] | None:
     """The first pair (ranked[0], B) that the held-out data cannot tell apart, or None.
 
     ``ranked``: significant candidates, best first, with their ``n_eff``; ``kept``: ids the forward
     step kept (they add on top of the first, so they are not rivals); ``mse``: held-out MSE by id;
-    ``noise_mse``: the held-out noise floor's mean square (None: the BIC margin alone)."""
+    ``noise_mse``: the held-out noise floor's mean square (None: the BIC margin alone);
+    ``settings.model_error_share``: the share of the first's excess over the noise within which the
+    runner-up's MSE makes the pair ambiguous."""
     if len(ranked) < 2:
         return None
     a = ranked[0]
@@ -103,7 +102,7 @@ def ambiguous_pair(ranked: list[dict], kept: set, mse: dict, bic_margin: float,
             continue
         if a["n_eff"] * math.log(mb / ma) < bic_margin:
             return [a["id"], t["id"]]
-        if noise_mse is not None and ma > noise_mse and mb - ma < MODEL_ERROR_SHARE * (ma - noise_mse):
+        if noise_mse is not None and ma > noise_mse and mb - ma < settings.model_error_share * (ma - noise_mse):
             return [a["id"], t["id"]]
     return None
 

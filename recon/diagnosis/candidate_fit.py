@@ -26,7 +26,7 @@ from recon.output_error.problem import get_parameter, set_parameter
 # numerical failures of one candidate's fit or simulation: recorded, never raised
 CANDIDATE_FAILURES = (ArithmeticError, ValueError, np.linalg.LinAlgError)
 
-Z95 = 1.96      # two-sided 95 % normal quantile of a parameter's interval
+Z95 = 1.96      # statistical, not a tuned choice: the two-sided 95 % normal quantile of a parameter's interval
 
 
 @dataclass(frozen=True)
@@ -153,7 +153,7 @@ def equation_stepped_start(cand, starts: list, step_keys: list, dctx: DiagnosisC
     start stepped by equation error (``step_keys`` and the term's first key), the step chosen by
     output error, and a step across the term's physical bound brought back inside it."""
     data = dctx.data
-    stepped = [rank.equation_step(m, step_keys, keys[0], cand.column, dctx.derivs, data)
+    stepped = [rank.equation_step(m, step_keys, keys[0], cand.column, dctx.derivs, data, dctx.settings)
                for m, keys, _, _ in starts]
     if cand.screen_output and len(starts) > 1:
         i = rank_by_output_error(starts, stepped, dctx)

@@ -269,7 +269,7 @@ def locate_step(run: Run, refs: References, max_nfev: int, settings: DiagnosisSe
     """(where the reference misses: locate's findings, the context every later step reads)."""
     progress.step("locating the mismatch", share=0.05)
     derivs = stage_derivatives(run, refs.data)
-    findings, located = locate(refs.ref.model, run, refs.data, refs.ref.sims, derivs)
+    findings, located = locate(refs.ref.model, run, refs.data, refs.ref.sims, derivs, settings)
     dctx = DiagnosisContext(run=run, data=refs.data, derivs=derivs, located=located,
                             noise_mse=rank.held_noise_mse(refs.data), max_nfev=max_nfev, settings=settings)
     return findings, dctx
@@ -499,7 +499,7 @@ def missing_entries(sig: list, scores: Scores, refs: References, findings: list,
             # a named loop that slides within the record's travel is a friction law (wording.py)
             b = fr.model.baseline
             travel = max((float(np.ptp(d.displacement)) for d in dctx.data), default=0.0)
-            missing[-1]["as_friction"] = friction_reading(b.alpha_m, b.gamma, b.delta, travel)
+            missing[-1]["as_friction"] = friction_reading(b.alpha_m, b.gamma, b.delta, travel, dctx.settings)
     return missing
 
 
@@ -561,7 +561,7 @@ def assemble(refs: References, dctx: DiagnosisContext, findings: list, scores: S
     the held-out data cannot tell apart among ``ranked``, and the mismatch left unexplained."""
     ref, noise_mse = refs.ref, dctx.noise_mse
     pair = ambiguous_pair(ranked, {t["id"] for t in sig[1:]}, {c: f.fit.mse_held for c, f in scores.fits.items()},
-                          dctx.rule.bic_margin, noise_mse)
+                          dctx.rule.bic_margin, noise_mse, dctx.settings)
     ambiguity = separating_stage(pair) if pair else None
     missing = missing_entries(sig, scores, refs, findings, dctx)
     if combined is not None:

@@ -18,10 +18,10 @@ import numpy as np
 from numba import njit
 from scipy.signal import cont2discrete, lfilter, welch
 
+from recon.diagnosis.settings import DEFAULTS, DiagnosisSettings
 from recon.signals import stage_signals
 from shakerlab.run_data import BASE
 
-N_SEGMENTS = 8
 UNITS = {
     "time": "rms of the simulation residual / rms(y) (trend: change of that over the stage)",
     "frequency": "rms of the simulation residual in the band / rms(y)",
@@ -116,10 +116,6 @@ def equation_residual(am, derivs):
     return y, dy, e, u, float(np.sqrt(np.mean(r ** 2))) or 1.0
 
 
-# the top of an input's band: the frequency below which this share of its power lies
-BAND_POWER = 0.999
-
-
 def _peaks(freqs, power, floor, n=5, ratio=10.0):
     idx = np.flatnonzero(power > ratio * floor)
     out = []
@@ -211,8 +207,9 @@ def scan_modes(data, residuals, gain, f_lo, f_hi, n=40, zeta=0.02, motions=None,
     return scans
 
 
-def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
-    """Findings for the model ``am`` (simulations ``sims`` per stage) and a context for the catalog."""
+def locate(am, run, data, sims, derivs=None, settings: DiagnosisSettings = DEFAULTS) -> tuple[list[dict], dict]:
+    """Findings for the model ``am`` (simulations ``sims`` per stage) and a context for the catalog
+    (``settings``: how many pieces a stage is cut into in time, where an input's band ends)."""
     findings = []
     bv_all = {}
     derivs = derivs or stage_derivatives(run, data)
@@ -229,8 +226,8 @@ def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
             continue
         noise_rel = d.noise / d.rms
         # ---- time: segments and trend
-        seg = np.array_split(r, N_SEGMENTS)
-        tseg = np.array_split(d.t, N_SEGMENTS)
+        seg = np.array_split(r, int(settings.time_segments))
+        tseg = np.array_split(d.t, int(settings.time_segments))
         rms = np.array([np.sqrt(np.mean(s ** 2)) for s in seg]) / d.rms
         tc = np.array([s.mean() for s in tseg])
         slope = np.polyfit(tc - tc.mean(), rms, 1)[0] * (tc[-1] - tc[0]) if rms.size > 2 else 0.0
@@ -348,13 +345,15 @@ def locate(am, run, data, sims, derivs=None) -> tuple[list[dict], dict]:
     # a mode above the band the input excites answers it quasi-statically (q = g u / w^2: a feedthrough
     # of the input, no peak in the residual) and the scan, which looks for its resonance, does not
     # find it, and fits from the scan's peaks near the band's top stay there: one start twice above
-    # the top of the fitting stages' input band
+    # the top of the fitting stages' input band (the frequency below which settings.band_power of
+    # the input's power lies)
     tops = []
     for d in data:
         if d.fit.any() and d.u.size > 16 and np.all(np.isfinite(d.u)):
             fq, pu = welch(d.u, fs=1.0 / d.dt, nperseg=min(4096, d.u.size))
             if np.sum(pu) > 0:
-                tops.append(float(fq[min(np.searchsorted(np.cumsum(pu) / np.sum(pu), BAND_POWER), fq.size - 1)]))
+                top = np.searchsorted(np.cumsum(pu) / np.sum(pu), settings.band_power)
+                tops.append(float(fq[min(top, fq.size - 1)]))
     if tops:
         ctx["mode_start_above_band"] = float(min(max(2.0 * max(tops), 1.3 * f_res), 0.4 * nyq))
     ctx["mode_scan"] = [{"frequency_hz": f, "explained_share": sh} for f, sh, _ in scan[:3]]

@@ -89,9 +89,13 @@ from shakerlab.run_data import BASE, Run, Stage
 # stage does not outweigh the rest by its resolution alone. Weighting by each stage's rms instead
 # lets a small, noisy stage set the cost by its noise, so that a large stage's error hardly counts
 # and the fit can trade a true mode for one that fits the small stage's noise.
-RESOLUTION_FRACTION = 1e-5  # no displacement reading resolves better than 1e-5 of its peak (100 dB)
+# Not tuned choices (no settings field): a physical bound and the noise estimate's numerics.
+# physical: no displacement reading resolves better than 1e-5 of its peak (a 100 dB dynamic range),
+# a property of the sensors, not a choice the diagnosis makes
+RESOLUTION_FRACTION = 1e-5
+# numerical: the difference orders k of difference_noise's white-noise estimate, which takes the
+# smallest over them (the estimator's own search range, no threshold the answer is tuned with)
 DIFF_ORDERS = (2, 3, 4, 5, 6)
-STEP_MIN_FINITE = 0.9    # an equation-error step needs a finite residual on 90 % of the fitting samples
 
 
 def difference_noise(x: np.ndarray) -> float:
@@ -158,6 +162,8 @@ class StageData:
     order: int = 0                     # the recorded quantity: 0 displacement, 1 velocity
     motion: np.ndarray | None = None   # the relative displacement when y is not it
     fit_step: int = 1                  # a fit's iterations take every fit_step-th sample (settings.fit_rate)
+    start_fit_share: float = DEFAULTS.start_fit_share  # held_start fits the start on this first share (settings)
+    start_fit_nfev: int = DEFAULTS.start_fit_nfev      # ... with this many function evaluations (settings)
 
     @functools.cached_property
     def dt(self) -> float:
@@ -264,7 +270,8 @@ def prepare(run: Run, model: HystereticModel, settings: DiagnosisSettings = DEFA
         d = StageData(n, t_session, u, x_in, y,
                       fit, held, noise, float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0, noise_parts=floors,
                       fit_model_share=settings.fit_model_share, order=order, motion=None if order == 0 else st.y,
-                      fit_step=step)
+                      fit_step=step, start_fit_share=settings.start_fit_share,
+                      start_fit_nfev=settings.start_fit_nfev)
         # the edge estimate, not a start fitted with the baseline: a fitted start absorbs what an
         # output effect (a channel delay, a tip-scale error) does to the first seconds, and the
         # candidate that models it is then scored from a start made for the model without it
@@ -422,17 +429,15 @@ def initial_for(am: AugmentedModel, d: StageData) -> tuple:
     return (y0, v0, z0 + dz) if math.isfinite(dz) else s0
 
 
-START_FIT_SHARE = 0.3     # a held-out stage recorded in motion: its start is fitted on its first 30 %
-START_FIT_NFEV = 10
-
-
 def held_start(am: AugmentedModel, d: StageData) -> tuple:
     """The start state ``am`` simulates the held-out stage ``d`` from. A stage recorded in motion
     starts from its edge estimate (y, y', z), which a noisy edge derivative makes poor: at 50 dB
     the edge start alone can put the validation NRMSE of every model, the true one included, an
-    order of magnitude above its value from a fitted start. Each model's start (y0, y'0, and z0 when it has hysteresis) is therefore fitted to the
-    first START_FIT_SHARE of the stage by output error: every model gets the same treatment, so a
-    candidate that changes the output (a delay, a scale error) fits its own start. With hysteresis
+    order of magnitude above its value from a fitted start. Each model's start (y0, y'0, and z0
+    when it has hysteresis) is therefore fitted to the first ``d.start_fit_share`` of the stage
+    (settings.start_fit_share, with settings.start_fit_nfev evaluations) by output error: every
+    model gets the same treatment, so a candidate that changes the output (a delay, a scale error)
+    fits its own start. With hysteresis
     the fit also starts from the best of z0 across the law's reach (:func:`z_reach`) on that first
     part, and that start is kept where it simulates the whole stage better."""
     return _held_start(am, d)[0]
@@ -459,7 +464,7 @@ def _held_start(am: AugmentedModel, d: StageData) -> tuple:
     b = am.baseline
     # the start is fitted on the stage's thinned samples (StageData.thinned), judged on all of them
     th = d.thinned()
-    first = slice(0, max(int(START_FIT_SHARE * th.y.size), 10))
+    first = slice(0, max(int(d.start_fit_share * th.y.size), 10))
 
     def first_error(state):
         ys = am.simulate(th.t[first], th.u[first], None if th.x_in is None else th.x_in[first], tuple(state),
@@ -532,7 +537,7 @@ def _start_fit(am: AugmentedModel, d: StageData, s0: np.ndarray, initial: tuple,
     base = (initial, None) if base_state == tuple(float(v) for v in initial) else (base_state, None)
     try:
         with np.errstate(all="ignore"):
-            sol = least_squares(resid, np.zeros(free), method="trf", x_scale=1.0, max_nfev=START_FIT_NFEV,
+            sol = least_squares(resid, np.zeros(free), method="trf", x_scale=1.0, max_nfev=int(d.start_fit_nfev),
                                 workers=fd_map())
     except (ArithmeticError, ValueError, np.linalg.LinAlgError):
         return base
@@ -788,7 +793,7 @@ def score(null: FitResult, cand: FitResult, k_added: int, noise_mse: float,
 
 
 def equation_step(am: AugmentedModel, keys: list[str], new_key: str | None, column, derivs: dict,
-                  data: list[StageData]):
+                  data: list[StageData], settings: DiagnosisSettings = DEFAULTS):
     """Start for a candidate whose term is linear in its parameter: one least-squares step on the
     equation residual of ``am`` over the fitting samples,
 
@@ -825,10 +830,11 @@ def equation_step(am: AugmentedModel, keys: list[str], new_key: str | None, colu
     b = np.concatenate(rhs)
     names = [k for k in keys if k in ("c_m", "k_m", "inv_m") or k.startswith("fn:")]
     ok = np.isfinite(b) & np.all(np.isfinite(A), axis=1)
-    if ok.sum() < max(STEP_MIN_FINITE * b.size, 10 * A.shape[1]):
-        # the baseline's restoring force is not finite along the recorded path (a Bouc-Wen law so
-        # stiff that z integrated on the measured y' overflows, or a term of high order): no
-        # equation-error step, the candidate starts from ``am`` as it is
+    if ok.sum() < max(settings.step_min_finite * b.size, 10 * A.shape[1]):
+        # finite on too few samples (settings.step_min_finite): the baseline's restoring force is
+        # not finite along the recorded path (a Bouc-Wen law so stiff that z integrated on the
+        # measured y' overflows, or a term of high order): no equation-error step, the candidate
+        # starts from ``am`` as it is
         return am.copy(), float("inf")
     A, b = A[ok], b[ok]
     norms = np.linalg.norm(A, axis=0)

@@ -255,7 +255,7 @@ def friction_from_loop(tested: list, fits: dict, references: dict, dctx: Diagnos
     loop = fits["hysteresis"].fit.model
     b = loop.baseline
     travel = max((float(np.ptp(d.displacement)) for d in data), default=0.0)
-    if friction_reading(b.alpha_m, b.gamma, b.delta, travel) is None:
+    if friction_reading(b.alpha_m, b.gamma, b.delta, travel, dctx.settings) is None:
         return
     src_model = without_terms(loop, ())
     src_model.baseline.alpha_m = src_model.baseline.gamma = src_model.baseline.delta = 0.0

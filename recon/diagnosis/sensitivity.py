@@ -36,7 +36,9 @@ from recon.diagnosis.augmented import AugmentedModel
 from recon.diagnosis.settings import DEFAULT_RULE, SignificanceRule
 from recon.output_error.problem import get_parameter, set_parameter
 
-SEARCH_STEPS = 80        # bisection steps of smallest_detectable_mse (a factor 4 bracket, then halving)
+# numerical, not a tuned choice: the most steps of smallest_detectable_mse's bracket (x4 each) and
+# bisection; the bisection stops at its 1e-6 relative tolerance long before, so it is a cap only
+SEARCH_STEPS = 80
 
 
 def smallest_detectable_mse(ref: rank.FitResult, k_added: int, noise_mse: float,

@@ -6,8 +6,10 @@ meaning, unit and allowed range (checked when the object is made):
 - :class:`SignificanceRule`: when a candidate's held-out improvement over its reference counts
   (recon.diagnosis.rank's module doc gives the figures it reads);
 - :class:`DiagnosisSettings`: the rule, how a record is split into fitting and held-out
-  samples, how its stages are weighted, how a stage recorded in motion starts, and the search's
-  own numbers (where candidate fits start, which refits are tried, how long a screening fit runs).
+  samples, how its stages are weighted, how a stage recorded in motion starts, the search's
+  own numbers (where candidate fits start, which refits are tried, how long a screening fit runs),
+  how the mismatch is located, and when the answer calls two candidates ambiguous or a loop a
+  friction law.
 
 ``recon.diagnose(run, settings=DiagnosisSettings(...))`` uses them; the defaults are the
 calibrated ones (docs/diagnosis.md, "How the rule was set"). A test or a study that asks another
@@ -122,15 +124,40 @@ class DiagnosisSettings:
                                  "function evaluations", 1, 1000)
     shape_screen_nfev: int = _f(6, "short output-error fit of the new terms that ranks equation-stepped "
                                 "starts differing in a fitted shape parameter", "function evaluations", 1, 1000)
+    step_min_finite: float = _f(0.9, "an equation-error step (a candidate's linear start) is taken only where the "
+                                "equation residual is finite on at least this share of the fitting samples",
+                                "fraction", 0.0, 1.0)
+    # how a held-out stage recorded in motion starts (recon.diagnosis.rank.held_start)
+    start_fit_share: float = _f(0.3, "a held-out stage recorded in motion: each model's start state is fitted "
+                                "on this first share of the stage (at least 10 samples)", "fraction", 0.0, 1.0,
+                                lo_open=True)
+    start_fit_nfev: int = _f(10, "the output-error fit of that start state", "function evaluations", 1, 1000)
+    # where the reference misses (recon.diagnosis.locate)
+    time_segments: int = _f(8, "equal consecutive pieces a stage's simulation residual is cut into to find "
+                            "where in time it misses and whether it trends", "pieces", 1, 1000)
+    band_power: float = _f(0.999, "the top of an input's band is the frequency below which this share of its "
+                           "power lies (a mode start is placed twice above it)", "fraction", 0.0, 1.0,
+                           lo_open=True)
+    # how the answer is worded (recon.diagnosis.ambiguity, wording)
+    model_error_share: float = _f(0.2, "two named candidates are ambiguous when the first's held-out MSE is below the "
+                                  "runner-up's by less than this share of its own excess over the noise floor",
+                                  "fraction of excess MSE", 0.0, 1.0)
+    sliding_share: float = _f(0.95, "a Bouc-Wen loop reads as a friction law when the record travels far enough "
+                              "for z to reach this share of its sliding force (below 1)", "fraction", 0.0, 1.0,
+                              lo_open=True)
 
     def __post_init__(self):
         if not isinstance(self.rule, SignificanceRule):
             raise ValueError(f"DiagnosisSettings.rule must be a SignificanceRule, not {type(self.rule).__name__}")
         _check(self)
-        for name in ("prune_pairs_up_to", "start_screen_nfev", "output_screen_nfev", "shape_screen_nfev"):
+        for name in ("prune_pairs_up_to", "start_screen_nfev", "output_screen_nfev", "shape_screen_nfev",
+                     "start_fit_nfev", "time_segments"):
             v = getattr(self, name)
             if int(v) != v:
                 raise ValueError(f"DiagnosisSettings.{name} must be a whole number, not {v!r}")
+        if not self.sliding_share < 1.0:
+            raise ValueError(f"DiagnosisSettings.sliding_share must be below 1 (the sliding force is reached "
+                             f"only asymptotically), not {self.sliding_share!r}")
 
 
 DEFAULT_RULE = SignificanceRule()

@@ -16,11 +16,12 @@ likelihood terms: the log-likelihood ratio of the two models on the stage, -rise
 has a standard deviation |d| / sigma where the two fit the stage equally well.) The candidate is
 worse on the stage beyond its noise band when
 
-    rise > 2 z sigma |d|,    z = the one-sided normal quantile at STAGE_LEVEL / (number of held-out stages),
+    rise > 2 z sigma |d|,    z = the one-sided normal quantile at level / (number of held-out stages),
 
-the level shared among the held-out stages (Bonferroni), so that a candidate no worse than the
-baseline anywhere is called worse somewhere with probability at most STAGE_LEVEL. Both models'
-residuals are the stage's held-out samples, each model started as the diagnosis starts it.
+the level (SignificanceRule.stage_level) shared among the held-out stages (Bonferroni), so that a
+candidate no worse than the baseline anywhere is called worse somewhere with probability at most
+that level. Both models' residuals are the stage's held-out samples, each model started as the
+diagnosis starts it.
 """
 from __future__ import annotations
 
@@ -30,19 +31,17 @@ import numpy as np
 from scipy.stats import norm
 
 from recon.diagnosis.settings import DEFAULT_RULE
-
-# the chance, over every held-out stage of a record, that the noise alone makes a model that is no
-# worse than the baseline as given look worse on some stage: a test's level, not a fitted margin
-# (SignificanceRule.stage_level, recon.diagnosis.settings)
-STAGE_LEVEL = DEFAULT_RULE.stage_level
+# ``level`` below: the chance, over every held-out stage of a record, that the noise alone makes a
+# model that is no worse than the baseline as given look worse on some stage (a test's level, not a
+# fitted margin): SignificanceRule.stage_level, the default rule's when not given
 
 
-def stage_band_z(n_stages: int, level: float = STAGE_LEVEL) -> float:
+def stage_band_z(n_stages: int, level: float = DEFAULT_RULE.stage_level) -> float:
     """The one-sided normal quantile of ``level`` shared among ``n_stages`` stages."""
     return float(norm.isf(level / max(int(n_stages), 1)))
 
 
-def held_stage_figures(given, cand, data, level: float = STAGE_LEVEL) -> dict:
+def held_stage_figures(given, cand, data, level: float = DEFAULT_RULE.stage_level) -> dict:
     """Per held-out stage of ``data`` (rank.StageData), the candidate fit ``cand`` against the
     baseline as given ``given`` (rank.FitResult, with their simulations ``sims``):
     {stage: {nrmse_before, nrmse_after, rise_noise_variances, band_noise_variances, worse}}.

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+from recon.diagnosis.settings import DEFAULTS, DiagnosisSettings
 from shakerlab.words import nrmse_text
 
 KINDS = {
@@ -54,14 +55,14 @@ def finding_text(f: dict) -> str:
 # A Bouc-Wen loop (n = 1) loaded one way from z = 0 follows dz/dy = alpha - (gamma + delta) z: it is
 # stiff (alpha) at first, then z approaches alpha / (gamma + delta) as 1 - exp(-(gamma + delta) y).
 # That is a friction law with presliding (Dahl's): a presliding stiffness alpha, and a sliding force
-# alpha / (gamma + delta) reached, within SLIDING_SHARE, after a travel of -ln(1 - SLIDING_SHARE) /
+# alpha / (gamma + delta) reached, within sliding_share, after a travel of -ln(1 - sliding_share) /
 # (gamma + delta). A record shows both regimes when its largest travel between reversals (the
 # peak-to-peak displacement) is longer than that: the loop slides there, and presliding holds at
-# every reversal.
-SLIDING_SHARE = 0.95
+# every reversal (sliding_share: DiagnosisSettings).
 
 
-def friction_reading(alpha_m: float, gamma: float, delta: float, travel: float) -> dict | None:
+def friction_reading(alpha_m: float, gamma: float, delta: float, travel: float,
+                     settings: DiagnosisSettings = DEFAULTS) -> dict | None:
     """A fitted Bouc-Wen loop read as a friction law, {presliding_stiffness_m [1/s^2], sliding_force_m
     [m/s^2], sliding_after_m [m], travel_m [m]} (per unit mass), when the loop saturates (gamma + delta > 0)
     with a positive stiffness after every reversal (gamma > 0: from the sliding force -alpha / (gamma +
@@ -72,7 +73,7 @@ def friction_reading(alpha_m: float, gamma: float, delta: float, travel: float) 
     if not (alpha_m > 0.0 and lam > 0.0 and gamma > 0.0
             and all(math.isfinite(v) for v in (alpha_m, gamma, delta, travel))):
         return None
-    after = -math.log(1.0 - SLIDING_SHARE) / lam
+    after = -math.log(1.0 - settings.sliding_share) / lam
     if travel < after:
         return None
     return {"presliding_stiffness_m": float(alpha_m), "sliding_force_m": float(alpha_m / lam),
