@@ -126,6 +126,7 @@ def test_a_baseline_force_that_overflows_on_the_recorded_path_leaves_candidates_
         f[f.size // 3:] = np.nan
         return f
 
+    # kept as a fake: no real input found overflows this force while the baseline still simulates (test_layers)
     monkeypatch.setattr(locate, "model_force", overflowing)
     d = diagnose(run, baseline="linear", candidates=CANDIDATES).to_dict()
     tested = {t["id"]: t for t in d["candidates_tested"]}
