@@ -182,3 +182,24 @@ def test_a_mild_bouc_wen_law_along_the_measured_velocity_matches_an_accurate_sol
 
     ref = solve_ivp(rhs, (t[0], t[-1]), [0.0], method="DOP853", t_eval=t, rtol=1e-10, atol=1e-12).y[0]
     assert np.sqrt(np.mean((z - ref) ** 2)) < 1e-3 * np.sqrt(np.mean(ref ** 2))
+
+
+def test_correlation_tests_on_a_residual_shorter_than_their_lags_give_no_test_and_no_error():
+    # a reference whose resonance is far below the stage's band thins the equation residual to a few
+    # samples (locate decimates it to about 8 per resonance period): fewer than the 20 lags
+    import numpy as np
+    from recon.diagnosis.locate import billings_voon
+
+    rng = np.random.default_rng(0)
+    short = billings_voon(rng.normal(size=15), rng.normal(size=15))      # raised a broadcast error
+    assert short["n"] == 15 and "phi_ee" in short                          # lags up to 15 // 4
+    tiny = billings_voon(rng.normal(size=6), rng.normal(size=6))
+    assert tiny["n"] == 6 and not [k for k, v in tiny.items() if isinstance(v, dict)]
+    e = rng.normal(size=400)
+    full = billings_voon(e, rng.normal(size=400))
+    assert {k for k, v in full.items() if isinstance(v, dict)} == {"phi_ee", "phi_ue", "phi_e_eu", "phi_u2_e",
+                                                                   "phi_u2_e2"}
+    assert full["phi_ee"]["outside_95"] < 0.2        # white noise: about 5 % of the lags outside the band
+    # a coloured residual fails its autocorrelation test
+    coloured = np.convolve(e, np.ones(8) / 8, mode="same")
+    assert billings_voon(coloured, rng.normal(size=400))["phi_ee"]["outside_95"] > 0.1

@@ -128,10 +128,17 @@ def _peaks(freqs, power, floor, n=5, ratio=10.0):
 
 
 def billings_voon(e, u, max_lag=20):
-    """Billings-Voon correlation tests; returns {test: fraction of lags outside the 95 % band, band}."""
+    """Billings-Voon correlation tests; returns {test: fraction of lags outside the 95 % band, band}.
+    A correlation at lag k is a mean over n - k products: the lags go up to a quarter of the samples
+    (at most ``max_lag``); a residual too short for two lags gets no test (only ``band_95`` and ``n``)."""
+    e = np.asarray(e, float)
+    u = np.asarray(u, float)
+    n = e.size
+    max_lag = min(int(max_lag), n // 4)
+    if max_lag < 2:
+        return {"band_95": float("nan"), "n": n}
     e = (e - e.mean()) / (e.std() or 1.0)
     u = (u - u.mean()) / (u.std() or 1.0)
-    n = e.size
     band = 1.96 / math.sqrt(n)
 
     def xc(a, b, lags):
