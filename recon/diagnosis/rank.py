@@ -75,7 +75,7 @@ from recon.output_error.problem import (DIVERGED_RESIDUAL, FD_STEP, get_paramete
                                         parameter_scales, set_parameter)
 from recon.output_error.stopping import stop_for_stages
 from recon.regression.criteria import effective_samples
-from recon.signals import base_motion, response_target
+from recon.signals import base_motion, measured_velocity, response_target
 from recon.diagnosis.settings import DEFAULT_RULE, DEFAULTS, DiagnosisSettings, SignificanceRule
 from recon.threads import fd_map
 from shakerlab.quantities import DISPLACEMENT, VELOCITY, channel_name
@@ -256,8 +256,8 @@ def prepare(run: Run, model: HystereticModel, settings: DiagnosisSettings = DEFA
         x_in = None
         if st.excitation == BASE:
             x_in = st.channels["x_base"] if order == 0 else base_motion(st, order)
-            tip = channel_name("x_tip", st.quantities.get("x_tip", DISPLACEMENT)) if order else "x_tip"
-            floors = {tip: noise_floor(st.measured[tip] if order else st.channels[tip], st.dt),
+            tip = channel_name("x_tip", VELOCITY) if order else "x_tip"
+            floors = {tip: noise_floor(measured_velocity(st) if order else st.channels[tip], st.dt),
                       ("x_base" if order == 0 else channel_name("x_base", VELOCITY)): noise_floor(x_in, st.dt)}
             noise = math.hypot(*(f["std"] for f in floors.values()))
         else:

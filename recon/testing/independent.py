@@ -478,8 +478,12 @@ class _Sim:
         vel = st_tip[1] + phi2 * st_tip[4]
         # the response's acceleration: a central difference of the dense solution (h = 1e-4 / fs: the
         # DOP853 interpolant is smooth within a step, so the difference is exact to ~1e-8 relative)
+        # At the stage's ends the difference is one-sided, inside the stage: the solution does not
+        # continue past them (a central difference there straddled the settle before the stage and
+        # read tens of thousands of m/s^2 at the first sample)
         h = 1e-4 / self.fs
-        (sp, drp), (sm, drm) = (_evaluate(segs, sols, t - tau + hh) for hh in (h, -h))
+        tt = np.clip(t - tau, t0 + h, t1 - h)
+        (sp, drp), (sm, drm) = (_evaluate(segs, sols, tt + hh) for hh in (h, -h))
         acc = ((sp[1] + phi2 * sp[4]) - (sm[1] + phi2 * sm[4])) / (2 * h)
         if self.exc == "base":
             ch = {"x_base": dr[0], "x_tip": (1 + e) * (dr_tip[0] + disp)}
