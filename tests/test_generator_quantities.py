@@ -26,8 +26,15 @@ def test_channels_are_derivatives(rec):
     dt = st["t"][1] - st["t"][0]
     sl = slice(10, -10)
     v, a = d4(st["x_tip"], dt), d4(st["v_tip"], dt)
-    assert np.std((v - st["v_tip"])[sl]) < 1e-4 * np.std(st["v_tip"])
-    assert np.std((a - st["a_tip"])[sl]) < 1e-4 * np.std(st["a_tip"])
+    assert np.std((v - st["v_tip"])[sl]) < 1e-4 * np.std(st["v_tip"][sl])
+    # the Bouc-Wen law's |y'| puts a kink in the acceleration at every velocity reversal, where the
+    # fourth-order difference of the velocity is only first-order accurate: 1.7e-4 measured
+    assert np.std((a - st["a_tip"])[sl]) < 3e-4 * np.std(st["a_tip"][sl])
+    # and no sample at the stage's ends stands out (a central difference that straddled the stage's
+    # start read 3.7e4 m/s^2 there, 1600 times the channel's rms; the rms test above passed on it)
+    for name in rec["stages"]:
+        acc = rec["stages"][name]["a_tip"]
+        assert max(abs(acc[0]), abs(acc[-1])) < 5 * np.std(acc[10:-10]), name
 
 
 def test_noise_in_the_recorded_quantity(rec):
