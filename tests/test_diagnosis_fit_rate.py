@@ -3,7 +3,6 @@ judge on every sample: the same parameters within 0.1 % (and of the truth), the 
 over the whole record."""
 import dataclasses
 
-import numpy as np
 import pytest
 
 from recon.diagnosis import rank

@@ -78,7 +78,7 @@ from recon.regression.criteria import effective_samples
 from recon.signals import base_motion, measured_velocity, response_target
 from recon.diagnosis.settings import DEFAULT_RULE, DEFAULTS, DiagnosisSettings, SignificanceRule
 from recon.threads import fd_map
-from shakerlab.quantities import DISPLACEMENT, VELOCITY, channel_name
+from shakerlab.quantities import VELOCITY, channel_name
 from shakerlab.run_data import BASE, Run, Stage
 
 # the significance rule, the held-out split, the burn-in and the stages' weighting are settings
