@@ -360,9 +360,9 @@ def response_target(stage: Stage):
     sensor's low-frequency noise, a random walk after one integration) never enters the fit. Under
     base excitation the base's motion in the same quantity is taken away: the base channel itself
     when it is recorded in that quantity; a Savitzky-Golay derivative of it when it is recorded
-    lower (the input filter's window, its passband loss undone); under acceleration the model's
-    own input u = -x_base'' (y'' = a_tip + u, consistent with the input the model is driven by);
-    an integral (shakerlab.quantities) only when the base is recorded higher than the tip."""
+    lower (the input filter's window, its passband loss undone); an integral
+    (shakerlab.quantities) when it is recorded higher. An acceleration record is judged in
+    velocity, integrated once (:func:`measured_velocity`, MEASURED_ORDERS)."""
     if response_order(stage) not in MEASURED_ORDERS:
         return None
     return stage.derived("response_target", lambda: _response_target(stage))
@@ -378,7 +378,12 @@ def _response_target(stage: Stage):
 
 def measured_velocity(stage: Stage) -> np.ndarray:
     """The response channel (x_tip, or x under force excitation) as a velocity: as recorded, or an
-    acceleration integrated once with its line removed (shakerlab.quantities.integrate)."""
+    acceleration integrated once with its line removed (shakerlab.quantities.integrate). Made once
+    per stage (Stage.derived): the target and the diagnosis's noise floor both read it."""
+    return stage.derived("measured_velocity", lambda: _measured_velocity(stage))
+
+
+def _measured_velocity(stage: Stage) -> np.ndarray:
     role = "x_tip" if stage.excitation == BASE else "x"
     q = stage.quantities[role]
     x = np.asarray(stage.measured[channel_name(role, q)], float)
@@ -386,13 +391,12 @@ def measured_velocity(stage: Stage) -> np.ndarray:
 
 
 def base_motion(stage: Stage, k: int) -> np.ndarray:
-    """The base's motion x_base^(k) as :func:`response_target` subtracts it."""
+    """The base's motion x_base^(k) (k: 0 or 1, :func:`target_order`) as :func:`response_target`
+    subtracts it."""
     qb = stage.quantities.get("x_base", DISPLACEMENT)
     kb = ORDER[qb]
     if kb == k:
         return stage.channels["x_base"] if kb == 0 else stage.measured[channel_name("x_base", qb)]
-    if k == 2:
-        return -stage_input(stage)
     if kb > k:
         return integrate(stage.measured[channel_name("x_base", qb)], stage.dt, qb)[k]
     f = input_filter(stage, band=False)       # kb = 0, k = 1: the base displacement's derivative
@@ -400,16 +404,14 @@ def base_motion(stage: Stage, k: int) -> np.ndarray:
     return undo_passband_loss(d, stage.dt, f.window, f.order, deriv=1)
 
 
-def base_noise_in_target(stage: Stage, noise: np.ndarray, u_noise: np.ndarray) -> tuple[np.ndarray, bool]:
-    """What white noise ``noise`` on the base channel (and ``u_noise``, the same noise through the
-    input filter) puts into the fitted target (y, or :func:`response_target`), with its sign, and
-    whether it is that channel's own white noise (then it is part of the target's white floor)."""
+def base_noise_in_target(stage: Stage, noise: np.ndarray) -> tuple[np.ndarray, bool]:
+    """What white noise ``noise`` on the base channel puts into the fitted target (y, or
+    :func:`response_target`), with its sign, and whether it is that channel's own white noise (then
+    it is part of the target's white floor)."""
     k = target_order(stage) or 0
     kb = ORDER[stage.quantities.get("x_base", DISPLACEMENT)]
     if k == kb:
         return -noise, True
-    if k == 2:
-        return u_noise, False
     f = input_filter(stage, band=False)
     if kb == 0:
         d = derivatives(noise, stage.dt, f.window, f.order, 1)[1]

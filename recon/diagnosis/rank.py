@@ -693,22 +693,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
                             max_nfev=max_nfev, xtol=1e-10, ftol=1e-10, workers=fd_map(), callback=stop)
         p = sol.x
         cost = float(sol.fun @ sol.fun)
-        stderr = {}
-        try:
-            if not scored:
-                raise ValueError("a screen takes no standard errors")
-            J = sol.jac
-            if not np.all(np.any(J != 0.0, axis=0)):
-                # a column of zeros in the solver's last Jacobian (seen with friction's mu and v0
-                # after a bounded fit ended on its evaluation limit) would give that parameter a
-                # zero standard error: the Jacobian is taken again at the solution
-                J = _forward_jacobian(resid, p, sol.fun, hi)
-            dof = max(sol.fun.size - len(keys), 1)
-            s2 = cost / dof
-            cov = np.linalg.pinv(J.T @ J) * s2
-            stderr = {k: float(math.sqrt(max(cov[i, i], 0.0)) * sc[i]) for i, k in enumerate(keys)}
-        except (np.linalg.LinAlgError, ValueError):
-            stderr = {}
+        stderr = {} if not scored else _standard_errors(sol, keys, sc, cost, resid, p, hi)
     else:
         p = p0
         r = resid(p0)
@@ -729,6 +714,23 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
     return FitResult(model=m, cost_fit=cost / max(len([d for d in data if d.fit.any()]), 1), mse_held=mse,
                      nrmse=nrmse_per_stage(m, data, sims), nrmse_held=nh, n_held=int(rh.size), resid_held=rh,
                      stderr=stderr, seconds=time.perf_counter() - t0, sims=sims)
+
+
+def _standard_errors(sol, keys: list[str], sc: np.ndarray, cost: float, resid, p: np.ndarray,
+                     hi: np.ndarray) -> dict:
+    """Each fitted key's standard error from the solver's last Jacobian ({} where it is singular)."""
+    try:
+        J = sol.jac
+        if not np.all(np.any(J != 0.0, axis=0)):
+            # a column of zeros in the solver's last Jacobian (seen with friction's mu and v0
+            # after a bounded fit ended on its evaluation limit) would give that parameter a
+            # zero standard error: the Jacobian is taken again at the solution
+            J = _forward_jacobian(resid, p, sol.fun, hi)
+        dof = max(sol.fun.size - len(keys), 1)
+        cov = np.linalg.pinv(J.T @ J) * (cost / dof)
+        return {k: float(math.sqrt(max(cov[i, i], 0.0)) * sc[i]) for i, k in enumerate(keys)}
+    except (np.linalg.LinAlgError, ValueError):
+        return {}
 
 
 def _forward_jacobian(resid, p: np.ndarray, f0: np.ndarray, hi: np.ndarray) -> np.ndarray:

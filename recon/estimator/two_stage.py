@@ -136,7 +136,7 @@ class TwoStages:
                 if not np.all(np.isfinite(ys)):
                     return float("inf")
                 if st.excitation == BASE:     # y_meas carries -n_base: the residual gets +n_base
-                    carried, own = base_noise_in_target(st, nb, un)
+                    carried, own = base_noise_in_target(st, nb)
                     e = ys - base - carried[::q]
                     share.append((float(np.mean(e ** 2)) - (f.noise_std ** 2 if own else 0.0)) / sd ** 2)
                 else:
