@@ -21,7 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import signal
 
 from shakerlab.errors import UserFacingError
 
@@ -81,6 +80,7 @@ def free_decay_backbone(t, y, f_mode: float, t_from: float | None = None, t_to: 
     if t.size * dt <= 2 * edge + w * dt:
         raise UserFacingError(f"backbone: the record ({t.size * dt:.3g} s) is too short for a mode at {f_mode:g} Hz "
                               f"(needs more than {2 * edge + w * dt:.3g} s)")
+    from scipy import signal  # heavy: scipy.signal costs ~0.4 CPU-s to import; only this path needs it
     sos = signal.butter(4, [f_mode * (1 - band), f_mode * (1 + band)], btype="bandpass", fs=fs, output="sos")
     yb = signal.sosfiltfilt(sos, y - np.mean(y))
     a = signal.hilbert(yb)

@@ -24,7 +24,8 @@ from functools import lru_cache
 
 import numpy as np
 import scipy.fft
-from scipy.signal import savgol_coeffs, savgol_filter
+import scipy.linalg
+from scipy.ndimage import convolve1d
 
 from shakerlab.errors import UserFacingError
 
@@ -80,6 +81,78 @@ def estimate_spectrum(x: np.ndarray, dt: float) -> SpectrumEstimate:
     idx = np.flatnonzero(sig)
     bw = float(f[idx[-1]]) if idx.size else 0.0
     return SpectrumEstimate(float(np.sqrt(max(noise_var, 0.0))), bw, f[idx], power[idx])
+
+
+# ---------------------------------------------------------------- Savitzky-Golay coefficients and filter
+# The two functions below compute what scipy.signal.savgol_coeffs (use 'conv' / 'dot', pos at the
+# window's centre) and savgol_filter (mode 'interp') compute, by the same least squares, so that
+# reconstruct does not import scipy.signal, whose import alone costs about 0.4 CPU-s per process
+# (tests/test_differentiation_savgol.py compares the two on many windows).
+
+def savgol_coeffs(window: int, order: int, deriv: int = 0, delta: float = 1.0, use: str = "conv") -> np.ndarray:
+    """The Savitzky-Golay filter of odd or even length ``window``, polynomial ``order``, for the
+    ``deriv``-th derivative at sampling step ``delta``: the least-squares polynomial of the window's
+    samples, evaluated at its centre. ``use='conv'`` for a convolution, ``'dot'`` for a dot product
+    with the samples in order."""
+    if order >= window:
+        raise ValueError(f"Savitzky-Golay order {order} must be less than the window {window}")
+    if use not in ("conv", "dot"):
+        raise ValueError(f"use must be 'conv' or 'dot', not {use!r}")
+    halflen, rem = divmod(window, 2)
+    pos = halflen if rem else halflen - 0.5
+    if deriv > order:
+        return np.zeros(window)
+    x = np.arange(-pos, window - pos, dtype=np.float64)
+    if use == "conv":
+        x = x[::-1]
+    A = x ** np.arange(order + 1).reshape(-1, 1)
+    y = np.zeros(order + 1)
+    y[deriv] = math.factorial(deriv) / (delta ** deriv)
+    rcond = np.finfo(np.float64).eps * max(A.shape[-1], A.shape[-2])
+    return scipy.linalg.lstsq(A, y, cond=rcond)[0]
+
+
+def _edge_values(x: np.ndarray, start: int, stop: int, interp_start: int, interp_stop: int, order: int,
+                 deriv: int, delta: float) -> np.ndarray:
+    """The ``deriv``-th derivative of the least-squares polynomial through x[start:stop], at the
+    samples interp_start..interp_stop (as savgol_filter's 'interp' mode fills a record's ends)."""
+    edge = x[start:stop]
+    t = np.arange(0, stop - start, dtype=x.dtype)
+    powers = np.flip(np.arange(order + 1, dtype=t.dtype))
+    lhs = t[:, None] ** powers[None, :]
+    scale = np.sqrt(np.sum(lhs * lhs, axis=0))
+    lhs /= scale
+    c = scipy.linalg.lstsq(lhs, edge, cond=t.shape[0] * np.finfo(t.dtype).eps)[0]
+    c = (c.T / scale).T
+    if deriv > 0:               # the polynomial's derivative, highest power first
+        n = c.shape[0]
+        if n <= deriv:
+            c = np.zeros_like(c[:1])
+        else:
+            c = c[:-deriv].copy()
+            for k in range(deriv):
+                c *= np.arange(n - k - 1, deriv - k - 1, -1, dtype=c.dtype)
+    i = np.arange(interp_start - start, interp_stop - start, dtype=c.dtype)
+    values = np.zeros_like(i)
+    for cj in c:
+        values = values * i + cj
+    return values / (delta ** deriv)
+
+
+def savgol_filter(x: np.ndarray, window: int, order: int, deriv: int = 0, delta: float = 1.0) -> np.ndarray:
+    """The Savitzky-Golay smoothed ``deriv``-th derivative of ``x`` (1-D), the ends filled from the
+    polynomial fitted to the first and the last ``window`` samples (savgol_filter's mode 'interp')."""
+    x = np.asarray(x)
+    if x.dtype != np.float64 and x.dtype != np.float32:
+        x = x.astype(np.float64)
+    if window > x.shape[0]:
+        raise ValueError(f"Savitzky-Golay window {window} is longer than the record ({x.shape[0]} samples)")
+    y = convolve1d(x, savgol_coeffs(window, order, deriv=deriv, delta=delta), mode="constant")
+    half = window // 2
+    n = x.shape[0]
+    y[0:half] = _edge_values(x, 0, window, 0, half, order, deriv, delta)
+    y[n - half:n] = _edge_values(x, n - window, n, n - half, n, order, deriv, delta)
+    return y
 
 
 @lru_cache(maxsize=4096)
@@ -192,7 +265,7 @@ def choose_window(channels: dict[str, np.ndarray], dt: float, deriv: int = 3, wi
 
 def derivatives(x: np.ndarray, dt: float, window: int, order: int, max_deriv: int = 3) -> list[np.ndarray]:
     """[x_smooth, x', ..., x^(max_deriv)] with one Savitzky-Golay filter."""
-    return [savgol_filter(x, window, order, deriv=d, delta=dt, mode="interp") for d in range(max_deriv + 1)]
+    return [savgol_filter(x, window, order, deriv=d, delta=dt) for d in range(max_deriv + 1)]
 
 
 @lru_cache(maxsize=4096)

@@ -17,7 +17,6 @@ acceleration, not a drive).
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import lfilter, lfilter_zi
 
 
 def drive_force(u: np.ndarray, dt: float, u2: float = 0.0, hp: float = 0.0) -> np.ndarray:
@@ -29,6 +28,7 @@ def drive_force(u: np.ndarray, dt: float, u2: float = 0.0, hp: float = 0.0) -> n
     hp = abs(float(hp))
     if hp == 0.0:
         return f
+    from scipy.signal import lfilter, lfilter_zi  # heavy: scipy.signal costs ~0.4 CPU-s to import; only this path needs it
     k = 2.0 / dt
     b = np.array([k, -k]) / (k + hp)
     a = np.array([1.0, (hp - k) / (k + hp)])

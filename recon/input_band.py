@@ -41,7 +41,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage, stats
+from scipy import ndimage
+from scipy.special import chdtri, gammaincinv
 from scipy.fft import dct
 
 MIN_SAMPLES = 256
@@ -49,7 +50,7 @@ SLOPE_SIGNIFICANCE = 4.0      # an end slope within this many of its noise std c
 SMOOTH = 5                    # coefficients averaged for the band decision
 FALSE_ALARM = 0.01            # over the whole series
 GROW_FACTOR = 3.0             # the band grows into neighbours above this many times the floor
-MEDIAN_CHI2_1 = float(stats.chi2.median(1))
+MEDIAN_CHI2_1 = float(2.0 * gammaincinv(0.5, 0.5))     # the chi-square's (one degree) median
 
 
 def _edge_derivatives(x: np.ndarray, window: int, order: int, noise_std: float) -> tuple[float, ...]:
@@ -119,7 +120,7 @@ def band_top(x: np.ndarray, window: int, order: int, noise_std: float) -> tuple[
     if not floor > 0.0:
         return None, "no noise floor"
     p = ndimage.uniform_filter1d(c2, SMOOTH, mode="nearest")
-    seeds = p > floor * stats.chi2.isf(FALSE_ALARM / n, SMOOTH) / SMOOTH
+    seeds = p > floor * chdtri(SMOOTH, FALSE_ALARM / n) / SMOOTH
     grown = (p > GROW_FACTOR * floor) | seeds
     labels, _ = ndimage.label(grown)
     keep = np.unique(labels[seeds])

@@ -18,9 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import savgol_coeffs
 
-from recon.differentiation import (choose_window, derivatives, estimate_spectrum, stable_coefficients,
+from recon.differentiation import (choose_window, derivatives, estimate_spectrum, savgol_coeffs, stable_coefficients,
                                    stable_derivatives, undo_passband_loss)
 from recon.input_band import BandLimit
 from shakerlab.quantities import (CONTINUOUS, DISPLACEMENT, ORDER, VELOCITY, channel_name, integrate,

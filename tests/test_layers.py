@@ -170,6 +170,21 @@ def test_importing_recon_loads_no_application_code():
     assert out.stdout.strip() == "[]", out.stdout
 
 
+def test_the_command_line_does_not_import_scipy_signal_or_stats():
+    """scipy.signal and scipy.stats cost about 0.4 CPU-s each to import (most of a short command's
+    start-up): the library computes its Savitzky-Golay filters, its Welch spectra and its quantiles
+    itself (recon.differentiation, recon.welch, scipy.special), and the few paths that need a
+    scipy.signal filter import it where they run. A fresh interpreter that loads recon and the
+    command line has loaded neither."""
+    import subprocess
+    import sys
+
+    code = ("import sys, recon, shakerlab.cli, workflows.handlers; "
+            "print(sorted(m for m in ('scipy.signal', 'scipy.stats') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
+
+
 def test_no_test_imports_bench():
     """The tests import the library (recon.testing holds the stress recordings and rows) and their
     own helpers, never a bench script: nothing under tests/ imports a module of bench/ or puts

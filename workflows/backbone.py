@@ -6,7 +6,7 @@ import json
 import math
 
 import numpy as np
-from scipy.signal import welch
+from recon.welch import welch
 
 from recon.backbone import free_decay_backbone
 from recon.model import HystereticModel

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from scipy.signal import welch
+from recon.welch import welch
 
 from recon.diagnosis import rank
 from recon.diagnosis.locate import equation_residual, stage_derivatives

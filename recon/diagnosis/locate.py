@@ -16,10 +16,10 @@ import math
 
 import numpy as np
 from numba import njit
-from scipy.signal import cont2discrete, lfilter, welch
 
 from recon.diagnosis.settings import DEFAULTS, DiagnosisSettings
 from recon.signals import stage_signals
+from recon.welch import welch
 from shakerlab.run_data import BASE
 
 UNITS = {
@@ -162,6 +162,7 @@ def billings_voon(e, u, max_lag=20):
 
 def mode_response(u, dt, w, zeta, g=1.0):
     """q of q'' + 2 zeta w q' + w^2 q = g u (bilinear discretisation, from rest)."""
+    from scipy.signal import cont2discrete, lfilter  # heavy: scipy.signal costs ~0.4 CPU-s to import; only this path needs it
 
     num, den, _ = cont2discrete(([g], [1.0, 2 * zeta * w, w * w]), dt, method="bilinear")
     return lfilter(np.ravel(num), den, u)
@@ -170,6 +171,7 @@ def mode_response(u, dt, w, zeta, g=1.0):
 def mode_response_to_motion(y, dt, w, zeta):
     """q of q'' + 2 zeta w q' + w^2 q = -y'' from the displacement y itself (the transfer
     -s^2 / (s^2 + 2 zeta w s + w^2), bilinear, from rest): y is not differentiated."""
+    from scipy.signal import cont2discrete, lfilter  # heavy: scipy.signal costs ~0.4 CPU-s to import; only this path needs it
 
     num, den, _ = cont2discrete(([-1.0, 0.0, 0.0], [1.0, 2 * zeta * w, w * w]), dt, method="bilinear")
     return lfilter(np.ravel(num), den, y)

@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.stats import norm
+from scipy.special import ndtri
 
 from recon.diagnosis.settings import DEFAULT_RULE
 # ``level`` below: the chance, over every held-out stage of a record, that the noise alone makes a
@@ -38,7 +38,7 @@ from recon.diagnosis.settings import DEFAULT_RULE
 
 def stage_band_z(n_stages: int, level: float = DEFAULT_RULE.stage_level) -> float:
     """The one-sided normal quantile of ``level`` shared among ``n_stages`` stages."""
-    return float(norm.isf(level / max(int(n_stages), 1)))
+    return float(-ndtri(level / max(int(n_stages), 1)))   # the normal's upper quantile
 
 
 def held_stage_figures(given, cand, data, level: float = DEFAULT_RULE.stage_level) -> dict:

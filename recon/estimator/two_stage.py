@@ -45,8 +45,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import welch
-from scipy.stats import chi2
+from scipy.special import chdtri
 
 from recon.differentiation import estimate_spectrum
 from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, with_term_scales
@@ -57,6 +56,7 @@ from recon.model import HystereticModel
 from recon.output_error.polish import decimate, polish
 from recon.output_error.problem import OutputError, item_target, measured_error
 from recon.signals import base_noise_in_target, input_filter, response_target
+from recon.welch import welch
 from shakerlab.run_data import BASE, Run, Stage
 
 
@@ -203,7 +203,7 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
         return with_record(model)
     rms = float(np.std(item_target(items[1])[1])) or 1.0
     p = len(OutputError(model, [items[1]]).keys)
-    limit = float(chi2.isf(s.tuning.joint_false_alarm, p))
+    limit = float(chdtri(p, s.tuning.joint_false_alarm))   # the chi-square's upper quantile
 
     last = {}     # the nonlinear stage's cost under the model rise() saw last, for the record at the end
 

@@ -21,7 +21,6 @@ that rate, output low-pass filtered and decimated back):
 from __future__ import annotations
 
 import numpy as np
-from scipy import signal
 
 from shakerlab.errors import UserFacingError
 
@@ -73,6 +72,7 @@ def _interp_filter(r: int, half_len_in: int = 48) -> np.ndarray:
     n_taps = 2 * half_len_in * r + 1
     # beta 10 gives ~ -100 dB stop band; the transition is ~ 2 * 6.4 / half_len_in of the
     # input Nyquist wide, so the pass band is flat well past 40 % of it.
+    from scipy import signal  # heavy: scipy.signal costs ~0.4 CPU-s to import; only this path needs it
     return signal.firwin(n_taps, 1.0 / r, window=("kaiser", 10.0))
 
 
@@ -88,6 +88,7 @@ def upsample_polyphase(x, r: int) -> np.ndarray:
     r = _check_factor(r, "upsample_polyphase")
     if r == 1:
         return x.copy()
+    from scipy import signal  # heavy: scipy.signal costs ~0.4 CPU-s to import; only this path needs it
     return signal.resample_poly(x, r, 1, window=_interp_filter(r), padtype="constant")
 
 
@@ -98,6 +99,7 @@ def upsample(x, r: int, periodic: bool) -> np.ndarray:
 
 def fir1_lowpass(order: int, cutoff: float) -> np.ndarray:
     """MATLAB ``fir1(order, cutoff)``: Hamming window, unit DC gain, cutoff re Nyquist."""
+    from scipy import signal  # heavy: scipy.signal costs ~0.4 CPU-s to import; only this path needs it
     return signal.firwin(order + 1, cutoff, window="hamming", scale=True)
 
 

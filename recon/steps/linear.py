@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from scipy.signal import find_peaks
 
 from shakerlab.errors import EstimateRefused, UserFacingError
 from shakerlab.run_data import BASE
@@ -86,6 +85,7 @@ def count_lines(freqs: np.ndarray, df: float, power: np.ndarray | None = None) -
     grid = np.arange(k[0] - 1, k[-1] + 2)
     dense = np.interp(grid, k, p)
     dense[0], dense[-1] = p[0] - 1.0, p[-1] - 1.0          # a valley beyond each end
+    from scipy.signal import find_peaks  # heavy: scipy.signal costs ~0.4 CPU-s to import; only this path needs it
     peaks, _ = find_peaks(dense, prominence=1.0)
     # a broadband input (a chirp, noise) has no peaks but many independent lines: its bins within
     # 10 dB of the strongest, per Hann main lobe (4 bins)

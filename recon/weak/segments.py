@@ -51,9 +51,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import sparse
-from scipy.signal import savgol_coeffs
 
-from recon.differentiation import estimate_spectrum
+from recon.differentiation import estimate_spectrum, savgol_coeffs
 from recon.library import monomials
 from recon.library.agent import AgentLibrary, phi
 from recon.regression.sparse import GroupedSparseSelector
