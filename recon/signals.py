@@ -257,8 +257,8 @@ def stage_input(stage: Stage, band: bool = True) -> np.ndarray:
 
 def edge_fit(size: int, window: int, order: int) -> tuple[int, int, np.ndarray]:
     """The edge of a stage for its start-state estimates: the samples looked at (at most four
-    windows), the odd window that fits in them, and the pseudo-inverse P of the polynomial fit over
-    the first w samples on x = 0..1 (coefficient j at the first sample: (P @ x)[j] / ((w-1) dt)^j;
+    windows), the odd window that fits in them, and the pseudo-inverse pinv of the polynomial fit over
+    the first w samples on x = 0..1 (coefficient j at the first sample: (pinv @ x)[j] / ((w-1) dt)^j;
     scipy's savgol_coeffs(pos=0) loses accuracy for long windows, hence the own fit)."""
     n = min(size, 4 * window)
     w = min(window, n - (1 - n % 2))
@@ -276,11 +276,11 @@ def start_derivatives(stage: Stage) -> tuple[float, float, float, float, float, 
 def _start_derivatives(stage: Stage) -> tuple[float, float, float, float, float, float]:
     y = stage.y
     ch = choose_window({"y": y}, stage.dt, deriv=2, for_regression=False)
-    n, w, P = edge_fit(y.size, ch.window, ch.order)
+    n, w, pinv = edge_fit(y.size, ch.window, ch.order)
     d = derivatives(y[:n], stage.dt, w, ch.order, 2)
     sigma = ch.noise_level["y"]
-    # y'(0) of the least-squares polynomial over the first w samples: weights P[1]/((w-1) dt)
-    sig_v = sigma * float(np.linalg.norm(P[1])) / ((w - 1) * stage.dt)
+    # y'(0) of the least-squares polynomial over the first w samples: weights pinv[1]/((w-1) dt)
+    sig_v = sigma * float(np.linalg.norm(pinv[1])) / ((w - 1) * stage.dt)
     v_rms = float(np.sqrt(np.mean(derivatives(y, stage.dt, ch.window, ch.order, 1)[1] ** 2)))
     return d[0][0], d[1][0], d[2][0], sigma, sig_v, v_rms
 
@@ -313,10 +313,10 @@ def _continuous_velocity_start(stage: Stage):
     v = {r: stage.measured[channel_name(r, VELOCITY)] for r in roles}
     vel = v["x_tip"] - v["x_base"] if stage.excitation == BASE else v["x"]
     ch = choose_window({"v": vel}, stage.dt, deriv=1, for_regression=False, coefficients=stable_coefficients)
-    _, w, P = edge_fit(vel.size, ch.window, ch.order)
-    c = P @ vel[:w]
+    _, w, pinv = edge_fit(vel.size, ch.window, ch.order)
+    c = pinv @ vel[:w]
     v0, a0 = float(c[0]), float(c[1] / ((w - 1) * stage.dt))
-    sig_v = ch.noise_level["v"] * float(np.linalg.norm(P[0]))
+    sig_v = ch.noise_level["v"] * float(np.linalg.norm(pinv[0]))
     v_rms = float(np.sqrt(np.mean(vel ** 2)))
     y0 = float(stage.y[0])
     if abs(v0) < 0.05 * v_rms or abs(v0) < 4 * sig_v:
@@ -428,7 +428,7 @@ def target_edge(stage: Stage) -> tuple[float, float, float, float]:
 def _target_edge(stage: Stage):
     _, x = response_target(stage)
     ch = choose_window({"x": x}, stage.dt, deriv=1, for_regression=False, coefficients=stable_coefficients)
-    _, w, P = edge_fit(x.size, ch.window, ch.order)
-    c = P @ x[:w]
-    sig = ch.noise_level["x"] * float(np.linalg.norm(P[0]))
+    _, w, pinv = edge_fit(x.size, ch.window, ch.order)
+    c = pinv @ x[:w]
+    sig = ch.noise_level["x"] * float(np.linalg.norm(pinv[0]))
     return float(c[0]), float(c[1] / ((w - 1) * stage.dt)), sig, float(np.sqrt(np.mean(x ** 2)))

@@ -11,7 +11,8 @@ from recon.diagnosis.candidates.base import Candidate
 from recon.diagnosis.catalog import AMPLITUDE_DEPENDENT, CATALOG, SIGNATURES
 from recon.diagnosis.diagnose import diagnose
 from recon.model import PARAMETER_NAMES
-from recon.output_error.problem import get_parameter
+from recon.output_error.problem import get_parameter, set_parameter
+from recon.simulation.rk4 import P_NAMES
 from recon.testing.concealed import concealed_run, effect_truth
 from shakerlab.run_data import FORCE
 
@@ -29,6 +30,15 @@ def known_key(key: str) -> bool:
     if key.startswith("x:"):
         return key[2:] in EXTRAS
     return key in MODEL_KEYS
+
+
+def kernel_slots_moved(m: AugmentedModel, key: str) -> set:
+    """The slots of the simulation kernel's parameter vector that moving ``key`` of ``m`` changes."""
+    value = get_parameter(m, key)
+    moved = m.copy()
+    set_parameter(moved, key, -value if value != 0.0 else 1.0)
+    before, after = m.kernel_vector(), moved.kernel_vector()
+    return {name for name, a, b in zip(P_NAMES, before, after) if a != b}
 
 
 @pytest.fixture(scope="module")
@@ -52,6 +62,8 @@ def test_a_candidate_declares_what_it_adds_and_how_it_is_fitted(cid, context):
     assert cand.explanation and cand.adds and cand.simulated
     assert cand.parameters and all(known_key(k) for k in cand.parameters), cand.parameters
     assert set(cand.signature) <= FINDING_KINDS, cand.signature
+    # its contribution to the simulation kernel: slots of its parameter vector, by name
+    assert set(cand.kernel) <= set(P_NAMES) and len(set(cand.kernel)) == len(cand.kernel), cand.kernel
     baseline, ctx = context
     base = baseline
     if not cand.applies(base, ctx):
@@ -67,6 +79,10 @@ def test_a_candidate_declares_what_it_adds_and_how_it_is_fitted(cid, context):
         assert isinstance(m, AugmentedModel) and cid in m.added
         assert keys and all(known_key(k) for k in keys), keys
         assert all(k in keys for k in scales) and all(v > 0 and math.isfinite(v) for v in scales.values())
+        # the kernel slots its parameters (free, reported, or fitted once per value) set are declared
+        moved = set().union(*(kernel_slots_moved(m, k) for k in {*keys, *cand.parameters,
+                                                                 *([f"x:{cand.fit_each}"] if cand.fit_each else [])}))
+        assert moved <= set(cand.kernel), (sorted(moved), cand.kernel)
         for k, (lo, hi) in bounds.items():
             assert k in keys and lo < hi and lo <= get_parameter(m, k) <= hi, (k, lo, hi, get_parameter(m, k))
     if cand.admissible_starts is not None:

@@ -368,3 +368,41 @@ def test_no_test_monkeypatches_a_recon_module():
             if hit and (rel.as_posix(), attr) not in RECON_PATCHES_KEPT:
                 bad.append(f"{rel}:{node.lineno} {ast.unparse(node)[:100]}")
     assert not bad, "tests replace recon parts:\n" + "\n".join(bad)
+
+
+def _p_literal_indices(tree: ast.AST) -> list[int]:
+    """Lines where a name ``P`` is indexed by an integer literal (P[6], P[-1], P[:6])."""
+    def literal(node) -> bool:
+        if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
+            node = node.operand
+        return isinstance(node, ast.Constant) and type(node.value) is int
+
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Subscript) and isinstance(node.value, ast.Name) and node.value.id == "P":
+            idx = node.slice
+            parts = [idx.lower, idx.upper, idx.step] if isinstance(idx, ast.Slice) else [idx]
+            if any(part is not None and literal(part) for part in parts):
+                out.append(node.lineno)
+    return out
+
+
+RK4 = "recon.simulation.rk4"
+
+
+def test_the_kernel_parameter_vector_is_indexed_by_name_outside_the_kernel():
+    """The simulation kernel's parameter vector is laid out once (rk4.P_NAMES): outside rk4.py it is
+    built by name (rk4.kernel_parameters) and never indexed by a position."""
+    bad = [f"{mod}:{line} indexes P by a position"
+           for mod, path in MODULES.items() if mod.split(".")[0] == "recon" and mod != RK4
+           for line in _p_literal_indices(ast.parse(path.read_text(encoding="utf-8")))]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_kernels_read_their_parameter_vector_by_named_indices():
+    """rk4's kernels read P through its named indices (I_MU, ...: compile-time constants), no literal."""
+    tree = ast.parse(MODULES[RK4].read_text(encoding="utf-8"))
+    assert not _p_literal_indices(tree), f"{RK4} indexes P by a position at lines {_p_literal_indices(tree)}"
+    named = [n for n in ast.walk(tree) if isinstance(n, ast.Subscript) and isinstance(n.value, ast.Name)
+             and n.value.id == "P" and isinstance(n.slice, ast.Name) and n.slice.id.startswith("I_")]
+    assert named, "the kernels' named reads of P were not found (the check reads nothing)"

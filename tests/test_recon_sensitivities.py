@@ -5,9 +5,7 @@ the differences' own truncation error. The states are the plain kernel's, to the
 import numpy as np
 import pytest
 
-from recon.simulation.rk4 import P_NAMES, simulate_extended, simulate_sensitivities
-
-N_P = len(P_NAMES)
+from recon.simulation.rk4 import I_C, I_SIDE, N_P, P_NAMES, kernel_parameters, simulate_extended, simulate_sensitivities
 
 
 def record(n=3000, dt=1e-3, seed=0):
@@ -18,15 +16,16 @@ def record(n=3000, dt=1e-3, seed=0):
 
 # every extra switched on (friction, quadratic damping, a contact that the motion reaches, a stiffness
 # drift and a higher mode driven through the measured point's acceleration), two fn terms
-P = np.array([1.0, 2.0, 2000.0, 1500.0, 300.0, 100.0, 0.3, 0.01, 5.0, 3000.0, 0.003, 1.0, 0.01, 400.0, 0.03,
-              0.2, 1.0])
+PLAIN = dict(g=1.0, c=2.0, k=2000.0, alpha=1500.0, gamma=300.0, delta=100.0)
+P = kernel_parameters(**PLAIN, mu=0.3, v0=0.01, c2=5.0, kc=3000.0, gap=0.003, side=1.0, drift=0.01, w2=400.0,
+                      zeta2=0.03, drive2=0.2, gu2=1.0)
 COEF, PE, RE = np.array([1e6, 50.0]), np.array([3, 2]), np.array([0, 1])
 
 
 @pytest.mark.parametrize("n_sub", [1, 2])
 def test_sensitivities_are_the_derivatives_of_the_simulation(n_sub):
     u, dt = record()
-    cols = np.array([c for c in range(N_P + COEF.size) if c != P_NAMES.index("side")])   # side: a sign, no derivative
+    cols = np.array([c for c in range(N_P + COEF.size) if c != I_SIDE])   # side: a sign, no derivative
     S0 = np.zeros((5, cols.size))
     states, sy, sq = simulate_sensitivities(u, 0.0, dt, n_sub, P, COEF, PE, RE, 0.0, 0.0, 0.0, cols, S0)
     plain = simulate_extended(u, 0.0, dt, n_sub, P, COEF, PE, RE, 0.0, 0.0, 0.0)
@@ -50,18 +49,26 @@ def test_initial_sensitivities_are_carried():
     """A start state that depends on a parameter (z0 from the equation of motion) enters through S0:
     d/dc of a run started at z0 = -c v0 equals the run's sensitivity with S0[z] = -v0."""
     u, dt = record(n=1500)
-    P1 = P.copy()
-    P1[6:] = 0.0
-    P1[7], P1[11] = 1.0, 1.0
+    P1 = kernel_parameters(**PLAIN)
     v0 = 0.02
-    cols = np.array([1])
+    cols = np.array([I_C])
     S0 = np.zeros((5, 1))
     S0[2, 0] = -v0
-    _, sy, _ = simulate_sensitivities(u, 0.0, dt, 1, P1, COEF, PE, RE, 0.0, v0, -P1[1] * v0, cols, S0)
-    h = 1e-6 * P1[1]
-    P2 = P1.copy()
-    P2[1] += h
-    a = simulate_extended(u, 0.0, dt, 1, P1, COEF, PE, RE, 0.0, v0, -P1[1] * v0)[0]
-    b = simulate_extended(u, 0.0, dt, 1, P2, COEF, PE, RE, 0.0, v0, -P2[1] * v0)[0]
+    _, sy, _ = simulate_sensitivities(u, 0.0, dt, 1, P1, COEF, PE, RE, 0.0, v0, -P1[I_C] * v0, cols, S0)
+    h = 1e-6 * P1[I_C]
+    P2 = kernel_parameters(**{**PLAIN, "c": PLAIN["c"] + h})
+    a = simulate_extended(u, 0.0, dt, 1, P1, COEF, PE, RE, 0.0, v0, -P1[I_C] * v0)[0]
+    b = simulate_extended(u, 0.0, dt, 1, P2, COEF, PE, RE, 0.0, v0, -P2[I_C] * v0)[0]
     fd = (b - a) / h
     assert np.max(np.abs(sy[:, 0] - fd)) < 1e-4 * np.max(np.abs(fd))
+
+
+def test_the_parameter_vector_is_built_by_name():
+    """kernel_parameters: every slot by its P_NAMES name, v0 and side 1 unless given, the rest 0;
+    an unknown name is refused with its name."""
+    P = kernel_parameters(mu=0.5, gu2=2.0)
+    assert P.shape == (N_P,) and P[P_NAMES.index("mu")] == 0.5 and P[P_NAMES.index("gu2")] == 2.0
+    assert {n for n, v in zip(P_NAMES, P) if v != 0.0} == {"mu", "gu2", "v0", "side"}
+    assert P[P_NAMES.index("v0")] == 1.0 and P[I_SIDE] == 1.0
+    with pytest.raises(ValueError, match="'friction'"):
+        kernel_parameters(mu=0.5, friction=1.0)

@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.model import HystereticModel, finite_number
-from recon.simulation.rk4 import simulate_extended, substeps
+from recon.simulation.rk4 import P_NAMES, kernel_parameters, simulate_extended, substeps
 from shakerlab.errors import UserFacingError
 from shakerlab.output_files import check_output, write_text
 from shakerlab.run_data import BASE, Stage
@@ -64,6 +64,9 @@ EXTRAS = {
     "drive2": (0.0, "-", "what drives the higher mode: 0 the input (a structural mode), 1 the measured "
                          "point's absolute acceleration (a resonance riding on it)"),
 }
+# the extras that are slots of the simulation kernel's parameter vector (recon.simulation.rk4.P_NAMES,
+# the same name): they reach it by that name (AugmentedModel.kernel_vector); the others act on the reading
+KERNEL_EXTRAS = tuple(name for name in EXTRAS if name in P_NAMES)
 
 
 def shift(x: np.ndarray, delay: float, dt: float) -> np.ndarray:
@@ -105,6 +108,24 @@ class AugmentedModel:
         base.provenance = dict(base.provenance)
         return AugmentedModel(base, dict(self.extras), list(self.added))
 
+    def friction_v0(self) -> float:
+        """The friction's smoothing velocity as simulated: v0, 1e-4 m/s where friction is on without one."""
+        v0 = self.get("v0")
+        return 1e-4 if self.get("mu") != 0.0 and v0 <= 0.0 else v0
+
+    def kernel_vector(self) -> np.ndarray:
+        """The simulation kernel's parameter vector (recon.simulation.rk4.kernel_parameters), slot
+        by name: the baseline's input gain, linear and Bouc-Wen parameters and the extras that are
+        kernel slots (KERNEL_EXTRAS), v0 as simulated (1 with friction off), the contact's side
+        as a sign and the higher mode's share of the input, gu2 (module docstring)."""
+        m = self.baseline
+        named = {name: self.get(name) for name in KERNEL_EXTRAS}
+        named["v0"] = self.friction_v0() or 1.0
+        named["side"] = 1.0 if named["side"] >= 0 else -1.0
+        named["gu2"] = 1.0 if m.excitation == BASE else 1.0 - named["drive2"]
+        return kernel_parameters(g=m.input_gain, c=m.c_m, k=m.k_m, alpha=m.alpha_m, gamma=m.gamma, delta=m.delta,
+                                 **named)
+
     # --------------------------------------------------------------- simulation
     def simulate(self, t: np.ndarray, u: np.ndarray, x_in: np.ndarray | None = None, initial=None,
                  dt: float | None = None, order: int = 0):
@@ -125,19 +146,14 @@ class AugmentedModel:
         u = m.drive(np.asarray(u, float), dt)        # the exciter's force, when the baseline models one
         coef, p, r = m.fn_arrays()
         mu = self.get("mu")
-        v0 = self.get("v0")
-        if mu != 0.0 and v0 <= 0.0:
-            v0 = 1e-4
+        v0 = self.friction_v0()
         w2 = self.get("w2")
         stiff = max(abs(m.K_m), abs(m.k_m), 1.0, abs(self.get("kc")) + abs(m.K_m))
         n_sub = max(substeps(dt, stiff), substeps(dt, w2 ** 2, 20))   # the extra mode is linear: 20 steps/period
         if mu != 0.0:   # keep h * mu / v0 (the friction's local damping) inside RK4's stability
             n_sub = max(n_sub, int(math.ceil(dt * abs(mu) / v0 / 1.5)))
         n_sub = min(n_sub, 64)
-        P = np.array([m.input_gain, m.c_m, m.k_m, m.alpha_m, m.gamma, m.delta, mu, v0 or 1.0,
-                      self.get("c2"), self.get("kc"), self.get("gap"), 1.0 if self.get("side") >= 0 else -1.0,
-                      self.get("drift"), w2, self.get("zeta2"), self.get("drive2"),
-                      1.0 if m.excitation == BASE else 1.0 - self.get("drive2")], float)
+        P = self.kernel_vector()
         y0, dy0, z0 = (0.0, 0.0, 0.0) if initial is None else (float(v) for v in initial)
         st = simulate_extended(np.ascontiguousarray(u, float), float(t[0]), dt, int(n_sub), P, coef, p, r, y0, dy0, z0)
         y = st[order] + self.get("phi2") * st[3 + order]

@@ -39,9 +39,48 @@ from numba import njit
 
 from recon.simulation.powers import ipow
 
-# the layout of the parameter vector P of :func:`simulate_extended`
+# the layout of the parameter vector P of :func:`simulate_extended`, the one place it is written:
+# build P with :func:`kernel_parameters`, read a slot with its index below
 P_NAMES = ("g", "c", "k", "alpha", "gamma", "delta", "mu", "v0", "c2", "kc", "gap", "side", "drift", "w2", "zeta2",
            "drive2", "gu2")
+N_P = len(P_NAMES)
+# one index per slot: module-level ints, which numba compiles as constants (P[I_MU] costs what a
+# literal index does)
+I_G = P_NAMES.index("g")
+I_C = P_NAMES.index("c")
+I_K = P_NAMES.index("k")
+I_ALPHA = P_NAMES.index("alpha")
+I_GAMMA = P_NAMES.index("gamma")
+I_DELTA = P_NAMES.index("delta")
+I_MU = P_NAMES.index("mu")
+I_V0 = P_NAMES.index("v0")
+I_C2 = P_NAMES.index("c2")
+I_KC = P_NAMES.index("kc")
+I_GAP = P_NAMES.index("gap")
+I_SIDE = P_NAMES.index("side")
+I_DRIFT = P_NAMES.index("drift")
+I_W2 = P_NAMES.index("w2")
+I_ZETA2 = P_NAMES.index("zeta2")
+I_DRIVE2 = P_NAMES.index("drive2")
+I_GU2 = P_NAMES.index("gu2")
+P_INDEX = {name: i for i, name in enumerate(P_NAMES)}
+assert len(P_INDEX) == N_P, "P_NAMES names a slot twice"
+
+
+def kernel_parameters(**named: float) -> np.ndarray:
+    """The parameter vector P of :func:`simulate_extended` from its slots by name (``P_NAMES``):
+    v0 and side are 1 unless given, every other slot 0 (its effect off). An unknown name is a
+    ValueError."""
+    unknown = [name for name in named if name not in P_INDEX]
+    if unknown:
+        raise ValueError(f"kernel parameters: unknown slot(s) {', '.join(map(repr, unknown))} "
+                         f"(known: {', '.join(P_NAMES)})")
+    P = np.zeros(N_P)
+    P[I_V0] = 1.0
+    P[I_SIDE] = 1.0
+    for name, value in named.items():
+        P[P_INDEX[name]] = value
+    return P
 
 
 @njit(cache=True, nogil=True)
@@ -49,26 +88,26 @@ def _rhs(y, v, z, q, vq, t, u, P, coef, p, r):
     fn = 0.0
     for j in range(coef.size):
         fn += coef[j] * ipow(y, p[j]) * ipow(v, r[j])
-    k = P[2]
-    if P[12] != 0.0:
-        k = P[2] * (1.0 + P[12] * t)
-    gu = P[0] * u
-    acc = gu - P[1] * v - k * y - fn - z
-    if P[6] != 0.0:
-        acc -= P[6] * math.tanh(v / P[7])
-    if P[8] != 0.0:
-        acc -= P[8] * v * abs(v)
-    if P[9] != 0.0:
-        d = P[11] * y - P[10]
+    k = P[I_K]
+    if P[I_DRIFT] != 0.0:
+        k = P[I_K] * (1.0 + P[I_DRIFT] * t)
+    gu = P[I_G] * u
+    acc = gu - P[I_C] * v - k * y - fn - z
+    if P[I_MU] != 0.0:
+        acc -= P[I_MU] * math.tanh(v / P[I_V0])
+    if P[I_C2] != 0.0:
+        acc -= P[I_C2] * v * abs(v)
+    if P[I_KC] != 0.0:
+        d = P[I_SIDE] * y - P[I_GAP]
         if d > 0.0:
-            acc -= P[11] * P[9] * d
-    dz = P[3] * v - P[4] * abs(v) * z - P[5] * v * abs(z)
+            acc -= P[I_SIDE] * P[I_KC] * d
+    dz = P[I_ALPHA] * v - P[I_GAMMA] * abs(v) * z - P[I_DELTA] * v * abs(z)
     aq = 0.0
-    if P[13] > 0.0:
+    if P[I_W2] > 0.0:
         drive = gu
-        if P[15] != 0.0:
-            drive = P[16] * gu - P[15] * acc
-        aq = drive - 2.0 * P[14] * P[13] * vq - P[13] * P[13] * q
+        if P[I_DRIVE2] != 0.0:
+            drive = P[I_GU2] * gu - P[I_DRIVE2] * acc
+        aq = drive - 2.0 * P[I_ZETA2] * P[I_W2] * vq - P[I_W2] * P[I_W2] * q
     return acc, dz, aq
 
 
@@ -100,7 +139,7 @@ def simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
     q = 0.0
     w = 0.0
     h = dt / n_sub
-    mode = P[13] > 0.0
+    mode = P[I_W2] > 0.0
     W = cubic_weights(n_sub)
     for i in range(n - 1):
         um1 = u[i - 1] if i > 0 else 2.0 * u[0] - u[1]
@@ -147,10 +186,7 @@ def simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
 
 def simulate_sdof(u, dt, n_sub, g, c, k, alpha, gamma, delta, coef, p, r, y0=0.0, v0=0.0, z0=0.0):
     """The plain model (no extras): (y, y', z) arrays."""
-    P = np.zeros(len(P_NAMES))
-    P[:6] = (g, c, k, alpha, gamma, delta)
-    P[7] = 1.0
-    P[11] = 1.0
+    P = kernel_parameters(g=g, c=c, k=k, alpha=alpha, gamma=gamma, delta=delta)
     out = simulate_extended(np.ascontiguousarray(u, float), 0.0, float(dt), int(n_sub), P, coef, p, r,
                             float(y0), float(v0), float(z0))
     return out[0], out[1], out[2]
@@ -172,9 +208,6 @@ def substeps(dt: float, k_total: float, steps_per_period: int = 64) -> int:
 # so the sensitivities are the exact derivatives of the discrete simulation (up to rounding): one
 # pass replaces the p + 1 simulations of a forward-difference Jacobian. The |.| and the contact's
 # max(., 0) are differentiated on the side they are evaluated at, as a forward difference sees them.
-N_P = len(P_NAMES)
-
-
 @njit(cache=True, nogil=True, inline="always")
 def _rhs_partials(y, v, z, q, w, t, u, P, coef, p, r):
     """The right side (acc, dz, aq) as :func:`_rhs` computes it and its partial derivatives with
@@ -189,42 +222,42 @@ def _rhs_partials(y, v, z, q, w, t, u, P, coef, p, r):
             fn_y += coef[j] * p[j] * ipow(y, p[j] - 1) * ipow(v, r[j])
         if r[j] > 0:
             fn_v += coef[j] * r[j] * ipow(y, p[j]) * ipow(v, r[j] - 1)
-    k = P[2]
-    if P[12] != 0.0:
-        k = P[2] * (1.0 + P[12] * t)
-    gu = P[0] * u
-    acc = gu - P[1] * v - k * y - fn - z
+    k = P[I_K]
+    if P[I_DRIFT] != 0.0:
+        k = P[I_K] * (1.0 + P[I_DRIFT] * t)
+    gu = P[I_G] * u
+    acc = gu - P[I_C] * v - k * y - fn - z
     a_y = -k - fn_y
-    a_v = -P[1] - fn_v
-    if P[6] != 0.0:
-        th = math.tanh(v / P[7])
-        acc -= P[6] * th
-        a_v -= P[6] * (1.0 - th * th) / P[7]
-    if P[8] != 0.0:
-        acc -= P[8] * v * abs(v)
-        a_v -= 2.0 * P[8] * abs(v)
-    if P[9] != 0.0:
-        d = P[11] * y - P[10]
+    a_v = -P[I_C] - fn_v
+    if P[I_MU] != 0.0:
+        th = math.tanh(v / P[I_V0])
+        acc -= P[I_MU] * th
+        a_v -= P[I_MU] * (1.0 - th * th) / P[I_V0]
+    if P[I_C2] != 0.0:
+        acc -= P[I_C2] * v * abs(v)
+        a_v -= 2.0 * P[I_C2] * abs(v)
+    if P[I_KC] != 0.0:
+        d = P[I_SIDE] * y - P[I_GAP]
         if d > 0.0:
-            acc -= P[11] * P[9] * d
-            a_y -= P[9] * P[11] * P[11]
+            acc -= P[I_SIDE] * P[I_KC] * d
+            a_y -= P[I_KC] * P[I_SIDE] * P[I_SIDE]
     sv = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else 0.0)
     sz = 1.0 if z > 0.0 else (-1.0 if z < 0.0 else 0.0)
-    dz = P[3] * v - P[4] * abs(v) * z - P[5] * v * abs(z)
-    dz_v = P[3] - P[4] * sv * z - P[5] * abs(z)
-    dz_z = -P[4] * abs(v) - P[5] * v * sz
+    dz = P[I_ALPHA] * v - P[I_GAMMA] * abs(v) * z - P[I_DELTA] * v * abs(z)
+    dz_v = P[I_ALPHA] - P[I_GAMMA] * sv * z - P[I_DELTA] * abs(z)
+    dz_z = -P[I_GAMMA] * abs(v) - P[I_DELTA] * v * sz
     aq = 0.0
     aq_q = 0.0
     aq_w = 0.0
     aq_acc = 0.0
-    if P[13] > 0.0:
+    if P[I_W2] > 0.0:
         drive = gu
-        if P[15] != 0.0:
-            drive = P[16] * gu - P[15] * acc
-            aq_acc = -P[15]
-        aq = drive - 2.0 * P[14] * P[13] * w - P[13] * P[13] * q
-        aq_q = -P[13] * P[13]
-        aq_w = -2.0 * P[14] * P[13]
+        if P[I_DRIVE2] != 0.0:
+            drive = P[I_GU2] * gu - P[I_DRIVE2] * acc
+            aq_acc = -P[I_DRIVE2]
+        aq = drive - 2.0 * P[I_ZETA2] * P[I_W2] * w - P[I_W2] * P[I_W2] * q
+        aq_q = -P[I_W2] * P[I_W2]
+        aq_w = -2.0 * P[I_ZETA2] * P[I_W2]
     return acc, dz, aq, a_y, a_v, dz_v, dz_z, aq_q, aq_w, aq_acc
 
 
@@ -235,50 +268,50 @@ def _source(c, y, v, z, q, w, t, u, acc, P, p, r):
     if c >= N_P:
         j = c - N_P
         return -(ipow(y, p[j]) * ipow(v, r[j])), 0.0, 0.0
-    mode = P[13] > 0.0
-    if c == 0:
+    mode = P[I_W2] > 0.0
+    if c == I_G:
         if mode:
-            return u, 0.0, (P[16] * u if P[15] != 0.0 else u)
+            return u, 0.0, (P[I_GU2] * u if P[I_DRIVE2] != 0.0 else u)
         return u, 0.0, 0.0
-    if c == 1:
+    if c == I_C:
         return -v, 0.0, 0.0
-    if c == 2:
-        return -(1.0 + P[12] * t) * y if P[12] != 0.0 else -y, 0.0, 0.0
-    if c == 3:
+    if c == I_K:
+        return -(1.0 + P[I_DRIFT] * t) * y if P[I_DRIFT] != 0.0 else -y, 0.0, 0.0
+    if c == I_ALPHA:
         return 0.0, v, 0.0
-    if c == 4:
+    if c == I_GAMMA:
         return 0.0, -abs(v) * z, 0.0
-    if c == 5:
+    if c == I_DELTA:
         return 0.0, -v * abs(z), 0.0
-    if c == 6:
-        return -math.tanh(v / P[7]), 0.0, 0.0
-    if c == 7:
-        if P[6] != 0.0:
-            th = math.tanh(v / P[7])
-            return P[6] * (1.0 - th * th) * v / (P[7] * P[7]), 0.0, 0.0
+    if c == I_MU:
+        return -math.tanh(v / P[I_V0]), 0.0, 0.0
+    if c == I_V0:
+        if P[I_MU] != 0.0:
+            th = math.tanh(v / P[I_V0])
+            return P[I_MU] * (1.0 - th * th) * v / (P[I_V0] * P[I_V0]), 0.0, 0.0
         return 0.0, 0.0, 0.0
-    if c == 8:
+    if c == I_C2:
         return -v * abs(v), 0.0, 0.0
-    if c == 9 or c == 10:
-        d = P[11] * y - P[10]
+    if c == I_KC or c == I_GAP:
+        d = P[I_SIDE] * y - P[I_GAP]
         if d > 0.0:
-            if c == 9:
-                return -P[11] * d, 0.0, 0.0
-            if P[9] != 0.0:
-                return P[11] * P[9], 0.0, 0.0
+            if c == I_KC:
+                return -P[I_SIDE] * d, 0.0, 0.0
+            if P[I_KC] != 0.0:
+                return P[I_SIDE] * P[I_KC], 0.0, 0.0
         return 0.0, 0.0, 0.0
-    if c == 12:
-        return -P[2] * t * y, 0.0, 0.0
+    if c == I_DRIFT:
+        return -P[I_K] * t * y, 0.0, 0.0
     if not mode:
         return 0.0, 0.0, 0.0
-    if c == 13:
-        return 0.0, 0.0, -2.0 * P[14] * w - 2.0 * P[13] * q
-    if c == 14:
-        return 0.0, 0.0, -2.0 * P[13] * w
-    if c == 15:
+    if c == I_W2:
+        return 0.0, 0.0, -2.0 * P[I_ZETA2] * w - 2.0 * P[I_W2] * q
+    if c == I_ZETA2:
+        return 0.0, 0.0, -2.0 * P[I_W2] * w
+    if c == I_DRIVE2:
         return 0.0, 0.0, -acc
-    if c == 16 and P[15] != 0.0:
-        return 0.0, 0.0, P[0] * u
+    if c == I_GU2 and P[I_DRIVE2] != 0.0:
+        return 0.0, 0.0, P[I_G] * u
     return 0.0, 0.0, 0.0
 
 
@@ -312,7 +345,7 @@ def simulate_sensitivities(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0, cols, S0
         Sy_out[0, c] = S[c, 0]
         Sq_out[0, c] = S[c, 3]
     h = dt / n_sub
-    mode = P[13] > 0.0
+    mode = P[I_W2] > 0.0
     W = cubic_weights(n_sub)
     for i in range(n - 1):
         um1 = u[i - 1] if i > 0 else 2.0 * u[0] - u[1]

@@ -32,8 +32,7 @@ def integrate(n, dt, fine, t0, amp, omega, phase, ramp, base, P, coef, p, r):
     mass and optional extra effects (zero: absent): Coulomb friction mu tanh(y'/1e-4 m/s),
     quadratic damping c2 y'|y'|, a contact spring kc (y - gap) for y > gap, a stiffness drift
     k (1 + drift t) on the session clock t, and a second mode q (w2, zeta2) driven by g u."""
-    g, c, k, alpha, gamma, delta, mu, c2, kc, gap, drift, w2, zeta2 = (P[0], P[1], P[2], P[3], P[4], P[5], P[6],
-                                                                       P[7], P[8], P[9], P[10], P[11], P[12])
+    g, c, k, alpha, gamma, delta, mu, c2, kc, gap, drift, w2, zeta2 = P
     ns = 5 if w2 > 0.0 else 3          # the second mode's states only when it is there
 
     def rhs(tt, x, out):

@@ -7,6 +7,9 @@ A candidate module (one per id in this folder) defines ``CANDIDATE``, a :class:`
 - ``parameters``: the keys reported for it (``fn:<term>``, ``x:<extra>`` of
   recon.diagnosis.augmented.EXTRAS, or a baseline key such as ``alpha_m``), the first one being
   its size;
+- ``kernel``: the slots of the simulation kernel's parameter vector (recon.simulation.rk4.P_NAMES)
+  its parameters set, by name (an extra that is a slot reaches it under its own name, augmented.py
+  KERNEL_EXTRAS); none for a library term (the kernel's fn coefficients) or a reading change;
 - ``starts(baseline, ctx)``: where its fit starts, a list of (AugmentedModel, new free keys,
   scales, bounds), several when the fit is multimodal (ctx: locate.py's context of the record);
 - ``applies(baseline, ctx)``: whether it can be added to this baseline;
@@ -62,6 +65,9 @@ class Candidate:
     # the asymmetric part of the force): also fitted from the baseline without them
     # (diagnose.even_stiffness_free_core)
     even_stiffness_absorbs: bool = False
+    # the kernel slots (recon.simulation.rk4.P_NAMES) its parameters set: its contribution to the
+    # simulation kernel, by name (module doc)
+    kernel: tuple = ()
 
 
 def start_model(base: HystereticModel, extras: dict, cid: str) -> AugmentedModel:

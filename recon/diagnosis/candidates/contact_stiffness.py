@@ -43,4 +43,5 @@ CANDIDATE = Candidate(
     "term kc max(s*y - gap, 0) (s = +1 or -1) in the restoring force",
     "extra force kc (y - gap) when y is beyond the gap on side s", ("x:kc", "x:gap", "x:side"), starts,
     check=check, signature=("state_beyond_displacement", "frequency_harmonic"), amplitude_dependent=True,
-    conceal=conceal, screen_keys=1, column=column, fit_each="side", even_stiffness_absorbs=True)
+    conceal=conceal, screen_keys=1, column=column, fit_each="side", even_stiffness_absorbs=True,
+    kernel=("kc", "gap", "side"))

@@ -35,4 +35,5 @@ CANDIDATE = Candidate(
     "(the best start)",
     ("x:mu", "x:v0"), starts,
     signature=("state_near_zero_velocity", "state_cluster"), amplitude_dependent=True, conceal=conceal,
-    column=lambda am, t, y, dy: np.tanh(dy / am.get("v0")), screen_output=True, hysteresis_absorbs=True)
+    column=lambda am, t, y, dy: np.tanh(dy / am.get("v0")), screen_output=True, hysteresis_absorbs=True,
+    kernel=("mu", "v0"))

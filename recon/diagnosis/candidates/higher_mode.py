@@ -77,4 +77,4 @@ CANDIDATE = Candidate(
     "point's motion (drive2 = 1, a resonance riding on it), added to the displacement output",
     ("x:w2", "x:zeta2", "x:phi2"), starts,
     check=check, signature=("frequency_resonance", "frequency_band_at_input"), conceal=conceal,
-    screen_keys=1, fit_each="drive2")
+    screen_keys=1, fit_each="drive2", kernel=("w2", "zeta2", "drive2", "gu2"))

@@ -94,4 +94,5 @@ CANDIDATE = Candidate(
     "Bouc-Wen state z' = alpha y' - gamma |y'| z - delta y' |z| added to the restoring force",
     "the SDOF with its Bouc-Wen state", ("alpha_m", "gamma", "delta"), starts,
     lambda b, c: b.alpha_m == 0.0, check=check, signature=("state_cluster", "correlation_tests"),
-    amplitude_dependent=True, conceal=conceal, admissible_starts=admissible_starts)
+    amplitude_dependent=True, conceal=conceal, admissible_starts=admissible_starts,
+    kernel=("alpha", "gamma", "delta"))

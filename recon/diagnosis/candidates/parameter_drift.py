@@ -25,4 +25,4 @@ CANDIDATE = Candidate(
     "model change: k(t) = k (1 + drift t), t = recorded stage time",
     "k_m varies linearly with the recorded time", ("x:drift",), starts,
     check=check, signature=("time_trend", "time_segment"), conceal=conceal,
-    column=lambda am, t, y, dy: am.baseline.k_m * t * y)
+    column=lambda am, t, y, dy: am.baseline.k_m * t * y, kernel=("drift",))

@@ -19,4 +19,4 @@ CANDIDATE = Candidate(
     "dissipation grows with the square of the velocity (air drag, turbulent losses)",
     "term c2 y'|y'| in the restoring force", "extra force c2 y'|y'|", ("x:c2",), starts,
     signature=("state_cluster", "frequency_harmonic", "correlation_tests"), amplitude_dependent=True,
-    conceal=conceal, column=lambda am, t, y, dy: dy * np.abs(dy), hysteresis_absorbs=True)
+    conceal=conceal, column=lambda am, t, y, dy: dy * np.abs(dy), hysteresis_absorbs=True, kernel=("c2",))
