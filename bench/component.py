@@ -118,7 +118,8 @@ def main():
                 r = reconstruct_constitutive(run)
                 dt = time.perf_counter() - t0
                 err, worst, extra = max_error(r.law, case["truth"], case["fit"])
-                iv = intervals(r.law, [component_signals(run.stage("nonlinear"))])["parameters"]
+                iv = intervals(r.law, [component_signals(run.stage("nonlinear"))],
+                               fit_rate=r.settings.fit_rate)["parameters"]
                 cover = [iv[k]["low"] <= v <= iv[k]["high"] for k, v in flat(case["truth"]).items() if v and k in iv]
                 rows.append((err, worst, r.validation["nrmse"], dt, yardstick(case["fit"], case["validation"]),
                              extra, cover))

@@ -29,8 +29,9 @@ from scipy.ndimage import convolve1d
 
 from shakerlab.errors import UserFacingError
 
-ORDERS = (3, 5, 7)
-N_WINDOWS = 40
+# the search space of choose_window, not tuned choices: the predicted error picks the window and order
+ORDERS = (3, 5, 7)          # polynomial orders tried
+N_WINDOWS = 40              # windows per order, log-spaced up to the longest one considered
 
 
 @dataclass

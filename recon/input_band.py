@@ -15,18 +15,19 @@ the input channel holds only noise. :class:`BandLimit` finds the band from the r
 and keeps only it:
 
 - **Level ends.** The first and third derivatives at each end (a polynomial fit over the
-  differentiation window; each within four times its own noise counts as zero, so a stage that
-  starts or ends at rest keeps its end as recorded) are removed by a local correction: a cubic
-  times a Gaussian of about one window's reach, added back exactly afterwards.
+  differentiation window; each within ``band_slope_sigmas`` (4) times its own noise counts as
+  zero, so a stage that starts or ends at rest keeps its end as recorded) are removed by a local
+  correction: a cubic times a Gaussian of about one window's reach, added back exactly afterwards.
 - **Cosine series.** The orthonormal DCT-II of what is left is the Fourier series of its mirror
   image, which is then smooth at both joins (value, slope, curvature and third derivative
   continue), so a mismatch of the ends leaks little into the noise region. Under white noise of
   std sigma the coefficients are independent N(0, sigma^2).
 - **The top of the band.** The floor is the median of the upper half's squared coefficients; a
-  coefficient seeds the band when the mean of its five neighbours' squares exceeds the
-  chi-square(5) level of a 1 % false alarm over the whole series, and the band grows into
-  neighbours above three times the floor (hysteresis thresholding: a tone keeps its skirts and
-  ramps). Every coefficient up to the last one so reached is kept, every one above dropped.
+  coefficient seeds the band when the mean of its ``band_smooth`` (5) neighbours' squares exceeds
+  the chi-square(5) level of a ``band_false_alarm`` (1 %) false alarm over the whole series, and
+  the band grows into neighbours above ``band_grow`` (3) times the floor (hysteresis
+  thresholding: a tone keeps its skirts and ramps). Every coefficient up to the last one so
+  reached is kept, every one above dropped.
 - **Derivatives in the band.** y'' of the base from displacement (y' from velocity) is taken on
   the kept cosine series: exact there, and no noise above the band to amplify.
 
@@ -35,6 +36,8 @@ the noise the cleared input still carries (the uncertainty ensemble's draws). A 
 band cannot be told from its noise (too short, a floor of zero, nothing above the floor, or a
 band reaching half the Nyquist frequency) is left to the caller's Savitzky-Golay filter, which
 also takes over at an end in motion (recon.signals.InputFilter).
+
+The numbers the band is decided with are EstimatorTuning fields (``band_*``, recon.estimator.tuning).
 """
 from __future__ import annotations
 
@@ -45,18 +48,18 @@ from scipy import ndimage
 from scipy.special import chdtri, gammaincinv
 from scipy.fft import dct
 
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
+
+# the fewest samples whose upper half (128 cosine coefficients) gives the noise floor as a median
 MIN_SAMPLES = 256
-SLOPE_SIGNIFICANCE = 4.0      # an end slope within this many of its noise std counts as zero
-SMOOTH = 5                    # coefficients averaged for the band decision
-FALSE_ALARM = 0.01            # over the whole series
-GROW_FACTOR = 3.0             # the band grows into neighbours above this many times the floor
 MEDIAN_CHI2_1 = float(2.0 * gammaincinv(0.5, 0.5))     # the chi-square's (one degree) median
 
 
-def _edge_derivatives(x: np.ndarray, window: int, order: int, noise_std: float) -> tuple[float, ...]:
+def _edge_derivatives(x: np.ndarray, window: int, order: int, noise_std: float,
+                      slope_sigmas: float) -> tuple[float, ...]:
     """The first and third derivatives (per sample) at the first sample and at the last one:
     a polynomial of ``order`` fitted by least squares to the ``window`` samples at each end. Each
-    is zero where it is within SLOPE_SIGNIFICANCE times its own noise (a stage that starts or ends
+    is zero where it is within ``slope_sigmas`` times its own noise (a stage that starts or ends
     at rest keeps its ends as recorded)."""
     w = int(max(min(window, x.size // 4), 5))
     order = int(max(min(order, w - 2), 1))
@@ -69,7 +72,7 @@ def _edge_derivatives(x: np.ndarray, window: int, order: int, noise_std: float) 
                 continue
             row = P[k] * fact / (w - 1) ** k
             v = sign ** k * float(row @ seg)
-            out.append(v if abs(v) > SLOPE_SIGNIFICANCE * noise_std * float(np.linalg.norm(row)) else 0.0)
+            out.append(v if abs(v) > slope_sigmas * noise_std * float(np.linalg.norm(row)) else 0.0)
     return tuple(out)
 
 
@@ -106,22 +109,24 @@ def _edge_function(n: int, d: tuple[float, ...], tau: float, deriv: int = 0) -> 
     return out
 
 
-def band_top(x: np.ndarray, window: int, order: int, noise_std: float) -> tuple[int | None, str]:
+def band_top(x: np.ndarray, window: int, order: int, noise_std: float,
+             tuning: EstimatorTuning = DEFAULT_TUNING) -> tuple[int | None, str]:
     """The number of cosine-series coefficients that hold the excitation (the band is 0 .. top-1),
-    or None and the reason when it cannot be told from the noise."""
+    or None and the reason when it cannot be told from the noise (``tuning``'s band_* fields)."""
     x = np.asarray(x, float)
     n = x.size
     if n < MIN_SAMPLES or not np.all(np.isfinite(x)):
         return None, "too short or not finite"
-    c = dct(x - _edge_function(n, _edge_derivatives(x, window, order, noise_std), _tau(n, window)),
-            type=2, norm="ortho")
+    c = dct(x - _edge_function(n, _edge_derivatives(x, window, order, noise_std, tuning.band_slope_sigmas),
+                               _tau(n, window)), type=2, norm="ortho")
     c2 = c * c
     floor = float(np.median(c2[n // 2:]) / MEDIAN_CHI2_1)
     if not floor > 0.0:
         return None, "no noise floor"
-    p = ndimage.uniform_filter1d(c2, SMOOTH, mode="nearest")
-    seeds = p > floor * chdtri(SMOOTH, FALSE_ALARM / n) / SMOOTH
-    grown = (p > GROW_FACTOR * floor) | seeds
+    smooth = tuning.band_smooth
+    p = ndimage.uniform_filter1d(c2, smooth, mode="nearest")
+    seeds = p > floor * chdtri(smooth, tuning.band_false_alarm / n) / smooth
+    grown = (p > tuning.band_grow * floor) | seeds
     labels, _ = ndimage.label(grown)
     keep = np.unique(labels[seeds])
     if not keep.size:
@@ -144,19 +149,21 @@ class BandLimit:
     noise_std: float     # the channel's white-noise level
     level_ends: tuple    # (start, end): the recording at rest there, its slope and third derivative
                          # within their noise, so the cosine series continues it smoothly
+    slope_sigmas: float  # an end's derivative within this many of its noise std is zero (tuning)
 
     @classmethod
     def of(cls, x: np.ndarray, noise_std: float, window: int | None = None,
-           order: int | None = None) -> "BandLimit | None":
-        """The band of ``x``, or None where it cannot be told from the noise."""
+           order: int | None = None, tuning: EstimatorTuning = DEFAULT_TUNING) -> "BandLimit | None":
+        """The band of ``x``, or None where it cannot be told from the noise (``tuning``'s band_*
+        fields)."""
         x = np.asarray(x, float)
         window, order = window or min(64, x.size // 4), order or 3
-        top, _ = band_top(x, window, order, noise_std)
+        top, _ = band_top(x, window, order, noise_std, tuning)
         if top is None:
             return None
-        d = _edge_derivatives(x, window, order, noise_std)
+        d = _edge_derivatives(x, window, order, noise_std, tuning.band_slope_sigmas)
         return cls(top, x.size, int(window), int(order), float(noise_std),
-                   (d[0] == 0.0 and d[1] == 0.0, d[2] == 0.0 and d[3] == 0.0))
+                   (d[0] == 0.0 and d[1] == 0.0, d[2] == 0.0 and d[3] == 0.0), float(tuning.band_slope_sigmas))
 
     def __call__(self, x: np.ndarray, deriv: int = 0, dt: float = 1.0) -> np.ndarray:
         """``x`` cleared of what lies above the band, or its ``deriv``-th derivative (sample
@@ -165,7 +172,7 @@ class BandLimit:
         n = x.size
         if n != self.size:
             raise ValueError(f"a band of a {self.size}-sample series does not fit one of {n}")
-        d = _edge_derivatives(x, self.window, self.order, self.noise_std)
+        d = _edge_derivatives(x, self.window, self.order, self.noise_std, self.slope_sigmas)
         tau = _tau(n, self.window)
         r = x - _edge_function(n, d, tau)
         # the cosine series of r is the Fourier series of its mirror image [r, r reversed]

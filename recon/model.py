@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.exciter import drive_force
 from recon.library import monomials
 from recon.simulation.rk4 import simulate_sdof, substeps
@@ -268,14 +269,18 @@ class HystereticModel:
         return simulate_sdof(u, dt, int(n_sub), self.input_gain, self.c_m, self.k_m, self.alpha_m,
                              self.gamma, self.delta, coef, p, r, y0, v0, z0)
 
-    def stage_input(self, stage: Stage, band: bool = True) -> np.ndarray:
+    # ``tuning`` of the stage methods below (recon.estimator.tuning): the numbers the input's band
+    # (band_*) and a start state fitted to the stage's first seconds (start_fit_*) are decided with;
+    # the estimator passes its ReconSettings.tuning, every other reader of a recorded stage the default
+
+    def stage_input(self, stage: Stage, band: bool = True, tuning: EstimatorTuning = DEFAULT_TUNING) -> np.ndarray:
         """The input u the model is driven by, built from the stage's channels (recon.signals;
         ``band``: taken in the channel's own band, recon.input_band)."""
         if stage.excitation != self.excitation:
             raise UserFacingError(f"stage {stage.name!r} is {stage.excitation} excitation, model is {self.excitation}")
-        return stage_input(stage, band)
+        return stage_input(stage, band, tuning)
 
-    def stage_start(self, stage: Stage, u=None, fit: bool = True):
+    def stage_start(self, stage: Stage, u=None, fit: bool = True, tuning: EstimatorTuning = DEFAULT_TUNING):
         """The stage's state at its first sample (y, y', z), estimated from the recording.
         A response recorded as velocity or acceleration: :meth:`measured_start`.
 
@@ -284,13 +289,13 @@ class HystereticModel:
         starts in motion gets its start fitted to its first seconds (``fit``; else the edge
         estimate itself, recon.simulation.start_state)."""
 
-        u = self.stage_input(stage) if u is None else u
+        u = self.stage_input(stage, tuning=tuning) if u is None else u
         measured = continuous_velocity_start(stage)     # velocity recorded by the rig: its own rule
         if measured is not None:
             y0, v0, a0, at_rest = measured
             return y0, v0, float(self.start_z(0.0 if at_rest else u[0], y0, v0, a0))
         if response_target(stage) is not None:
-            return self.measured_start(stage, u, fit)
+            return self.measured_start(stage, u, fit, tuning)
         y0, v0, a0, sigma, sig_v, v_rms = start_derivatives(stage)
         # recorded from rest: y0 within the noise and y'0 small against the stage's rms
         # velocity (a zero crossing mid-motion has y'0 near its peak) or within the noise of
@@ -305,18 +310,20 @@ class HystereticModel:
         # stage's first seconds instead, with rest as the other candidate (recon.simulation.start_state)
         t = stage.t - stage.t[0]
         return self._fitted_start(stage, edge, v_rms, lambda init, n: self.simulate(t[:n], u[:n], initial=init)[0],
-                                  stage.y)
+                                  stage.y, tuning)
 
-    def _fitted_start(self, stage: Stage, edge: tuple, v_rms: float, simulate, target: np.ndarray) -> tuple:
+    def _fitted_start(self, stage: Stage, edge: tuple, v_rms: float, simulate, target: np.ndarray,
+                      tuning: EstimatorTuning) -> tuple:
         """The start (y, y', z) fitted to the stage's first seconds of ``target`` (what ``simulate``
         gives), from the edge estimate, each on the scale of its motion (recon.simulation.start_state)."""
         y_rms = float(np.std(stage.y)) or 1.0
         scales = (max(abs(edge[0]), 0.05 * y_rms), max(abs(edge[1]), 0.05 * v_rms),
                   max(abs(edge[2]), 0.05 * abs(self.alpha_m) * y_rms, 1e-12))
-        start, _ = fit_start(simulate, target, stage.dt, edge, scales, n_free=2 if self.alpha_m == 0.0 else 3)
+        start, _ = fit_start(simulate, target, stage.dt, edge, scales, tuning.start_fit_seconds,
+                             tuning.start_fit_nfev, n_free=2 if self.alpha_m == 0.0 else 3)
         return start
 
-    def measured_start(self, stage: Stage, u: np.ndarray, fit: bool = True):
+    def measured_start(self, stage: Stage, u: np.ndarray, fit: bool = True, tuning: EstimatorTuning = DEFAULT_TUNING):
         """:meth:`stage_start` of a stage whose response was recorded as velocity or acceleration,
         judged in that quantity (recon.signals.response_target), never on the integrated
         displacement, whose drift (the integrated sensor noise) is no motion of the structure.
@@ -344,7 +351,7 @@ class HystereticModel:
             return edge
         t = stage.t - stage.t[0]
         start = self._fitted_start(stage, edge, v_rms, lambda init, n: self.simulate_quantity(t[:n], u[:n], init, order),
-                                   x)
+                                   x, tuning)
         return start
 
     def simulate_quantity(self, t, u, initial=None, order: int = 0) -> np.ndarray:
@@ -380,33 +387,34 @@ class HystereticModel:
         return self.input_gain * u0 - x - self.c_m * v0 - self.k_m * y0 - float(
             self.fn(np.array([y0]), np.array([v0]))[0])
 
-    def fit_item(self, stage: Stage, u=None) -> tuple:
+    def fit_item(self, stage: Stage, u=None, tuning: EstimatorTuning = DEFAULT_TUNING) -> tuple:
         """``stage`` as the output-error fits take it: (t from 0, u, y, (y0, y0', y0'')). The
         start carries y'' rather than z, so that every trial parameter set gets its own z0
         from :meth:`balance`. A response recorded as velocity or acceleration adds its fifth
         element, (order, target) of recon.signals.response_target: the fits compare the simulated
         y' or y'' with it (recon.output_error.problem.item_target)."""
-        u = self.stage_input(stage) if u is None else u
-        y0, v0, z0 = self.stage_start(stage, u)
+        u = self.stage_input(stage, tuning=tuning) if u is None else u
+        y0, v0, z0 = self.stage_start(stage, u, tuning=tuning)
         item = (stage.t - stage.t[0], u, stage.y, (y0, v0, self.balance(u[0], y0, v0, z0)))
         measured = response_target(stage)
         return item if measured is None else item + (measured,)
 
-    def simulate_measured(self, stage: Stage) -> tuple[np.ndarray, np.ndarray]:
+    def simulate_measured(self, stage: Stage,
+                          tuning: EstimatorTuning = DEFAULT_TUNING) -> tuple[np.ndarray, np.ndarray]:
         """(simulated, recorded) response of the stage in the quantity it was recorded in: y and the
         stage's y for a displacement record, y' or y'' and recon.signals.response_target otherwise.
         What a fit is judged on (validation, the simpler models' scores, adequacy)."""
         measured = response_target(stage)
         if measured is None:
-            return self.simulate_stage(stage)[1], stage.y
-        u = self.stage_input(stage)
-        sim = self.simulate_quantity(stage.t - stage.t[0], u, self.stage_start(stage, u), measured[0])
+            return self.simulate_stage(stage, tuning)[1], stage.y
+        u = self.stage_input(stage, tuning=tuning)
+        sim = self.simulate_quantity(stage.t - stage.t[0], u, self.stage_start(stage, u, tuning=tuning), measured[0])
         # a constant velocity offset is a nuisance of the comparison, as in the fits
         # (recon.output_error.problem.measured_error)
         return sim + np.mean(measured[1] - sim), measured[1]
 
-    def simulate_stage(self, stage: Stage):
+    def simulate_stage(self, stage: Stage, tuning: EstimatorTuning = DEFAULT_TUNING):
         """(t, y_sim) for the stage's recorded input, started from the stage's initial state."""
-        u = self.stage_input(stage)
-        y, _, _ = self.simulate(stage.t - stage.t[0], u, initial=self.stage_start(stage, u))
+        u = self.stage_input(stage, tuning=tuning)
+        y, _, _ = self.simulate(stage.t - stage.t[0], u, initial=self.stage_start(stage, u, tuning=tuning))
         return stage.t, y

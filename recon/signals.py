@@ -21,6 +21,7 @@ import numpy as np
 
 from recon.differentiation import (choose_window, derivatives, estimate_spectrum, savgol_coeffs, stable_coefficients,
                                    stable_derivatives, undo_passband_loss)
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.input_band import BandLimit
 from shakerlab.quantities import (CONTINUOUS, DISPLACEMENT, ORDER, VELOCITY, channel_name, integrate,
                                   integrated_noise_rms)
@@ -217,16 +218,21 @@ def edge_crossfade(n: int, window: int, start_level: bool = False, end_level: bo
     return w
 
 
-def input_filter(stage: Stage, band: bool = True) -> InputFilter:
+def _band_key(band: bool, tuning: EstimatorTuning):
+    """What a stage's input depends on besides its channels: the band and the numbers it is decided with."""
+    return (tuning.band_slope_sigmas, tuning.band_smooth, tuning.band_false_alarm, tuning.band_grow) if band else None
+
+
+def input_filter(stage: Stage, band: bool = True, tuning: EstimatorTuning = DEFAULT_TUNING) -> InputFilter:
     """The :class:`InputFilter` of ``stage`` (its input channel, window and noise level, and, with
-    ``band``, the channel's own band where it can be told from the noise: recon.input_band); made
-    once per stage (Stage.derived)."""
+    ``band``, the channel's own band where it can be told from the noise: recon.input_band, with
+    ``tuning``'s band_* fields); made once per stage (Stage.derived)."""
     def make():
         f = _savitzky_golay_filter(stage)
         if band:
-            f.band = BandLimit.of(f.raw, f.noise_std, f.window, f.order)
+            f.band = BandLimit.of(f.raw, f.noise_std, f.window, f.order, tuning)
         return f
-    return stage.derived(("input_filter", band), make)
+    return stage.derived(("input_filter", _band_key(band, tuning)), make)
 
 
 def _savitzky_golay_filter(stage: Stage) -> InputFilter:
@@ -247,12 +253,12 @@ def _savitzky_golay_filter(stage: Stage) -> InputFilter:
                        noise_std=float(ch.noise_level[name]))
 
 
-def stage_input(stage: Stage, band: bool = True) -> np.ndarray:
-    """The model input u of ``stage`` (:class:`InputFilter`; ``band``: see :func:`input_filter`)."""
+def stage_input(stage: Stage, band: bool = True, tuning: EstimatorTuning = DEFAULT_TUNING) -> np.ndarray:
+    """The model input u of ``stage`` (:class:`InputFilter`; ``band``, ``tuning``: see :func:`input_filter`)."""
     def make():
-        f = input_filter(stage, band)
+        f = input_filter(stage, band, tuning)
         return f(f.raw)
-    return stage.derived(("stage_input", band), make)
+    return stage.derived(("stage_input", _band_key(band, tuning)), make)
 
 
 def edge_fit(size: int, window: int, order: int) -> tuple[int, int, np.ndarray]:

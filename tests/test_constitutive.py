@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recon.constitutive.estimator import command_start, grid_start, reconstruct_constitutive
+from recon.constitutive.estimator import ConstitutiveSettings, command_start, grid_start, reconstruct_constitutive
 from recon.constitutive.output_error import polish
 from recon.constitutive.signals import component_signals
 from recon.library.agent import AgentLibrary
@@ -140,11 +140,12 @@ def test_the_grid_start_alone_recovers_the_command_law():
     and the command law, without the equation-error estimate."""
     case = ct.component_test(ct.mr_damper_law(), "random", 60.0, 2, duration=6.0)
     sig = component_signals(_stage("nonlinear", case["fit"]))
-    law = grid_start([sig], commanded=True)
+    rate = ConstitutiveSettings().fit_rate
+    law = grid_start([sig], commanded=True, fit_rate=rate)
     assert not law.fn and law.eta == 0
-    law, _ = polish(law, [sig])
-    start, _ = command_start(law, [sig])
-    law, info = polish(start, [sig], max_nfev=100)
+    law, _ = polish(law, [sig], fit_rate=rate)
+    start, _ = command_start(law, [sig], rate)
+    law, info = polish(start, [sig], max_nfev=100, fit_rate=rate)
     assert info["applied"]
     errs = _rel_errors(law, case["truth"], np.std(case["fit"]["force"]), np.std(case["fit"]["v"]))
     assert max(errs.values()) < 0.02, errs
@@ -343,7 +344,7 @@ def test_intervals_contain_the_truth_and_shrink_with_the_noise():
         case = _case("bouc_wen_random", snr)
         run = _run(case)
         r = reconstruct_constitutive(run, validate_law=False)
-        iv = intervals(r.law, [component_signals(run.stage("nonlinear"))])["parameters"]
+        iv = intervals(r.law, [component_signals(run.stage("nonlinear"))], fit_rate=r.settings.fit_rate)["parameters"]
         se[snr] = {k: iv[k]["se"] for k in ("k", "alpha", "gamma", "delta")}
         if snr == 60.0:
             for k in se[snr]:
@@ -439,3 +440,12 @@ def test_diagnose_names_the_end_stop_the_law_lacks(tmp_path, capsys):
         else:
             assert d["missing_physics"] == [] and d["fit_before"]["held_out_nrmse"] < 0.01
     assert main(["diagnose", str(run_file), "--report", str(tmp_path / "rep")]) == 2
+
+
+def test_the_component_test_settings_refuse_a_tuned_number_out_of_range_naming_it():
+    with pytest.raises(ValueError, match=r"ConstitutiveSettings.min_gain = 1.5 is outside \[0, 1\] \(the law's "
+                                         r"diagnosis names a candidate"):
+        ConstitutiveSettings(min_gain=1.5)
+    with pytest.raises(ValueError, match=r"ConstitutiveSettings.fit_rate = 0.0 is outside \(0, 1e\+07\]"):
+        ConstitutiveSettings(fit_rate=0.0)
+    assert ConstitutiveSettings().to_dict()["negligible"] == 0.002

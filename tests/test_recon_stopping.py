@@ -3,7 +3,10 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from recon.output_error.stopping import STOP_CHI2, ChiSquareStop, stop_for_stages
+from recon.estimator.tuning import DEFAULT_TUNING
+from recon.output_error.stopping import ChiSquareStop, stop_for_stages
+
+STOP = DEFAULT_TUNING.stop_chi2      # the estimator's default stop (0.01 chi-square unit)
 
 T = np.linspace(0.0, 2.0, 4000)
 TRUE = (1.0, 0.7, 9.0)        # amplitude, decay rate [1/s], angular frequency [rad/s]
@@ -25,13 +28,13 @@ def fit(y, sigma, callback=None, model=ringdown):
 def test_the_stop_saves_evaluations_and_loses_less_than_its_bound(sigma):
     y = ringdown(TRUE) + sigma * np.random.default_rng(1).standard_normal(T.size)
     full = fit(y, sigma)
-    stop = ChiSquareStop(units_per_cost=2.0, rows=T.size)      # rows in noise units: chi2 = 2 F
+    stop = ChiSquareStop(units_per_cost=2.0, rows=T.size, stop_chi2=STOP)      # rows in noise units: chi2 = 2 F
     short = fit(y, sigma, stop)
     assert stop.stopped and short.status == -2
     assert short.nfev < full.nfev
     # what was left on the table is below the stop's own size, in chi-square units
     lost = 2.0 * (short.cost - full.cost)
-    assert 0.0 <= lost < STOP_CHI2
+    assert 0.0 <= lost < STOP
     # and the parameters are the optimum's to far better than their standard errors
     J = full.jac
     se = np.sqrt(np.diag(np.linalg.inv(J.T @ J)))
@@ -43,24 +46,24 @@ def test_a_model_that_misses_the_record_is_judged_in_its_residual_s_own_units():
     error variance: the stop comes at a step that is small against that, not against the noise."""
     sigma = 1e-4
     y = ringdown(TRUE) + 0.05 * np.sin(40.0 * T) + sigma * np.random.default_rng(2).standard_normal(T.size)
-    noise_only = ChiSquareStop(units_per_cost=2.0, rows=10 ** 12)     # as if every row were noise
-    both = ChiSquareStop(units_per_cost=2.0, rows=T.size)
+    noise_only = ChiSquareStop(units_per_cost=2.0, rows=10 ** 12, stop_chi2=STOP)     # as if every row were noise
+    both = ChiSquareStop(units_per_cost=2.0, rows=T.size, stop_chi2=STOP)
     a = fit(y, sigma, noise_only)
     b = fit(y, sigma, both)
     assert b.nfev < a.nfev
     # its loss in units of the residual's variance per row stays below the stop's size
     s2 = 2.0 * a.cost / T.size
-    assert 2.0 * (b.cost - a.cost) / s2 < STOP_CHI2
+    assert 2.0 * (b.cost - a.cost) / s2 < STOP
 
 
 def test_stop_arguments_are_checked():
     with pytest.raises(ValueError, match="units_per_cost"):
-        ChiSquareStop(0.0, 10)
+        ChiSquareStop(0.0, 10, STOP)
     with pytest.raises(ValueError, match="stop_chi2"):
         ChiSquareStop(1.0, 10, stop_chi2=float("nan"))
-    assert stop_for_stages([]) is None
+    assert stop_for_stages([], STOP) is None
     # a residual of stages scaled per sample count: the largest stage sets the (conservative) unit
-    s = stop_for_stages([100, 400])
+    s = stop_for_stages([100, 400], STOP)
     assert s.units_per_cost == pytest.approx(800.0) and s.rows == 500
 
 
@@ -82,7 +85,7 @@ def test_output_error_fits_stop_on_their_noise_and_keep_their_answer():
     start.c_m, start.alpha_m, start.gamma = 5.0, 600.0, 120.0
     item = (t, u, y)
     prob = OutputError(start, [item], noise=[sigma])
-    stop = prob.stop()
+    stop = prob.stop(None, STOP)
     assert isinstance(stop, ChiSquareStop)
     fitted, info = polish_mod.polish(start, [item], noise=[sigma], max_nfev=200)
     sol = least_squares(prob.residual, np.zeros(len(prob.keys)), method="trf", x_scale=1.0, max_nfev=200,

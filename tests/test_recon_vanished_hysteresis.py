@@ -9,8 +9,11 @@ import pytest
 
 from recon.estimator.fallback import admissible
 from recon.estimator.pipeline import _without_vanished_hysteresis
+from recon.estimator.tuning import DEFAULT_TUNING
 from recon.model import HystereticModel
-from recon.steps.bouc_wen import NEGLIGIBLE, hysteretic_share
+from recon.steps.bouc_wen import hysteretic_share
+
+NEGLIGIBLE = DEFAULT_TUNING.negligible
 
 TRUTH = HystereticModel("base", c_m=15.4, k_m=111784.0, alpha_m=0.0, gamma=0.0, delta=0.0,
                         fn_m={"y^2": -3.68e6})
@@ -36,7 +39,7 @@ def test_a_vanished_law_is_dropped_and_the_rest_refitted(stage):
     assert not admissible(model)
     assert hysteretic_share(model, stage[0], stage[1]) < NEGLIGIBLE
     info = {}
-    out = _without_vanished_hysteresis(model, stage, info)
+    out = _without_vanished_hysteresis(model, stage, info, DEFAULT_TUNING)
     assert info["vanished_hysteresis"]["applied"]
     assert admissible(out)
     assert out.alpha_m == out.gamma == out.delta == 0.0
@@ -51,7 +54,7 @@ def test_a_law_that_still_carries_force_is_left_alone(stage):
     assert not admissible(model)
     assert hysteretic_share(model, stage[0], stage[1]) > NEGLIGIBLE
     info = {}
-    out = _without_vanished_hysteresis(model, stage, info)
+    out = _without_vanished_hysteresis(model, stage, info, DEFAULT_TUNING)
     assert out is model
     assert not info["vanished_hysteresis"]["applied"]
 

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 import recon.weak.segments as W
+from recon.estimator.tuning import DEFAULT_TUNING
 from recon.library.agent import AgentLibrary
 from recon import ReconSettings, reconstruct
 from recon.testing.truth import sdof_run
@@ -15,7 +16,8 @@ def _system(excitation, snr_db, power, discrete=True):
     L, Ddd = W.sdof_layer(st)
     if snr_db is None:                      # exact y, y' isolate the integration by parts
         L.y, L.dy = st.settings["truth"]["y"], st.settings["truth"]["dy"]
-    tf = W.TestFunctions.build(W.segment_windows(L.kernel()), L.y.size, L.dt, discrete=discrete, power=power)
+    tf = W.TestFunctions.build(W.segment_windows(L.kernel(), DEFAULT_TUNING.weak_min_segment), L.y.size, L.dt,
+                               power=power, discrete=discrete)
     lib = AgentLibrary(5, "joint")
     parts = W.weak_parts(L, tf, lib.terms)
     theta, target = W.weak_theta(lib, parts, truth.c_m, truth.K_m, truth.input_gain)
@@ -25,7 +27,7 @@ def _system(excitation, snr_db, power, discrete=True):
 @pytest.mark.parametrize("excitation", ["base", "force"])
 def test_true_coefficients_satisfy_the_integrated_equation(excitation):
     # noise-free data: summation by parts is exact on the samples
-    lib, theta, target, truth = _system(excitation, None, power=W.BUMP_POWER)
+    lib, theta, target, truth = _system(excitation, None, power=DEFAULT_TUNING.weak_bump_power)
     coef = lib.true_coefficients(truth.fn_m, truth.lam, truth.alpha_m)
     rel = np.linalg.norm(target - theta @ coef) / np.linalg.norm(target)
     assert rel < 1e-6, rel

@@ -10,6 +10,7 @@ import pytest
 
 from recon.estimator.adequacy import noise_floor
 from recon.estimator.finish import validate
+from recon.estimator.tuning import DEFAULT_TUNING
 from recon.output_error.polish import decimate, polish
 from recon.output_error.problem import OutputError, item_target
 from recon.signals import response_target
@@ -63,7 +64,7 @@ def test_items_in_the_measured_quantity(draws):
     clean = rec["stages"]["nonlinear"]
     true_dy = np.gradient(clean["x_tip"] - clean["x_base"], clean["t"])
     assert np.std(target - true_dy) < 0.01 * np.std(true_dy)
-    dec, q = decimate(item)
+    dec, q = decimate(item, DEFAULT_TUNING.polish_fs)
     assert q == 1 and item_target(dec)[0] == 1
     # the truth simulated in velocity matches the record to about its noise (the first second
     # left out: central differences of the clean record at its edge)

@@ -134,7 +134,7 @@ def reconstruct_payload(run, job: dict):
         payload = result.to_dict()
         if job.get("uncertainty"):
             sig = component_signals(run.stage(cs.fit_stage))
-            iv = intervals(result.law, [sig])
+            iv = intervals(result.law, [sig], fit_rate=cs.fit_rate)
             q = {k: [v["low"], v["high"]] for k, v in iv["parameters"].items() if not k.startswith("fn:")}
             q["fn"] = {k[3:]: [v["low"], v["high"]] for k, v in iv["parameters"].items() if k.startswith("fn:")}
             payload["uncertainty"] = dict(iv, intervals=q)

@@ -58,7 +58,7 @@ def law_plots(result, run, outdir) -> list[Path]:
 def law_intervals(result, run) -> dict:
     """95 % intervals of the law's parameters on the fitted stage (recon.constitutive.output_error.intervals)."""
     sig = component_signals(run.stage(result.settings.fit_stage), result.settings.window, result.settings.sg_order)
-    return intervals(result.law, [sig])
+    return intervals(result.law, [sig], fit_rate=result.settings.fit_rate)
 
 
 def reconstruct_command(args, run) -> int:

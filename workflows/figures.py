@@ -57,17 +57,18 @@ def write_validation_plots(result, run, outdir):
     outdir = Path(outdir)
     paths = []
     names = [n for n in run.stages if n.startswith("validation")] or [result.settings.nonlinear_stage]
+    tuning = result.settings.tuning       # the input and the start as the validation made them
     for name in names:
         st = run.stage(name)
-        u = result.model.stage_input(st)
-        ysim, _, zsim = result.model.simulate(st.t - st.t[0], u, initial=result.model.stage_start(st, u))
+        u = result.model.stage_input(st, tuning=tuning)
+        ysim, _, zsim = result.model.simulate(st.t - st.t[0], u, initial=result.model.stage_start(st, u, tuning=tuning))
         paths.append(plot_overlay(inside(outdir, name, ".png"), st.t, st.y, ysim, z_sim=zsim,
                                   title=f"{name}: measured vs reconstructed (NRMSE {result.validation['per_stage'].get(name, float('nan')):.3g})"))
     sig = result.signals
     z_meas = hysteretic_force_from_data(result.model, sig["y"], sig["dy"], sig["ddy"], sig["u"])
     st = run.stage(result.settings.nonlinear_stage)
-    u = result.model.stage_input(st)
-    ysim, _, zsim = result.model.simulate(st.t - st.t[0], u, initial=result.model.stage_start(st, u))
+    u = result.model.stage_input(st, tuning=tuning)
+    ysim, _, zsim = result.model.simulate(st.t - st.t[0], u, initial=result.model.stage_start(st, u, tuning=tuning))
     half = (st.t.size - sig["t"].size) // 2
     paths.append(plot_overlay(outdir / "nonlinear_loop.png", sig["t"], sig["y"], ysim[half:half + sig["t"].size],
                               z_meas=z_meas, z_sim=zsim[half:half + sig["t"].size],

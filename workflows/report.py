@@ -129,8 +129,8 @@ def fig_loops(result, run, path: Path, n_amplitudes: int = 4) -> Path:
     _, _, _, _, sig = nonlinear_force(result, run)
     y, dy, ddy = sig.y[:3]
     r_meas = m.input_gain * sig.u[0] - ddy - m.c_m * dy
-    u = m.stage_input(st)
-    start = m.stage_start(st, u) if hasattr(m, "stage_start") else None     # as the validation simulates
+    u = m.stage_input(st, tuning=s.tuning)
+    start = m.stage_start(st, u, tuning=s.tuning) if hasattr(m, "stage_start") else None   # as the validation simulates
     ys, dys, zs = m.simulate(st.t - st.t[0], u, **({"initial": start} if start is not None else {}))
     half = (st.t.size - sig.t.size) // 2
     ys, dys, zs = ys[half:half + sig.t.size], dys[half:half + sig.t.size], zs[half:half + sig.t.size]
@@ -170,7 +170,7 @@ def simulated_stages(result, run) -> dict:
     out = {}
     for n in names:
         st = run.stage(n)
-        t, ys = result.model.simulate_stage(st)
+        t, ys = result.model.simulate_stage(st, result.settings.tuning)
         out[n] = (t, st.y, ys)
     return out
 

@@ -80,7 +80,7 @@ __all__ = ["PeriodicRecord", "detect_period", "periodic_record", "TransientRecor
            "linear_step", "hysteresis_step",
            "agent_model_step", "AgentStep", "SingleLevelResult", "identify", "LinearStep", "HysteresisStep"]
 
-SNR_DB_DEFAULT = 10.0
+SNR_DB_DEFAULT = 10.0       # a DFT bin is kept when its power is ten times its noise (identify's snr_db)
 
 
 def detect_period(u, min_periods: int = 2, rtol: float = 1e-9) -> int:

@@ -32,14 +32,14 @@ from scipy.optimize import least_squares
 
 from recon.chain.model import ChainModel, ChainRun, ChainStage
 from recon.differentiation import choose_window, derivatives
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.library import monomials
 from recon.library.agent import AgentLibrary, phi
 from recon.library.clustering import cluster
 from recon.output_error.problem import DIVERGED_RESIDUAL, FD_STEP, parameter_scales
 from recon.regression.criteria import filter_correlation_length
 from recon.regression.sparse import GroupedSparseSelector
-from recon.steps.bouc_wen import (NEGLIGIBLE, HysteresisParams, estimate_delta,
-                                  extract, refit, term_contributions)
+from recon.steps.bouc_wen import HysteresisParams, estimate_delta, extract, refit, term_contributions
 from recon.validation import nrmse
 from recon.weak.path import fit_path, path_width
 from recon.weak.segments import WeakLayer, smoothed_noise
@@ -126,7 +126,8 @@ def _plain_fn(y, dy, Fn, order, n_folds, corr_len):
     return {monomials.name(*terms[k]): float(sp.coef[k]) for k in np.flatnonzero(sp.support)}, sp
 
 
-def _path_layer(nst: ChainStage, ch, i: int, ratios: list, g: float, y, dy, c, K, hp, order: int):
+def _path_layer(nst: ChainStage, ch, i: int, ratios: list, g: float, y, dy, c, K, hp, order: int,
+                tuning: EstimatorTuning):
     """The weak path form (recon/weak_path.py) on layer i of a chain: D = x_i + sum_{j<i} r_j x_j,
     F = U_i = sum_{j<=i} f_j, y = x_i - x_(i+1); y, y' smoothed (trimmed like ``y``, ``dy``).
     Returns (HysteresisParams, c, K)."""
@@ -142,7 +143,7 @@ def _path_layer(nst: ChainStage, ch, i: int, ratios: list, g: float, y, dy, c, K
     choice = {"window": ch.window, "order": ch.order, "noise_level": {k: ch.noise_level[k] for k in names}}
     L = WeakLayer(dt=nst.dt, y_raw=y_raw, D_raw=D, y=y, dy=dy, Rdd=np.zeros_like(y), F=U, choice=choice)
     pf = fit_path(L, c, K, g, hp.lam, [monomials.parse(k) for k in hp.fn], order, smoothed_noise(L),
-                  path_width(y, nst.dt))
+                  path_width(y, nst.dt, tuning), tuning=tuning)
     info = dict(hp.info, path_form=pf.info())
     return (HysteresisParams(lam=pf.gamma + pf.delta, alpha=pf.alpha, fn=pf.fn, delta=pf.delta, gamma=pf.gamma,
                              info=info), pf.c, pf.K)
@@ -150,13 +151,14 @@ def _path_layer(nst: ChainStage, ch, i: int, ratios: list, g: float, y, dy, c, K
 
 def reconstruct_chain(run: ChainRun, order: int = 5, n_folds: int = 5, refit_params: bool = True,
                       polish: bool = True, validate_model: bool = True, polish_substeps: int = 2,
-                      path_form: bool = True) -> ChainResult:
+                      path_form: bool = True, tuning: EstimatorTuning = DEFAULT_TUNING) -> ChainResult:
     """Per-layer identification (linear step, agent model or the no-hysteresis fallback),
     then (``polish``) an output-error refinement of the whole chain on the nonlinear stage.
 
     ``path_form``: in a layer found hysteretic, the structured refit and delta come from the
     weak form along the hysteresis path (recon/weak_path.py; pattern revised stepwise) instead
-    of the pointwise refit and the h = 0 step."""
+    of the pointwise refit and the h = 0 step. ``tuning``: the estimator's weak_* fields and
+    ``negligible`` (recon.estimator.tuning)."""
 
     t0 = time.perf_counter()
     lst, nst = run.stage("linear"), run.stage("nonlinear")
@@ -188,7 +190,7 @@ def reconstruct_chain(run: ChainRun, order: int = 5, n_folds: int = 5, refit_par
             info["lambda_se"] = float(lam_se)
             hyst = hp.lam > 5 * lam_se and hp.alpha > 0
             if hyst and path_form:
-                hp, c, K = _path_layer(nst, ch, i, ratios, g, y, dy, c, K, hp, order)
+                hp, c, K = _path_layer(nst, ch, i, ratios, g, y, dy, c, K, hp, order, tuning)
                 info["path_form"] = hp.info["path_form"]
                 hyst = hp.lam > 0 and hp.alpha > 0
             elif hyst and refit_params:
@@ -216,10 +218,10 @@ def reconstruct_chain(run: ChainRun, order: int = 5, n_folds: int = 5, refit_par
         tp = time.perf_counter()
         ee = [L.to_dict() for L in layers]
         model, pinfo = polish_chain(model, [nst], n_sub=polish_substeps)
-        # terms the output error leaves negligible (< PRUNE of the layer's elastic force) are
-        # dropped and the chain is polished once more
+        # terms the output error leaves negligible (< tuning.negligible of the layer's elastic force)
+        # are dropped and the chain is polished once more
         ys = [(_rel(XN, i, 0), _rel(XN, i, 1)) for i in range(n)]
-        dropped = prune(model, ys)
+        dropped = prune(model, ys, tuning.negligible)
         if any(dropped):
             model, pinfo2 = polish_chain(model, [nst], n_sub=polish_substeps)
             pinfo = {"first": pinfo, "after_pruning": pinfo2}
@@ -258,19 +260,16 @@ def validate_chain(model: ChainModel, run: ChainRun) -> dict:
     return {"stage": main, "nrmse": float(np.max(out[main])), "per_mass": out}
 
 
-PRUNE = NEGLIGIBLE
-
-
 def contributions(model: ChainModel, i: int, y, dy) -> dict:
     """rms of each fn term of element i relative to the rms of its elastic force (k + alpha) y."""
     return term_contributions(model.fn[i], model.k[i] + model.alpha[i], y, dy)
 
 
-def prune(model: ChainModel, ys: list) -> list:
-    """Drop (in place) the fn terms whose contribution is below PRUNE; returns the names per layer."""
+def prune(model: ChainModel, ys: list, negligible: float) -> list:
+    """Drop (in place) the fn terms whose contribution is below ``negligible``; returns the names per layer."""
     dropped = []
     for i, (y, dy) in enumerate(ys):
-        small = [k for k, v in contributions(model, i, y, dy).items() if v < PRUNE]
+        small = [k for k, v in contributions(model, i, y, dy).items() if v < negligible]
         for k in small:
             del model.fn[i][k]
         dropped.append(small)

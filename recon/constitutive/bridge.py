@@ -22,6 +22,7 @@ from scipy.optimize import least_squares
 
 from recon.constitutive.law import ConstitutiveLaw
 from recon.differentiation import estimate_spectrum
+from recon.estimator.tuning import DEFAULT_TUNING
 from recon.model import HystereticModel
 from recon.output_error.polish import decimate
 from recon.output_error.problem import OutputError
@@ -67,7 +68,7 @@ def shaker_baseline(law: ConstitutiveLaw, run: Run, stages=None, max_nfev: int =
     probe = structure_model(law, excitation, m0)
     # the data items (input, start state) once, from the start model, as the polish does: each trial
     # still gets its own z0 from the recorded start (OutputError.response)
-    items = [decimate(probe.fit_item(run.stage(n)))[0] for n in names]
+    items = [decimate(probe.fit_item(run.stage(n)), DEFAULT_TUNING.polish_fs)[0] for n in names]
 
     def model(p):
         return structure_model(law, excitation, m0 * float(np.exp(p[0])), float(p[1]) * law.K, float(p[2]) * c_ref)

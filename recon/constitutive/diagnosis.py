@@ -10,7 +10,7 @@ projected problem with one more column (a candidate with a shape parameter, the 
 smoothing velocity or the contact's gap, tries a few values and keeps the best fit). Every fit is
 judged on the held-out stages (``validation*``; without one, the second half of the fitted
 stage is held out and the fit uses the first): a candidate is reported when it lowers the
-held-out force NRMSE by at least :data:`MIN_GAIN` of the null fit's, ranked by that gain.
+held-out force NRMSE by at least ``min_gain`` (ConstitutiveSettings) of the null fit's, ranked by that gain.
 The law's own library already holds the smooth monomials, so the candidates are what it lacks:
 non-smooth friction, a contact (gap or end stop), velocity-squared damping, inertia.
 """
@@ -29,9 +29,6 @@ from recon.constitutive.signals import ComponentSignals, component_signals
 from recon.validation import nrmse
 from shakerlab.errors import UserFacingError
 from shakerlab.run_data import Run, Stage
-
-MIN_GAIN = 0.10      # a candidate must cut the held-out NRMSE by 10 % of the null fit's
-
 
 def _coulomb(v0):
     return lambda y, dy, ddy: np.tanh(dy / v0)
@@ -92,13 +89,14 @@ class LawDiagnosis:
     baseline_kind: str
     held_out: list
     fit_before: dict
+    min_gain: float                                    # the gain a candidate needs (ConstitutiveSettings)
     candidates: list = field(default_factory=list)     # every candidate's best fit
     missing: list = field(default_factory=list)        # the significant ones, best first
 
     def to_dict(self) -> dict:
         return {"mode": "constitutive", "baseline": self.baseline.equation(), "baseline_kind": self.baseline_kind,
                 "held_out": self.held_out, "fit_before": self.fit_before, "candidates": self.candidates,
-                "missing_physics": self.missing, "min_gain": MIN_GAIN,
+                "missing_physics": self.missing, "min_gain": self.min_gain,
                 "result": ("the law explains the held-out force as well as any candidate" if not self.missing else
                            "missing: " + ", ".join(m["id"] for m in self.missing))}
 
@@ -125,7 +123,7 @@ def diagnose_law(run: Run, law: ConstitutiveLaw | None = None, settings: Constit
         law = reconstruct_constitutive(run, s, validate_law=False).law
         kind = "reconstructed from the run"
     sigs = [component_signals(st) for st in fit_stages]
-    null, _ = polish(law, sigs)
+    null, _ = polish(law, sigs, fit_rate=s.fit_rate)
 
     def held_out(model, extras=None, coef=None):
         errs = {}
@@ -146,7 +144,7 @@ def diagnose_law(run: Run, law: ConstitutiveLaw | None = None, settings: Constit
         shape, grid, make = candidate_terms(cid, sigs[0])
 
         def fit(value):
-            fitted, info = polish(null, sigs, max_nfev=30, extras={cid: make(value)})
+            fitted, info = polish(null, sigs, max_nfev=30, extras={cid: make(value)}, fit_rate=s.fit_rate)
             return info["nrmse_after"], fitted, info.get("extras", {})
 
         # the shape parameter by the fit (never by the held-out data): the best of the grid, then
@@ -171,7 +169,8 @@ def diagnose_law(run: Run, law: ConstitutiveLaw | None = None, settings: Constit
                         "held_out_nrmse": e, "per_stage": errs, "gain": (ref - e) / ref,
                         "law": fitted.parameters()})
     results.sort(key=lambda r: -r["gain"])
-    missing = [r for r in results if r["gain"] >= MIN_GAIN]
+    missing = [r for r in results if r["gain"] >= s.min_gain]
     return LawDiagnosis(baseline=null, baseline_kind=kind, held_out=held_names,
-                        fit_before={"held_out_nrmse": ref, "per_stage": before}, candidates=results,
+                        fit_before={"held_out_nrmse": ref, "per_stage": before}, min_gain=s.min_gain,
+                        candidates=results,
                         missing=missing)

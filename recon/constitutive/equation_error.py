@@ -42,7 +42,6 @@ from recon.regression.sparse import GroupedSparseSelector
 from recon.steps.bouc_wen import HysteresisParams, estimate_delta, extract, fn_values, project_lambda
 from shakerlab.errors import UserFacingError
 
-Z_MARGIN = 0.1     # second pass: rows with |z| below this fraction of its range are left out
 
 
 def regress(sig: ComponentSignals, h: np.ndarray, order: int, n_folds: int, fit_mass: bool = False):
@@ -118,20 +117,21 @@ def refit(params: HysteresisParams, y, dy, ddy, F, dF, s, c, K, f0, has_c: bool,
                           form="constitutive")
 
 
-def z_sign_clusters(sig: ComponentSignals, law: ConstitutiveLaw) -> np.ndarray:
-    """h = sign(x') where the hysteretic force implied by ``law`` has the sign of x' (and is not
-    near 0), else 0."""
+def z_sign_clusters(sig: ComponentSignals, law: ConstitutiveLaw, z_margin: float) -> np.ndarray:
+    """h = sign(x') where the hysteretic force implied by ``law`` has the sign of x' (and |z| is above
+    ``z_margin`` of half its 1-99 % range: ConstitutiveSettings.z_margin), else 0."""
     z = sig.F - law.f0 - law.c * sig.dy - law.k * sig.y - fn_values(law.fn, sig.y, sig.dy) - law.mass * sig.ddy
     s = np.sign(sig.dy)
     lo, hi = np.percentile(z, [1, 99])
-    margin = Z_MARGIN * 0.5 * (hi - lo)
+    margin = z_margin * 0.5 * (hi - lo)
     return np.where((np.sign(z) == s) & (np.abs(z) > margin), s, 0.0).astype(int)
 
 
-def equation_error(sig: ComponentSignals, order: int = 5, n_folds: int = 5, passes: int = 2, fit_mass: bool = False):
+def equation_error(sig: ComponentSignals, order: int = 5, n_folds: int = 5, passes: int = 2, fit_mass: bool = False,
+                   *, z_margin: float):
     """The law from the agent-model regression (``passes`` clusterings, module docstring;
     ``fit_mass``: with an inertia term, ``sig`` must carry x'''). Returns (law, info, sparse fit
-    of the last pass)."""
+    of the last pass; ``z_margin``: of the z-sign clustering, :func:`z_sign_clusters`)."""
     centre = 0.5 * (float(np.max(sig.y)) + float(np.min(sig.y)))
     h = cluster(sig.y - centre, sig.dy)
     history = []
@@ -148,6 +148,6 @@ def equation_error(sig: ComponentSignals, order: int = 5, n_folds: int = 5, pass
         law, info, sp = law_k, info_k, sp_k
         if not (law.alpha > 0 and law.lam > 0):
             break
-        h = z_sign_clusters(sig, law)
+        h = z_sign_clusters(sig, law, z_margin)
     info["passes"] = history
     return law, info, sp

@@ -33,6 +33,7 @@ from recon.constitutive.signals import ComponentSignals, component_signals
 from recon.determinism import single_thread_blas
 from recon.differentiation import estimate_spectrum
 from recon.estimator.adequacy import verdict
+from recon.settings_fields import bounded as _f, check
 from recon.validation import nrmse
 from shakerlab import __version__
 from shakerlab.errors import UserFacingError
@@ -54,8 +55,21 @@ class ConstitutiveSettings:
     inertia: str | float = "none"
     window: int | None = None
     sg_order: int | None = None
+    # the tuned numbers of the component-test estimator and of its diagnosis (recon.settings_fields:
+    # a meaning, a unit and a range each, checked when the settings are made)
+    fit_rate: float = _f(2000.0, "the projected output-error fits take a record sampled faster than twice "
+                         "this rate on every q-th sample (its rate stays at least this)", "Hz", 0.0, 1e7,
+                         lo_open=True)
+    negligible: float = _f(0.002, "term revision: fn terms whose rms force is below this share of the elastic "
+                           "force K x go at once (kept only if the BIC does not grow)",
+                           "fraction of the elastic force", 0.0, 1.0)
+    z_margin: float = _f(0.1, "the equation error's second clustering leaves out the rows whose implied |z| is "
+                         "below this fraction of half its 1-99 % range", "fraction", 0.0, 1.0)
+    min_gain: float = _f(0.1, "the law's diagnosis names a candidate that cuts the held-out force NRMSE by at "
+                         "least this share of the null fit's", "fraction", 0.0, 1.0)
 
     def __post_init__(self):
+        check(self)
         if not (self.inertia in ("none", "fit") or (isinstance(self.inertia, (int, float))
                                                      and math.isfinite(self.inertia) and self.inertia >= 0)):
             raise UserFacingError(f"inertia must be 'none', 'fit' or a mass >= 0 in kg, got {self.inertia!r}")
@@ -132,14 +146,14 @@ def wants_command(stage, setting) -> bool:
     return bool(setting)
 
 
-def command_start(law: ConstitutiveLaw, items: list[ComponentSignals]):
+def command_start(law: ConstitutiveLaw, items: list[ComponentSignals], fit_rate: float):
     """The command law's start: the constant law with c1 = alpha1 = 0 and the lag eta of the grid
     whose projected output error is lowest (the linear parameters, c1 and alpha1 among them,
-    are solved at every trial)."""
+    are solved at every trial; ``fit_rate``: ConstitutiveSettings.fit_rate)."""
     best = None
     for eta in ETA_GRID:
         trial = ConstitutiveLaw(**{**law.__dict__, "eta": float(eta)})
-        prob = ForceOutputError(trial, items, fit_eta=False)
+        prob = ForceOutputError(trial, items, fit_eta=False, fit_rate=fit_rate)
         r = prob.residual(np.zeros(len(prob.keys)))
         cost = float(r @ r)
         if best is None or cost < best[0]:
@@ -147,17 +161,18 @@ def command_start(law: ConstitutiveLaw, items: list[ComponentSignals]):
     return best[1], {"eta_grid": [float(e) for e in ETA_GRID], "eta_start": best[1].eta}
 
 
-def grid_start(items: list[ComponentSignals], commanded: bool):
+def grid_start(items: list[ComponentSignals], commanded: bool, fit_rate: float):
     """A start for the projected polish without the equation-error estimate: the (gamma, delta)
     of a grid (lambda = gamma + delta from 0.3 to 30 over the rms displacement, gamma/lambda 0.5,
-    0.75, 1) whose projected output error is lowest; no fn terms, damping and offset in."""
+    0.75, 1) whose projected output error is lowest; no fn terms, damping and offset in
+    (``fit_rate``: ConstitutiveSettings.fit_rate)."""
     rms = float(np.sqrt(np.mean(np.concatenate([it.y - it.y.mean() for it in items]) ** 2))) or 1.0
     best = None
     for lam in np.geomspace(0.3, 30.0, 9) / rms:
         for share in (0.5, 0.75, 1.0):
             trial = ConstitutiveLaw(c=1.0, k=0.0, alpha=1.0, gamma=share * lam, delta=(1 - share) * lam, f0=0.0,
                                     eta=float(ETA_GRID[6]) if commanded else 0.0)
-            prob = ForceOutputError(trial, items, fit_eta=False)
+            prob = ForceOutputError(trial, items, fit_eta=False, fit_rate=fit_rate)
             r = prob.residual(np.zeros(len(prob.keys)))
             cost = float(r @ r)
             if best is None or cost < best[0]:
@@ -186,7 +201,7 @@ def reconstruct_constitutive(run: Run, settings: ConstitutiveSettings | None = N
     timings["signals"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        law, info, sp = equation_error(sig, s.library_order, s.n_folds, fit_mass=fit_mass)
+        law, info, sp = equation_error(sig, s.library_order, s.n_folds, fit_mass=fit_mass, z_margin=s.z_margin)
     timings["equation_error"] = time.perf_counter() - t1
     law.provenance = {"method": "agent-model sparse regression of the force (shakerlab recon.constitutive)",
                       "software": f"shakerlab {__version__}", "settings": s.to_dict(), "source": run.source,
@@ -201,20 +216,21 @@ def reconstruct_constitutive(run: Run, settings: ConstitutiveSettings | None = N
             # a law the agent model does not hold for (a command-dependent one: the regression is of
             # the constant law) can give an inadmissible estimate; the projected fit needs only
             # gamma and delta, so a grid start is cheap
-            law, start = grid_start([sig], commanded), "grid (the equation-error estimate is not admissible)"
+            law = grid_start([sig], commanded, s.fit_rate)
+            start = "grid (the equation-error estimate is not admissible)"
             if fit_mass:
                 law = ConstitutiveLaw(**{**law.__dict__, "mass": 1e-9})
-        law, pinfo = polish(law, [sig])
+        law, pinfo = polish(law, [sig], fit_rate=s.fit_rate)
         pinfo["start"] = start
         if commanded:
-            start, cinfo = command_start(law, [sig])
-            law, cp = polish(start, [sig], max_nfev=100)
+            start, cinfo = command_start(law, [sig], s.fit_rate)
+            law, cp = polish(start, [sig], max_nfev=100, fit_rate=s.fit_rate)
             pinfo = {"constant_law": pinfo, "command_law": dict(cp, **cinfo)}
         timings["polish"] = time.perf_counter() - t2
         steps = []
         if s.term_selection and law.fn:
             t3 = time.perf_counter()
-            law, steps = revise_terms(law, [sig])
+            law, steps = revise_terms(law, [sig], fit_rate=s.fit_rate, negligible=s.negligible)
             timings["term_revision"] = time.perf_counter() - t3
         law.provenance = dict(prov, output_error_polish=pinfo, term_revision=steps)
     if s.known_mass:

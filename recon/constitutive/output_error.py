@@ -26,12 +26,11 @@ from recon.constitutive.law import ConstitutiveLaw
 from recon.constitutive.signals import ComponentSignals
 from recon.library import monomials
 from recon.library.agent import phi
-from recon.output_error.polish import POLISH_FS
 from recon.output_error.problem import DIVERGED_RESIDUAL, parameter_scales
 from recon.regression.criteria import bic, effective_samples
 from recon.regression.sparse import scaled_lstsq
 from recon.simulation.imposed import hysteretic_state
-from recon.steps.bouc_wen import NEGLIGIBLE, term_contributions
+from recon.steps.bouc_wen import term_contributions
 
 
 class ForceOutputError:
@@ -42,17 +41,19 @@ class ForceOutputError:
     (its records must have a command)."""
 
     def __init__(self, law: ConstitutiveLaw, items: list[ComponentSignals], fit_eta: bool = True,
-                 extras: dict | None = None):
+                 extras: dict | None = None, *, fit_rate: float):
         """``extras`` {name: f(y, dy, ddy) -> array}: further linear force terms (the constitutive
-        diagnosis's candidates, recon.constitutive.diagnosis), coefficients named ``x:<name>``."""
+        diagnosis's candidates, recon.constitutive.diagnosis), coefficients named ``x:<name>``.
+        ``fit_rate``: records sampled faster than twice this are taken on every q-th sample
+        (ConstitutiveSettings.fit_rate)."""
         self.law = law
         self.extras = dict(extras or {})
         self.items = []
         for s in items:
-            q = max(1, int((1.0 / s.dt) // POLISH_FS))
+            q = max(1, int((1.0 / s.dt) // fit_rate))
             self.items.append((s.dt * q, s.y[::q], s.dy[::q], s.F_raw[::q], None if s.cmd is None else s.cmd[::q],
                                s.F[0], s.y[0], s.dy[0], s.ddy[::q]))
-        self.decimation = [max(1, int((1.0 / s.dt) // POLISH_FS)) for s in items]
+        self.decimation = [max(1, int((1.0 / s.dt) // fit_rate)) for s in items]
         self.terms = list(law.fn)
         self.has_c = bool(law.c) or law.commanded
         self.has_f0 = True
@@ -130,10 +131,10 @@ class ForceOutputError:
 
 
 def polish(law: ConstitutiveLaw, items: list[ComponentSignals], max_nfev: int = 60, fit_eta: bool = True,
-           extras: dict | None = None):
+           extras: dict | None = None, *, fit_rate: float):
     """(law, info): the projected output-error fit of ``law``'s structure on ``items`` (with
-    ``extras``: their coefficients in ``info["extras"]``)."""
-    prob = ForceOutputError(law, items, fit_eta, extras)
+    ``extras``: their coefficients in ``info["extras"]``; ``fit_rate``: ConstitutiveSettings.fit_rate)."""
+    prob = ForceOutputError(law, items, fit_eta, extras, fit_rate=fit_rate)
     p0 = np.zeros(len(prob.keys))
     r0 = prob.residual(p0)
     sol = least_squares(prob.residual, p0, method="trf", diff_step=1e-6, max_nfev=max_nfev, xtol=1e-10,
@@ -152,9 +153,9 @@ def polish(law: ConstitutiveLaw, items: list[ComponentSignals], max_nfev: int = 
     return prob.build(sol.x), dict(info, applied=True)
 
 
-def score(law: ConstitutiveLaw, items: list[ComponentSignals]) -> tuple[float, float, float]:
+def score(law: ConstitutiveLaw, items: list[ComponentSignals], fit_rate: float) -> tuple[float, float, float]:
     """(rms of the normalised residual, effective samples, number of linear + nonlinear parameters)."""
-    prob = ForceOutputError(law, items, fit_eta=False)
+    prob = ForceOutputError(law, items, fit_eta=False, fit_rate=fit_rate)
     _, res = prob.solve(np.zeros(len(prob.keys)))
     if res is None:
         return float("inf"), 1.0, 0.0
@@ -164,22 +165,23 @@ def score(law: ConstitutiveLaw, items: list[ComponentSignals]) -> tuple[float, f
     return float(np.mean(r * r)), n_eff, float(k)
 
 
-def revise_terms(law: ConstitutiveLaw, items: list[ComponentSignals], max_nfev: int = 30):
+def revise_terms(law: ConstitutiveLaw, items: list[ComponentSignals], max_nfev: int = 30, *, fit_rate: float,
+                 negligible: float):
     """Drop fn terms (one at a time, the one whose removal lowers the BIC most) while the
     output error's BIC does not grow; each trial is polished. First, the terms whose rms force
-    is below recon.steps.bouc_wen.NEGLIGIBLE of the elastic force K x go at once (kept only if
-    the BIC does not grow). Returns (law, steps)."""
+    is below ``negligible`` (ConstitutiveSettings.negligible) of the elastic force K x go at once
+    (kept only if the BIC does not grow). Returns (law, steps)."""
     steps = []
-    mse, n_eff, k = score(law, items)
+    mse, n_eff, k = score(law, items, fit_rate)
     share = {}
     for it in items:
         for t, v in term_contributions(law.fn, law.K, it.y, it.dy).items():
             share[t] = max(share.get(t, 0.0), v)
-    small = sorted(t for t, v in share.items() if v < NEGLIGIBLE)
+    small = sorted(t for t, v in share.items() if v < negligible)
     if small:
         trial = ConstitutiveLaw(**{**law.__dict__, "fn": {t: v for t, v in law.fn.items() if t not in small}})
-        trial, _ = polish(trial, items, max_nfev=max_nfev)
-        m2, _, k2 = score(trial, items)
+        trial, _ = polish(trial, items, max_nfev=max_nfev, fit_rate=fit_rate)
+        m2, _, k2 = score(trial, items, fit_rate)
         if bic(m2, int(k2), n_eff) <= bic(mse, int(k), n_eff):
             steps.append({"drop": small, "reason": "negligible", "bic_before": bic(mse, int(k), n_eff),
                           "bic_after": bic(m2, int(k2), n_eff), "mse_after": m2})
@@ -189,8 +191,8 @@ def revise_terms(law: ConstitutiveLaw, items: list[ComponentSignals], max_nfev: 
         best = None
         for t in list(law.fn):
             trial = ConstitutiveLaw(**{**law.__dict__, "fn": {kk: v for kk, v in law.fn.items() if kk != t}})
-            trial, _ = polish(trial, items, max_nfev=max_nfev)
-            m2, n2, k2 = score(trial, items)
+            trial, _ = polish(trial, items, max_nfev=max_nfev, fit_rate=fit_rate)
+            m2, n2, k2 = score(trial, items, fit_rate)
             b = bic(m2, int(k2), n_eff)
             if best is None or b < best[0]:
                 best = (b, t, trial, m2)
@@ -201,7 +203,8 @@ def revise_terms(law: ConstitutiveLaw, items: list[ComponentSignals], max_nfev: 
     return law, steps
 
 
-def intervals(law: ConstitutiveLaw, items: list[ComponentSignals], level_z: float = 1.96, rel_step: float = 1e-6) -> dict:
+def intervals(law: ConstitutiveLaw, items: list[ComponentSignals], level_z: float = 1.96, rel_step: float = 1e-6,
+              *, fit_rate: float) -> dict:
     """Linearised intervals of every parameter of ``law`` at the projected fit's optimum.
 
     The Jacobian of the weighted force residual with respect to all parameters (the linear
@@ -209,8 +212,9 @@ def intervals(law: ConstitutiveLaw, items: list[ComponentSignals], level_z: floa
     with the linear parameters held), the covariance s^2 (J^T J)^-1 inflated by N / N_eff (the
     residual's effective samples, recon.regression.criteria.effective_samples: a slowly varying
     model error is not white noise). Returns {"parameters": {name: {"value", "se", "low",
-    "high"}}, "method", "n_eff", "n"}; the start states w0 are nuisance parameters (left out)."""
-    prob = ForceOutputError(law, items, fit_eta=True)
+    "high"}}, "method", "n_eff", "n"}; the start states w0 are nuisance parameters (left out).
+    ``fit_rate``: as the fit took the records (ConstitutiveSettings.fit_rate)."""
+    prob = ForceOutputError(law, items, fit_eta=True, fit_rate=fit_rate)
     p0 = np.zeros(len(prob.keys))
     coef, res = prob.solve(p0)
     if coef is None:

@@ -164,6 +164,7 @@ class StageData:
     fit_step: int = 1                  # a fit's iterations take every fit_step-th sample (settings.fit_rate)
     start_fit_share: float = DEFAULTS.start_fit_share  # held_start fits the start on this first share (settings)
     start_fit_nfev: int = DEFAULTS.start_fit_nfev      # ... with this many function evaluations (settings)
+    stop_chi2: float = DEFAULTS.stop_chi2              # a fit over the stage stops at this gain (settings)
 
     @functools.cached_property
     def dt(self) -> float:
@@ -271,7 +272,7 @@ def prepare(run: Run, model: HystereticModel, settings: DiagnosisSettings = DEFA
                       fit, held, noise, float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0, noise_parts=floors,
                       fit_model_share=settings.fit_model_share, order=order, motion=None if order == 0 else st.y,
                       fit_step=step, start_fit_share=settings.start_fit_share,
-                      start_fit_nfev=settings.start_fit_nfev)
+                      start_fit_nfev=settings.start_fit_nfev, stop_chi2=settings.stop_chi2)
         # the edge estimate, not a start fitted with the baseline: a fitted start absorbs what an
         # output effect (a channel delay, a tip-scale error) does to the first seconds, and the
         # candidate that models it is then scored from a start made for the model without it
@@ -686,9 +687,11 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
 
     p0 = np.clip(np.zeros(len(keys)), lo, hi)
     if keys:
-        # stopped once an iteration gains less than a hundredth of a chi-square unit of the fit's
-        # own likelihood (each stage's error over its fit_scale): recon.output_error.stopping
-        stop = stop_for_stages([int(d.fit.sum()) for d in data if d.fit.any()])
+        # stopped once an iteration gains less than settings.stop_chi2 (a hundredth) of a chi-square
+        # unit of the fit's own likelihood (each stage's error over its fit_scale):
+        # recon.output_error.stopping
+        stop = stop_for_stages([int(d.fit.sum()) for d in data if d.fit.any()],
+                               min((d.stop_chi2 for d in data), default=DEFAULTS.stop_chi2))
         sol = least_squares(resid, p0, method="trf", bounds=(lo, hi), x_scale=1.0, diff_step=FD_STEP,
                             max_nfev=max_nfev, xtol=1e-10, ftol=1e-10, workers=fd_map(), callback=stop)
         p = sol.x

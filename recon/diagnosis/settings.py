@@ -104,6 +104,9 @@ class DiagnosisSettings:
     fit_rate: float = _f(2000.0, "the fits' iterations simulate a stage sampled faster than twice this rate "
                          "on every q-th sample (rate >= this); the start choice and every held-out figure "
                          "use every sample (0: never thin)", "Hz", 0.0, 1e7)
+    stop_chi2: float = _f(0.01, "a fit stops after an iteration that lowers its cost by less than this many "
+                          "chi-square units of its own likelihood (recon.output_error.stopping)",
+                          "chi-square units", 0.0, 1e3, lo_open=True)
     # where candidate fits start and what they are refitted without (recon.diagnosis.references,
     # candidate_fit, refits)
     linear_core_nrmse: float = _f(0.7, "a reference whose held-out NRMSE is above this explains less than half "

@@ -75,7 +75,7 @@ def assess(model, validation: dict, run: Run, fallback: dict | None = None,
     # inadequate; one chosen over an inadequate full model on the held-out data is judged by its figures
     simpler = fallback["kind"] if (fallback and fallback.get("used") and fallback.get("trigger") != "inadequate"
                                     and fallback.get("kind") not in HYSTERETIC_KINDS) else None
-    out = verdict(admissible(model), validation.get("nrmse"), noise_floor(run, validation.get("stage")),
+    out = verdict(admissible(model, tuning), validation.get("nrmse"), noise_floor(run, validation.get("stage")),
                   len(model.fn_m), bool(validation.get("fitted_on_validation_stage")), "model", simpler, tuning)
     if out["verdict"] != "adequate":
         out["advice"] = "run `shakerlab diagnose` on this run to locate and name what the model leaves out"

@@ -25,7 +25,6 @@ from recon.output_error.problem import parameter_keys
 from shakerlab.run_data import Run
 
 HP_START_HZ = 0.1       # the roll-off's start: far below any structural resonance
-DRIVE_NFEV = 60
 
 
 def fit_drive(result: ReconResult, run: Run, s: ReconSettings) -> ReconResult:
@@ -37,14 +36,14 @@ def fit_drive(result: ReconResult, run: Run, s: ReconSettings) -> ReconResult:
     start = HystereticModel.from_dict(model.to_dict())
     start.drive_u2, start.drive_hp = 0.0, 2 * math.pi * HP_START_HZ
     info = {"fitted_on": list(fitted), "held_out": names, "held_out_is_validation": held,
-            "held_out_nrmse_without": score(model, run, names)}
+            "held_out_nrmse_without": score(model, run, names, s.tuning)}
     try:
-        items = [start.fit_item(run.stage(n)) for n in fitted]
+        items = [start.fit_item(run.stage(n), tuning=s.tuning) for n in fitted]
         # a model without hysteresis (a simpler kind answered) keeps its Bouc-Wen parameters at 0
         free = ([k for k in parameter_keys(start) if k not in ("alpha_m", "gamma", "delta")]
                 if model.alpha_m == 0.0 else None)
-        new, pinfo = polish(start, items, max_nfev=DRIVE_NFEV, free=free)
-        after = score(new, run, names)
+        new, pinfo = polish(start, items, max_nfev=s.tuning.drive_nfev, free=free, tuning=s.tuning)
+        after = score(new, run, names, s.tuning)
     except NUMERICAL_ERRORS as exc:
         info.update(applied=False, failed=f"{type(exc).__name__}: {exc}", seconds=time.perf_counter() - t0)
         model.provenance["drive_fit"] = info
@@ -52,7 +51,7 @@ def fit_drive(result: ReconResult, run: Run, s: ReconSettings) -> ReconResult:
     info.update(held_out_nrmse_with=after, drive_u2=new.drive_u2, drive_hp=new.drive_hp,
                 drive_hp_hz=abs(new.drive_hp) / (2 * math.pi), fit_nrmse_before=pinfo["nrmse_before"],
                 fit_nrmse_after=pinfo["nrmse_after"])
-    ok = admissible(new)
+    ok = admissible(new, s.tuning)
     keep = bool(pinfo["applied"] and ok and np.isfinite(after) and after < info["held_out_nrmse_without"])
     info["applied"] = keep
     info["seconds"] = time.perf_counter() - t0
@@ -65,6 +64,6 @@ def fit_drive(result: ReconResult, run: Run, s: ReconSettings) -> ReconResult:
     new.provenance = dict(model.provenance, drive_fit=info)
     result.model = new
     if result.validation:
-        result.validation = validate(new, run)
+        result.validation = validate(new, run, tuning=s.tuning)
     result.adequacy = assess(new, result.validation, run, (result.adequacy or {}).get("fallback"), s.tuning)
     return result

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.library import monomials
 from recon.model import HystereticModel
 from recon.output_error.polish import decimate, output_noise
@@ -43,25 +44,25 @@ from shakerlab.run_data import BASE, Run
 # the caller (those raise TypeError/AttributeError/KeyError and are not caught)
 NUMERICAL_ERRORS = (np.linalg.LinAlgError, FloatingPointError, OverflowError, ZeroDivisionError, ValueError)
 
-# |k| above 10 K: k and alpha nearly cancel (a force that falls after yield ten times faster than
-# it rose). Such a split is a numerical artefact, not a law: its model, with K far from the
-# truth's, does not predict the validation stage at all.
-SPLIT_LIMIT = 10.0
 KINDS = ("bouc_wen_fewer_terms", "bouc_wen", "elastic", "equivalent_linear", "linear")
 # the kinds that have the law's own form (Bouc-Wen hysteresis): fitted by output error from a
 # generic start, they are a full reconstruction, not a simplification of it
 HYSTERETIC_KINDS = ("bouc_wen_fewer_terms", "bouc_wen")
 
 
-def admissible(model: HystereticModel) -> bool:
+def admissible(model: HystereticModel, tuning: EstimatorTuning = DEFAULT_TUNING) -> bool:
     """Physically admissible: finite, positive stiffness, a post-yield stiffness |k| within
-    ``SPLIT_LIMIT`` times the initial stiffness K = k + alpha, and either a saturating Bouc-Wen
+    ``tuning.split_limit`` times the initial stiffness K = k + alpha, and either a saturating Bouc-Wen
     law (alpha > 0, gamma + delta > 0) or no hysteresis at all (alpha = gamma = delta = 0) with
-    non-negative damping."""
+    non-negative damping.
+
+    |k| above 10 K (the default): k and alpha nearly cancel (a force that falls after yield ten
+    times faster than it rose). Such a split is a numerical artefact, not a law: its model, with K
+    far from the truth's, does not predict the validation stage at all."""
     vals = [model.c_m, model.k_m, model.alpha_m, model.gamma, model.delta, *model.fn_m.values()]
     if not np.all(np.isfinite(vals)) or not model.K_m > 0:
         return False
-    if abs(model.k_m) > SPLIT_LIMIT * model.K_m:
+    if abs(model.k_m) > tuning.split_limit * model.K_m:
         return False        # k and alpha cancel: a split the data did not determine
     if model.alpha_m == 0.0 and model.gamma == 0.0 and model.delta == 0.0:
         return bool(model.c_m >= 0.0)
@@ -81,9 +82,9 @@ class SimplerFit:
     # kind: "estimate", y^2 and y^3 from the inadmissible estimate, or "zero"); None: one start
     start: str | None = None
 
-    def to_dict(self) -> dict:
+    def to_dict(self, tuning: EstimatorTuning = DEFAULT_TUNING) -> dict:
         d = {"kind": self.kind, "held_out_nrmse": self.held_out_nrmse, "fitted_nrmse": self.fitted_nrmse,
-             "admissible": bool(self.model is not None and admissible(self.model))}
+             "admissible": bool(self.model is not None and admissible(self.model, tuning))}
         if self.nonlinear_stage_nrmse is not None:
             d["nonlinear_stage_nrmse"] = self.nonlinear_stage_nrmse
         if self.model is not None:
@@ -103,12 +104,12 @@ def held_out_stages(run: Run, fitted: tuple) -> tuple[list[str], bool]:
     return [n for n in fitted if n in run.stages][-1:], False
 
 
-def score(model: HystereticModel, run: Run, names: list[str]) -> float:
+def score(model: HystereticModel, run: Run, names: list[str], tuning: EstimatorTuning = DEFAULT_TUNING) -> float:
     """Mean NRMSE of the model's simulation over ``names`` (inf if it diverges)."""
     out = []
     for n in names:
         try:     # in the recorded quantity, as validation (HystereticModel.simulate_measured)
-            ys, measured = model.simulate_measured(run.stage(n))
+            ys, measured = model.simulate_measured(run.stage(n), tuning)
         except NUMERICAL_ERRORS:
             return float("inf")
         if not np.all(np.isfinite(ys)):
@@ -138,18 +139,20 @@ def _linear_start(run: Run, linear_stage: str, excitation: str, lin=None) -> tup
     return 0.04 * math.sqrt(k), k, inv_m
 
 
-def _fit(model: HystereticModel, data: list, free: list, max_nfev: int) -> HystereticModel:
+def _fit(model: HystereticModel, data: list, free: list, max_nfev: int, tuning: EstimatorTuning) -> HystereticModel:
     prob = OutputError(model, data, free=free)
     with np.errstate(all="ignore"):
         sol = least_squares(prob.residual, np.zeros(len(prob.keys)), method="trf", x_scale=1.0, diff_step=FD_STEP,
                             max_nfev=max_nfev, xtol=1e-10, ftol=1e-12, workers=fd_map(),
-                            callback=prob.stop([output_noise(d) for d in data]))
+                            callback=prob.stop([output_noise(d) for d in data], tuning.stop_chi2))
     return prob.build(sol.x)
 
 
 def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_fit=None,
                    max_nfev: int = 60) -> list[SimplerFit]:
-    """Fit every simpler kind (module doc) and score it on the held-out stages."""
+    """Fit every simpler kind (module doc) and score it on the held-out stages (``settings``: the
+    ReconSettings, whose tuning the fits and the admissibility read)."""
+    t = settings.tuning
     excitation = next(iter(run.stages.values())).excitation
     fitted = tuple(n for n in (settings.linear_stage, settings.nonlinear_stage) if n in run.stages)
     names, _ = held_out_stages(run, fitted)
@@ -218,22 +221,22 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
         start_names = elastic_starts if kind == "elastic" else None
         for j, start in enumerate(first if isinstance(first, list) else [first]):
             try:
-                data = [decimate(start.fit_item(run.stage(n)))[0] for n in fitted]
+                data = [decimate(start.fit_item(run.stage(n), tuning=t), t.polish_fs)[0] for n in fitted]
                 # fn terms that start at 0 take the scale of 1 % of the elastic force
-                m = _fit(with_term_scales(start, data), data, free, max_nfev)
+                m = _fit(with_term_scales(start, data), data, free, max_nfev, t)
             except NUMERICAL_ERRORS as e:
                 tried.append(SimplerFit(kind, None, float("inf"), float("inf"), f"{type(e).__name__}: {e}",
                                         start=start_names[j] if start_names else None))
                 continue
-            if not admissible(m):
+            if not admissible(m, t):
                 tried.append(SimplerFit(kind, m, float("inf"), float("inf"), "the fitted model is not admissible",
                                         start=start_names[j] if start_names else None))
                 continue
             # each fitted stage simulated once: their mean is the fit's figure, the nonlinear stage's
             # own is what an inadequate full model is compared on (pipeline._prefer_simpler)
-            per_stage = {n: score(m, run, [n]) for n in fitted}
+            per_stage = {n: score(m, run, [n], t) for n in fitted}
             fit_err = float(np.mean(list(per_stage.values()))) if per_stage else float("inf")
-            tried.append(SimplerFit(kind, m, score(m, run, names), fit_err,
+            tried.append(SimplerFit(kind, m, score(m, run, names, t), fit_err,
                                     None if math.isfinite(fit_err) else "its simulation diverges",
                                     per_stage.get(settings.nonlinear_stage),
                                     start_names[j] if start_names else None))

@@ -11,18 +11,18 @@ from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, with_term_sca
 from recon.estimator.result import ReconSettings
 from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.model import HystereticModel
-from recon.output_error.polish import MAX_NFEV, polish
+from recon.output_error.polish import polish
 from recon.validation import nrmse
 from shakerlab.run_data import Run
 
 
-def validate(model: HystereticModel, run: Run, skip: tuple = ()) -> dict:
+def validate(model: HystereticModel, run: Run, skip: tuple = (), tuning: EstimatorTuning = DEFAULT_TUNING) -> dict:
     names = [n for n in run.stages if n.startswith("validation")]
     if not names:
         names = [n for n in ("nonlinear",) if n in run.stages]
     out = {}
     for n in names:      # in the quantity the response was recorded in (HystereticModel.simulate_measured)
-        out[n] = nrmse(*model.simulate_measured(run.stage(n)))
+        out[n] = nrmse(*model.simulate_measured(run.stage(n), tuning))
     main = names[0] if names else None
     return {"nrmse": out.get(main, float("nan")), "stage": main, "per_stage": out,
             "fitted_on_validation_stage": main == "nonlinear"}
@@ -50,9 +50,10 @@ def restart_fn_terms(model: HystereticModel, item: tuple, polish_info: dict,
         trial = HystereticModel.from_dict(model.to_dict())
         trial.fn_m = dict(fn)
         trial = with_term_scales(trial, [item])
-        new, info = polish(trial, [item])
-        ok = bool(info["applied"] and admissible(new) and info["nrmse_after"] < tuning.start_nrmse_limit)
-        restarts[name] = {"fn_terms": sorted(fn), "admissible": admissible(new), **info, "model": new if ok else None}
+        new, info = polish(trial, [item], tuning=tuning)
+        ok = bool(info["applied"] and admissible(new, tuning) and info["nrmse_after"] < tuning.start_nrmse_limit)
+        restarts[name] = {"fn_terms": sorted(fn), "admissible": admissible(new, tuning), **info,
+                          "model": new if ok else None}
     good = [(r["nrmse_after"], name) for name, r in restarts.items() if r["model"] is not None]
     record = {"start_nrmse": polish_info["nrmse_before"], "dropped_terms": sorted(model.fn_m),
               **{name: {k: v for k, v in r.items() if k != "model"} for name, r in restarts.items()}}
@@ -101,7 +102,7 @@ def generic_restarts(model: HystereticModel, item: tuple, polish_info: dict, flo
     screened = []
     for share, knee, trial in generic_starts(model, [item], tuning):
         try:
-            new, info = polish(trial, [item], max_nfev=tuning.screen_nfev)
+            new, info = polish(trial, [item], max_nfev=tuning.screen_nfev, tuning=tuning)
         except NUMERICAL_ERRORS:
             continue
         if np.isfinite(info["nrmse_after"]):
@@ -112,12 +113,12 @@ def generic_restarts(model: HystereticModel, item: tuple, polish_info: dict, flo
         return model, {**polish_info, "generic_restart": record}
     _, share, knee, best = min(screened, key=lambda r: r[0])
     try:
-        new, info = polish(best, [item])
+        new, info = polish(best, [item], tuning=tuning)
     except NUMERICAL_ERRORS:
         return model, {**polish_info, "generic_restart": record}
     cost = info["nrmse_after"] if info["applied"] else info["nrmse_before"]
     record.update(kept_start={"alpha_share": share, "knee": knee}, cost_after=cost)
-    if admissible(new) and cost < record["cost_before"]:
+    if admissible(new, tuning) and cost < record["cost_before"]:
         record["applied"] = True
         return new, {**polish_info, "nrmse_after": cost, "generic_restart": record}
     record["applied"] = False
@@ -132,23 +133,23 @@ def polished_cost(polish_info: dict) -> float:
 
 def continue_polish(model: HystereticModel, item: tuple, polish_info: dict,
                     tuning: EstimatorTuning = DEFAULT_TUNING):
-    """Polish again from where a polish stopped at its evaluation budget (at most
-    ``tuning.continue_rounds`` more rounds, while the cost falls).
+    """Polish again from where a polish stopped at its evaluation budget (``tuning.polish_nfev``; at
+    most ``tuning.continue_rounds`` more rounds, while the cost falls).
 
     A polish started far from the optimum (an equation-error k a hundred times too small) spends
     its budget on the way and stops short of the optimum with parameters several per cent off.
     Returns (model, polish_info); ``polish_info["continued"]`` records the rounds."""
     rounds = []
     info = polish_info
-    while info.get("applied") and info.get("nfev", 0) >= MAX_NFEV and len(rounds) < tuning.continue_rounds:
+    while info.get("applied") and info.get("nfev", 0) >= tuning.polish_nfev and len(rounds) < tuning.continue_rounds:
         try:
-            new, info = polish(model, [item])
+            new, info = polish(model, [item], tuning=tuning)
         except NUMERICAL_ERRORS as exc:
             rounds.append({"failed": f"{type(exc).__name__}: {exc}"})
             break
         before, after = polished_cost(polish_info), polished_cost(info)
         rounds.append({"cost_before": before, "cost_after": after, "nfev": info.get("nfev")})
-        if not (info["applied"] and admissible(new) and after < before):
+        if not (info["applied"] and admissible(new, tuning) and after < before):
             break
         model = new
         polish_info = {**polish_info, "nrmse_after": after}
@@ -170,19 +171,19 @@ def refine_start(model: HystereticModel, stage, item: tuple, polish_info: dict,
     (model, item, polish_info); ``polish_info["start_refined"]`` records the rounds."""
     rounds = []
     for _ in range(tuning.start_rounds):
-        if model.stage_start(stage, fit=False) == (0.0, 0.0, 0.0):
+        if model.stage_start(stage, fit=False, tuning=tuning) == (0.0, 0.0, 0.0):
             break                                   # recorded from rest: no start to refine
         try:
-            item2 = model.fit_item(stage)
+            item2 = model.fit_item(stage, tuning=tuning)
             if np.allclose(item2[3], item[3], rtol=1e-6, atol=0.0):
                 break
-            new, info = polish(model, [item2])
+            new, info = polish(model, [item2], tuning=tuning)
         except NUMERICAL_ERRORS as exc:
             rounds.append({"failed": f"{type(exc).__name__}: {exc}"})
             break
         before, after = polished_cost(polish_info), polished_cost(info)
         rounds.append({"start": [float(v) for v in item2[3]], "cost_before": before, "cost_after": after})
-        if not (admissible(new) and after < before):
+        if not (admissible(new, tuning) and after < before):
             break
         model, item = new, item2
         polish_info = {**polish_info, "applied": True, "nrmse_after": after}
@@ -196,7 +197,8 @@ def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info
     """The common end of every form: mark whether the equation-error estimate is admissible
     (``info``), polish it by output error on the nonlinear stage (``s.polish``), record both in
     the provenance and validate. Returns (model, validation)."""
-    info["equation_error_admissible"] = admissible(model)
+    t = s.tuning
+    info["equation_error_admissible"] = admissible(model, t)
     equation_error_model = model
     polish_info = {"applied": False}
     if s.polish and info["equation_error_admissible"]:
@@ -204,9 +206,8 @@ def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info
             model.input_offset = 0.0       # a parameter of the polish from here on (ReconSettings)
         tp = time.perf_counter()
         stage = run.stage(s.nonlinear_stage)
-        item = model.fit_item(stage)
-        model, polish_info = polish(model, [item])
-        t = s.tuning
+        item = model.fit_item(stage, tuning=t)
+        model, polish_info = polish(model, [item], tuning=t)
         model, polish_info = continue_polish(model, item, polish_info, t)
         if model.fn_m and not polish_info["applied"] and not polish_info["nrmse_before"] < t.start_nrmse_limit:
             model, polish_info = restart_fn_terms(model, item, polish_info, t)
@@ -225,6 +226,6 @@ def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info
     model.provenance["equation_error_estimate"] = equation_error_model.to_dict()["parameters"]
     model.provenance["output_error_polish"] = polish_info
     t2 = time.perf_counter()
-    val = validate(model, run) if validate_model else {"nrmse": float("nan"), "stage": None}
+    val = validate(model, run, tuning=t) if validate_model else {"nrmse": float("nan"), "stage": None}
     timings["validation"] = time.perf_counter() - t2
     return model, val

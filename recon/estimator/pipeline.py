@@ -24,13 +24,13 @@ from recon.estimator.two_stage import two_stage_polish
 from recon.estimator.input_offset import resolve_input_offset
 from recon.estimator.pointwise import reconstruct_pointwise
 from recon.estimator.result import ReconResult, ReconSettings
-from recon.estimator.tuning import DEFAULT_TUNING
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.estimator.weak_form import reconstruct_weak
 from recon.model import HystereticModel
 from recon.output_error.polish import polish
 from recon.output_error.problem import parameter_keys
 from recon.output_error.term_selection import select_terms, stage_data
-from recon.steps.bouc_wen import NEGLIGIBLE, hysteretic_share, term_contributions
+from recon.steps.bouc_wen import hysteretic_share, term_contributions
 from shakerlab.errors import EstimateRefused, UserFacingError
 from shakerlab.run_data import FORCE, Run
 
@@ -110,7 +110,8 @@ def _preference(r: ReconResult) -> tuple:
 
 
 def _usable(r: ReconResult, validate_model: bool) -> bool:
-    return bool(admissible(r.model) and (not validate_model or np.isfinite(r.validation.get("nrmse", 0.0))))
+    return bool(admissible(r.model, r.settings.tuning)
+                and (not validate_model or np.isfinite(r.validation.get("nrmse", 0.0))))
 
 
 def _reconstruct_passes(run: Run, s: ReconSettings, validate_model: bool) -> ReconResult:
@@ -199,20 +200,21 @@ def _prefer_simpler(result: ReconResult, run: Run, s: ReconSettings, validate_mo
     if not (math.isfinite(v) and v > limit):
         return first            # inadequate for another reason (its term count): no held-out case
     progress.step("comparing with the simpler models (the full model is inadequate)", share=0.1)
-    full = score(result.model, run, names)
+    full = score(result.model, run, names, s.tuning)
     try:
         fits = simpler_models(run, s, result.model, result.linear)
     except NUMERICAL_ERRORS as e:
         first.hysteresis_info["simpler_models_failed"] = f"{type(e).__name__}: {e}"
         return first
     # each simpler fit carries its own nonlinear-stage figure (fallback.simpler_models)
-    full_nl = score(result.model, run, [s.nonlinear_stage]) if s.nonlinear_stage in run.stages else float("nan")
+    full_nl = (score(result.model, run, [s.nonlinear_stage], s.tuning) if s.nonlinear_stage in run.stages
+               else float("nan"))
     good = [f for f in fits if f.model is not None and np.isfinite(f.held_out_nrmse)
             and (not math.isfinite(full_nl) or f.nonlinear_stage_nrmse <= s.tuning.simpler_fit_slack * full_nl)]
     best = min(good, key=lambda f: f.held_out_nrmse) if good else None
     compared = {"full_model_held_out_nrmse": full, "gain_needed": s.tuning.simpler_gain,
                 "full_model_nonlinear_stage_nrmse": full_nl, "fit_slack": s.tuning.simpler_fit_slack,
-                "candidates": [f.to_dict() for f in fits]}
+                "candidates": [f.to_dict(s.tuning) for f in fits]}
     if best is None or not best.held_out_nrmse < s.tuning.simpler_gain * full:
         first.adequacy["simpler_models_compared"] = compared
         return first
@@ -245,7 +247,7 @@ def _simpler(run: Run, s: ReconSettings, candidates: list, failures: dict, valid
     fallback = {"used": True, "kind": best.kind, "trigger": "inadmissible",
                 "chosen_by": "held-out NRMSE on " + ", ".join(names)
                 + ("" if held else " (no validation stage: the fitted nonlinear stage)"),
-                "candidates": [f.to_dict() for f in fits],
+                "candidates": [f.to_dict(s.tuning) for f in fits],
                 "inadmissible_estimate": (estimate.model.to_dict()["parameters"] if estimate is not None else None),
                 "failed_passes": dict(failures)}
     if estimate is not None:
@@ -259,12 +261,12 @@ def _adopt(result: ReconResult | None, best, fallback: dict, run: Run, s: ReconS
     """``result`` (or a new result when there is none) answering with the simpler model ``best``."""
     best.model.provenance = {"simpler_model": best.kind, "settings": {"linear_stage": s.linear_stage,
                                                                       "nonlinear_stage": s.nonlinear_stage}}
-    if best.kind in HYSTERETIC_KINDS and s.polish and s.two_stage_polish and admissible(best.model):
+    if best.kind in HYSTERETIC_KINDS and s.polish and s.two_stage_polish and admissible(best.model, s.tuning):
         # a Bouc-Wen law fitted on the nonlinear stage: the two stages decide its terms as for the full
         # model (at low SNR a law fitted on one stage can carry a spurious term beside the true one)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             best.model = two_stage_polish(best.model, run, s)
-    val = validate(best.model, run) if validate_model else {"nrmse": float("nan"), "stage": None}
+    val = validate(best.model, run, tuning=s.tuning) if validate_model else {"nrmse": float("nan"), "stage": None}
     if result is None:
         result = ReconResult.of_model(best.model, val, s)
     result.model = best.model
@@ -278,14 +280,14 @@ def _trusted(r: ReconResult) -> bool:
     """Admissible from its equation-error estimate on, and its validation is finite and better than
     predicting zero (NRMSE below 1)."""
     v = r.validation.get("nrmse", 0.0)
-    return bool(admissible(r.model) and r.hysteresis_info.get("equation_error_admissible", True)
+    return bool(admissible(r.model, r.settings.tuning) and r.hysteresis_info.get("equation_error_admissible", True)
                 and np.isfinite(v) and not v >= 1.0)
 
 
 def _two_stage(result: ReconResult, run: Run, s: ReconSettings, validate_model: bool) -> ReconResult:
     """The linear and nonlinear stages polished together (recon.estimator.two_stage.two_stage_polish),
     re-validated when the joint fit is kept."""
-    if not (s.polish and s.two_stage_polish and admissible(result.model)):
+    if not (s.polish and s.two_stage_polish and admissible(result.model, s.tuning)):
         return result
     t0 = time.perf_counter()
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -294,7 +296,7 @@ def _two_stage(result: ReconResult, run: Run, s: ReconSettings, validate_model: 
     kept = model is not result.model
     result.model = model
     if kept and validate_model:
-        result.validation = validate(model, run)
+        result.validation = validate(model, run, tuning=s.tuning)
     return result
 
 
@@ -315,27 +317,28 @@ def _revise_model_terms(result: ReconResult, run: Run, s: ReconSettings, validat
 
     1. term selection by output error (recon/term_selection.py, with ``s.term_selection``),
        then a polish of the selected structure on the whole (decimated) stage;
-    2. drop the terms the output error left negligible (rms below NEGLIGIBLE of the elastic
-       force, as in chains) and polish once more. At 60 dB the term selection kept a y^4*dy
+    2. drop the terms the output error left negligible (rms below ``s.tuning.negligible`` of the
+       elastic force, as in chains) and polish once more. At 60 dB the term selection kept a y^4*dy
        of 0.04 % in 13 of 50 noise seeds (its held-out gain was within the information
        criterion's margin).
     A revised model replaces the result's only if it stays admissible; it is re-validated."""
-    if not s.polish or not admissible(result.model):
+    t = s.tuning
+    if not s.polish or not admissible(result.model, t):
         return result
     stage = run.stage(s.nonlinear_stage)
-    data, q, _ = stage_data(result.model, stage)
+    data, q, _ = stage_data(result.model, stage, t)
     changed = False
     if s.term_selection:
         tp = time.perf_counter()
-        model, info = select_terms(result.model, stage, data=(data, q))
+        model, info = select_terms(result.model, stage, data=(data, q), tuning=t)
         if info["applied"]:
-            model, pinfo = polish(model, [data], max_nfev=30)
+            model, pinfo = polish(model, [data], max_nfev=30, tuning=t)
             info["final_polish"] = pinfo
-            if not admissible(model):
-                model = _without_vanished_hysteresis(model, data, info)
+            if not admissible(model, t):
+                model = _without_vanished_hysteresis(model, data, info, t)
             model.provenance = dict(result.model.provenance)
             model.provenance["term_selection"] = info
-            if admissible(model):
+            if admissible(model, t):
                 result.model, changed = model, True
         else:
             result.model.provenance["term_selection"] = info
@@ -344,28 +347,29 @@ def _revise_model_terms(result: ReconResult, run: Run, s: ReconSettings, validat
     y, dy = result.signals.get("y"), result.signals.get("dy")
     if m.fn_m and y is not None and dy is not None:
         share = term_contributions(m.fn_m, m.K_m, y, dy)
-        small = sorted(k for k, v in share.items() if v < NEGLIGIBLE)
+        small = sorted(k for k, v in share.items() if v < t.negligible)
         if small:
             trial = HystereticModel.from_dict(m.to_dict())
             for k in small:
                 del trial.fn_m[k]
-            trial, pinfo = polish(trial, [data], max_nfev=30)
-            if admissible(trial):
+            trial, pinfo = polish(trial, [data], max_nfev=30, tuning=t)
+            if admissible(trial, t):
                 trial.provenance = dict(m.provenance)
-                trial.provenance["pruned"] = {"terms": small, "threshold": NEGLIGIBLE, "polish": pinfo,
+                trial.provenance["pruned"] = {"terms": small, "threshold": t.negligible, "polish": pinfo,
                                               "share_of_elastic_force": {k: share[k] for k in small}}
                 result.model, changed = trial, True
     if changed:
         t2 = time.perf_counter()
         if validate_model:
-            result.validation = validate(result.model, run)
+            result.validation = validate(result.model, run, tuning=t)
         result.timings["validation"] = time.perf_counter() - t2
     return result
 
 
-def _without_vanished_hysteresis(model: HystereticModel, data: tuple, info: dict) -> HystereticModel:
+def _without_vanished_hysteresis(model: HystereticModel, data: tuple, info: dict,
+                                 tuning: EstimatorTuning) -> HystereticModel:
     """``model`` without its Bouc-Wen law, polished on ``data``, when the law's force has vanished
-    (rms z below NEGLIGIBLE of the elastic force on the stage) and only it made ``model``
+    (rms z below ``tuning.negligible`` of the elastic force on the stage) and only it made ``model``
     inadmissible; else ``model`` as it is. ``info`` (the term selection's) gets the figures.
 
     A law the equation-error step put in for a term it missed can fall to nothing once the term
@@ -375,17 +379,17 @@ def _without_vanished_hysteresis(model: HystereticModel, data: tuple, info: dict
     model is inadmissible for its alpha alone: without this step the revision would be thrown away
     and the diagnosis would later name the y^2 the baseline lacks."""
     share = hysteretic_share(model, data[0], data[1])
-    record = {"hysteretic_share": share, "threshold": NEGLIGIBLE, "applied": False}
+    record = {"hysteretic_share": share, "threshold": tuning.negligible, "applied": False}
     info["vanished_hysteresis"] = record
-    if not share < NEGLIGIBLE:
+    if not share < tuning.negligible:
         return model
     trial = HystereticModel.from_dict(model.to_dict())
     trial.k_m = model.K_m
     trial.alpha_m = trial.gamma = trial.delta = 0.0
     free = [k for k in parameter_keys(trial) if k not in ("alpha_m", "gamma", "delta")]
-    trial, pinfo = polish(trial, [data], max_nfev=30, free=free)
+    trial, pinfo = polish(trial, [data], max_nfev=30, free=free, tuning=tuning)
     record["polish"] = pinfo
-    if not admissible(trial):
+    if not admissible(trial, tuning):
         return model
     record["applied"] = True
     return trial

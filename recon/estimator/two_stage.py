@@ -98,12 +98,12 @@ class TwoStages:
         return [st.name for st in self.stages]
 
     def items(self, model: HystereticModel) -> list[tuple]:
-        return [model.fit_item(st) for st in self.stages]
+        return [model.fit_item(st, tuning=self.tuning) for st in self.stages]
 
     def fit(self, model: HystereticModel, items: list | None = None):
         """The joint polish from ``model``: (model, info, items)."""
         items = self.items(model) if items is None else items
-        new, info = polish(model, items, noise=self.noise)
+        new, info = polish(model, items, noise=self.noise, tuning=self.tuning)
         return new, info, items
 
     def residuals(self, model: HystereticModel, items: list) -> list[tuple[np.ndarray, float]]:
@@ -111,7 +111,7 @@ class TwoStages:
         (decimated), with its sample interval."""
         out = []
         for item, sd in zip(items, self.noise):
-            d, _ = decimate(item)
+            d, _ = decimate(item, self.tuning.polish_fs)
             ys = OutputError.item_response(model, d)
             out.append((measured_error(ys, item_target(d)) / sd, float(d[0][1] - d[0][0])))
         return out
@@ -125,8 +125,8 @@ class TwoStages:
         rng = np.random.default_rng(FLOOR_SEED)
         total, count = 0.0, 0
         for st, item, sd in zip(self.stages, items, self.noise):
-            d, q = decimate(item)
-            f = input_filter(st)
+            d, q = decimate(item, self.tuning.polish_fs)
+            f = input_filter(st, tuning=self.tuning)
             base = OutputError.item_response(model, d)
             share = []
             for _ in range(self.tuning.floor_draws):
@@ -174,9 +174,9 @@ def colour(residual: np.ndarray, change: np.ndarray, dt: float) -> float:
     return float(np.sum(weight * np.interp(np.fft.rfftfreq(change.size, dt), f, density)) / total)
 
 
-def stage_cost(model: HystereticModel, item: tuple) -> tuple[float, int]:
+def stage_cost(model: HystereticModel, item: tuple, tuning: EstimatorTuning) -> tuple[float, int]:
     """(NRMSE over the item as the polish fits it, decimated; the number of samples fitted)."""
-    dec, _ = decimate(item)
+    dec, _ = decimate(item, tuning.polish_fs)
     prob = OutputError(model, [dec])
     r = prob.residual(np.zeros(len(prob.keys)))
     return float(np.sqrt(r @ r)), int(dec[2].size)
@@ -197,7 +197,7 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
 
     try:
         new, info, items = two.fit(model)
-        before, n = stage_cost(model, items[1])
+        before, n = stage_cost(model, items[1], s.tuning)
     except NUMERICAL_ERRORS as exc:
         record.update(applied=False, reason=f"{type(exc).__name__}: {exc}")
         return with_record(model)
@@ -209,7 +209,7 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
 
     def cost(m) -> float:
         if last.get("model") is not m:
-            last.update(model=m, cost=stage_cost(m, m.fit_item(two.stages[1]))[0])
+            last.update(model=m, cost=stage_cost(m, m.fit_item(two.stages[1], tuning=s.tuning), s.tuning)[0])
         return last["cost"]
 
     def rise(m) -> float:
@@ -228,7 +228,7 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
         # disagree under it, and there is nothing to decide (the demo run: 50 s of restarts saved)
         record.update(applied=False, reason="the joint polish did not lower the joint cost")
         return with_record(model)
-    if admissible(new) and r <= limit:
+    if admissible(new, s.tuning) and r <= limit:
         new, record["terms"] = drop_terms(new, two)
         new, record["restart"] = restart(new, two, known=record["terms"])
     else:
@@ -255,7 +255,7 @@ def _joint_fit(model: HystereticModel, two: TwoStages):
         total, n = two.sse(new, items)
     except NUMERICAL_ERRORS:
         return None
-    if not (admissible(new) and np.isfinite(total)):
+    if not (admissible(new, two.tuning) and np.isfinite(total)):
         return None
     return new, total, n
 
@@ -361,8 +361,8 @@ def _generic_fit(model: HystereticModel, two: TwoStages, record: dict):
     items = two.items(model)
     for share, knee, trial in generic_starts(model, items, two.tuning):
         try:
-            new, info = polish(trial, [trial.fit_item(st) for st in two.stages], noise=two.noise,
-                               max_nfev=two.tuning.screen_nfev)
+            new, info = polish(trial, [trial.fit_item(st, tuning=two.tuning) for st in two.stages], noise=two.noise,
+                               max_nfev=two.tuning.screen_nfev, tuning=two.tuning)
         except NUMERICAL_ERRORS:
             continue
         if np.isfinite(info["nrmse_after"]):

@@ -15,7 +15,7 @@ from recon.model import HystereticModel
 from recon.steps.bouc_wen import HysteresisParams
 from recon.steps.linear import count_lines
 from recon.weak.path import fit_path, path_width
-from recon.weak.segments import BUMP_POWER, fit_layer, linear_weak, linear_width, sdof_layer, smoothed_noise
+from recon.weak.segments import fit_layer, linear_weak, linear_width, sdof_layer, smoothed_noise
 from shakerlab import __version__
 from shakerlab.run_data import BASE
 
@@ -35,7 +35,7 @@ def reconstruct_weak(run, s, validate_model: bool = True):
         spec = estimate_spectrum(lst.channels["force"], lst.dt)
         lines = count_lines(spec.freqs, 1.0 / (lst.t.size * lst.dt), spec.power)
     width = linear_width(Ll.y_raw, lst.dt)
-    lf = linear_weak(Ll.y_raw, Ll.D_raw, Ll.F, lst.dt, width, exc != BASE, noise, s.linear_stage, lines)
+    lf = linear_weak(Ll.y_raw, Ll.D_raw, Ll.F, lst.dt, width, exc != BASE, noise, s.linear_stage, lines, s.tuning)
     timings["linear"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
@@ -46,7 +46,7 @@ def reconstruct_weak(run, s, validate_model: bool = True):
     # c, K (and 1/m) stay those of the weak linear step: refitting them on the integrated rows
     # of the nonlinear stage made the equation-error estimate worse (80 dB: c 44 %, K 33 %
     # off, against 6 % and 4 % when kept), so ReconSettings.refit_linear is not used here
-    fit = fit_layer(L, lib, lf.c_m, lf.K_m, g, False, Ddd, s.n_folds, s.refit, False, s.nonlinear_stage)
+    fit = fit_layer(L, lib, lf.c_m, lf.K_m, g, False, Ddd, s.n_folds, s.refit, False, s.nonlinear_stage, s.tuning)
     hp, c_m, K_m, g = fit.params, fit.c_m, fit.K_m, fit.g
     segment_estimate = {"c_m": c_m, "k_m": K_m - hp.alpha, "alpha_m": hp.alpha, "gamma": hp.gamma,
                         "delta": hp.delta, "fn_m": dict(hp.fn)}
@@ -56,7 +56,7 @@ def reconstruct_weak(run, s, validate_model: bool = True):
         # no sign of z, so it holds at SNRs where the segment rows are noise (recon/weak_path.py)
         lam0 = hp.lam if np.isfinite(hp.lam) and hp.lam > 0 else 1.0 / max(np.std(L.y), 1e-12)
         pf = fit_path(L, c_m, K_m, g, lam0, [monomials.parse(k) for k in hp.fn], s.library_order,
-                      smoothed_noise(L), path_width(L.y, L.dt))
+                      smoothed_noise(L), path_width(L.y, L.dt, s.tuning), tuning=s.tuning)
         path_info = pf.info()
         hp = HysteresisParams(lam=pf.gamma + pf.delta, alpha=pf.alpha, fn=pf.fn, delta=pf.delta, gamma=pf.gamma,
                               info={**hp.info, "path_form": path_info, "segment_form_estimate": segment_estimate})
@@ -69,7 +69,7 @@ def reconstruct_weak(run, s, validate_model: bool = True):
                     "software": f"shakerlab {__version__}", "settings": s.to_dict(),
                     "threshold": fit.sparse["threshold"], "source": run.source,
                     "weak_form": {"test_functions": fit.n_rows, "segments": fit.n_segments,
-                                  "bump_power": BUMP_POWER, "linear_support_samples": width,
+                                  "bump_power": s.tuning.weak_bump_power, "linear_support_samples": width,
                                   "path_form": path_info},
                     "differentiation": {"linear": Ll.choice, "nonlinear": L.choice}},
     )

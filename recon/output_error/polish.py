@@ -19,14 +19,13 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from recon.differentiation import estimate_spectrum
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.model import HystereticModel
 from recon.output_error.problem import FD_STEP, OutputError, item_target
 from recon.threads import fd_map
 
-POLISH_FS = 2000.0   # Hz: the polish simulates at no less than this rate (faster stages are decimated)
 
-
-def decimate(item: tuple, fs_target: float = POLISH_FS):
+def decimate(item: tuple, fs_target: float):
     """Every q-th sample of a data item (t, u, y[, start[, target]]) so that its rate is >= ``fs_target``
     (q = floor(fs / fs_target)); returns (item, q). The input u is a Savitzky-Golay-smoothed
     derivative (base) or a force, so taking every q-th sample does not alias the response band."""
@@ -51,30 +50,28 @@ def output_noise(item: tuple) -> float:
     return float(estimate_spectrum(y, float(t[1] - t[0])).noise_std)
 
 
-MAX_NFEV = 60          # the polish's evaluation budget (recon.estimator.finish.continue_polish)
-
-
-def polish(model: HystereticModel, data: list, max_nfev: int = MAX_NFEV, masks=None, fs_target: float | None = POLISH_FS,
-           free: list | None = None, noise: list | None = None):
+def polish(model: HystereticModel, data: list, max_nfev: int | None = None, masks=None,
+           free: list | None = None, noise: list | None = None, tuning: EstimatorTuning = DEFAULT_TUNING):
     """Refine ``model`` on ``data`` = [(t, u, y_meas[, (y0, dy0, a0)[, target]]), ...]; returns (model, info).
     ``free``: the parameter keys refined (None: every key of the model, problem.parameter_keys).
 
     ``masks``: per data item, the samples the residual is taken over (None: all).
-    Items sampled faster than twice ``fs_target`` are decimated to >= ``fs_target`` for the
-    fit (a 10 kHz rig stage to 2 kHz: 5x fewer simulated samples; None: never)."""
-    q = [1] * len(data)
+    Items sampled faster than twice ``tuning.polish_fs`` are decimated to >= that rate for the
+    fit (a 10 kHz rig stage to 2 kHz: 5x fewer simulated samples). ``max_nfev``: the evaluation
+    budget (None: ``tuning.polish_nfev``); the fit stops at ``tuning.stop_chi2``."""
+    max_nfev = tuning.polish_nfev if max_nfev is None else max_nfev
     # the stop's noise (recon.output_error.stopping): each item's white floor, taken before decimation
     stop_noise = noise if noise is not None else [output_noise(d) for d in data]
-    if fs_target:
-        dec = [decimate(d, fs_target) for d in data]
-        data, q = [d for d, _ in dec], [k for _, k in dec]
-        if masks is not None:
-            masks = [None if m is None else m[::k] for m, k in zip(masks, q)]
+    dec = [decimate(d, tuning.polish_fs) for d in data]
+    data, q = [d for d, _ in dec], [k for _, k in dec]
+    if masks is not None:
+        masks = [None if m is None else m[::k] for m, k in zip(masks, q)]
     prob = OutputError(model, data, masks, free=free, noise=noise)
     p0 = np.zeros(len(prob.keys))
     r0 = prob.residual(p0)
     sol = least_squares(prob.residual, p0, method="trf", x_scale=1.0, diff_step=FD_STEP,
-                        max_nfev=max_nfev, xtol=1e-10, ftol=1e-12, workers=fd_map(), callback=prob.stop(stop_noise))
+                        max_nfev=max_nfev, xtol=1e-10, ftol=1e-12, workers=fd_map(),
+                        callback=prob.stop(stop_noise, tuning.stop_chi2))
     new = prob.build(sol.x)
     cost0 = float(np.sqrt(r0 @ r0 / len(data)))
     cost1 = float(np.sqrt(sol.fun @ sol.fun / len(data)))

@@ -199,17 +199,17 @@ class OutputError:
         return [w / (r * np.sqrt(d[2].size if mk is None else np.count_nonzero(mk)))
                 for d, r, mk, w in zip(self.data, self.rms, self.masks, self.item_weights)]
 
-    def stop(self, noise=None):
-        """The fit's stop in chi-square units (recon.output_error.stopping): each item's rows in units
-        of its output noise std (the problem's ``noise``, else ``noise`` given here: an estimate that
-        weights nothing and only says when the fit has converged). None (the solver's own
-        tolerances) when neither is known."""
+    def stop(self, noise, stop_chi2: float):
+        """The fit's stop at ``stop_chi2`` chi-square units (recon.output_error.stopping): each item's
+        rows in units of its output noise std (the problem's ``noise``, else ``noise`` given here: an
+        estimate that weights nothing and only says when the fit has converged). None (the solver's
+        own tolerances) when neither is known."""
         noise = self.noise if self.noise is not None else noise
         if noise is None:
             return None
         units = [1.0 / (w * s) ** 2 for w, s in zip(self.row_weights(), noise)
                  if w > 0 and np.isfinite(s) and s > 0]
-        return ChiSquareStop(2.0 * max(units), self.n_rows) if units else None
+        return ChiSquareStop(2.0 * max(units), self.n_rows, stop_chi2) if units else None
 
     def residual(self, p) -> np.ndarray:
         res = self.simulate(self.build(p))

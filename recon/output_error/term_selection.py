@@ -25,8 +25,8 @@ which needs no derivative of the output:
    well, else the search stops. Repeat until nothing helps.
 4. The caller polishes the selected structure once more on all samples.
 
-Simulations use the stage decimated to about ``fs_target`` (2 kHz by default;
-the input is the Savitzky-Golay-smoothed -x_base'' or the force, so
+Simulations use the stage decimated to about EstimatorTuning.polish_fs (2 kHz by
+default; the input is the Savitzky-Golay-smoothed -x_base'' or the force, so
 decimating it does not alias).
 """
 from __future__ import annotations
@@ -36,9 +36,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.library import monomials
 from recon.model import HystereticModel
-from recon.output_error.polish import POLISH_FS, decimate, polish
+from recon.output_error.polish import decimate, polish
 from recon.output_error.problem import OutputError
 from recon.regression.criteria import bartlett_correlation_length, bic
 
@@ -50,16 +51,16 @@ CANDIDATES = ("y^2", "y*dy", "dy^2", "y^3", "y^2*dy", "y*dy^2", "dy^3")
 class SelectionSettings:
     candidates: tuple = CANDIDATES
     block_s: float = 0.5          # length of the interleaved fit / held-out blocks
-    fs_target: float = POLISH_FS  # decimate the stage to about this rate for the search
     max_steps: int = 8
     polish_nfev: int = 10
     fd_step: float = 1e-4         # finite-difference step of the Jacobian (in units of each scale)
 
 
-def stage_data(model: HystereticModel, stage, fs_target: float = POLISH_FS):
-    """(t, u, y, start) of ``stage`` decimated to about ``fs_target`` and the decimation factor."""
-    u = model.stage_input(stage)
-    item, q = decimate(model.fit_item(stage, u), fs_target)
+def stage_data(model: HystereticModel, stage, tuning: EstimatorTuning = DEFAULT_TUNING):
+    """(t, u, y, start) of ``stage`` decimated to about ``tuning.polish_fs`` and the decimation factor
+    (the input and the start as ``tuning`` makes them)."""
+    u = model.stage_input(stage, tuning=tuning)
+    item, q = decimate(model.fit_item(stage, u, tuning), tuning.polish_fs)
     return item, q, u
 
 
@@ -76,13 +77,15 @@ def _term_scale(name: str, y: np.ndarray, dy: np.ndarray, model: HystereticModel
     return float(0.01 * f / v) if v > 0 else 1.0
 
 
-def select_terms(model: HystereticModel, stage, settings: SelectionSettings | None = None, data=None):
+def select_terms(model: HystereticModel, stage, settings: SelectionSettings | None = None, data=None,
+                 tuning: EstimatorTuning = DEFAULT_TUNING):
     """Revise the fn terms of ``model`` on ``stage`` by output error. Returns (model, info);
     the returned model is polished on the decimated fit blocks only (polish it on the whole
-    stage afterwards). ``data``: (item, q) from :func:`stage_data` if already computed."""
+    stage afterwards). ``data``: (item, q) from :func:`stage_data` if already computed;
+    ``tuning``: the estimator's (its polishes and their decimation)."""
     s = settings or SelectionSettings()
     t_start = time.perf_counter()
-    d, q = data if data is not None else stage_data(model, stage, s.fs_target)[:2]
+    d, q = data if data is not None else stage_data(model, stage, tuning)[:2]
     n = d[0].size
     dt = float(d[0][1] - d[0][0])
     block = max(2, int(round(s.block_s / dt)))
@@ -177,7 +180,7 @@ def select_terms(model: HystereticModel, stage, settings: SelectionSettings | No
         else:
             keep = (set(current.fn_m) - {label[1][0]}) | {label[1][1]}
         trial.fn_m = {k: v for k, v in trial.fn_m.items() if k in keep}
-        trial, _ = polish(trial, data, max_nfev=s.polish_nfev, masks=masks)
+        trial, _ = polish(trial, data, max_nfev=s.polish_nfev, masks=masks, tuning=tuning)
         e_t = OutputError(trial, data, masks).simulate(trial)
         if e_t is None:
             rec["accepted"] = False

@@ -59,6 +59,7 @@ import numpy as np
 
 from recon.determinism import single_thread_blas
 from recon.estimator.pipeline import reconstruct
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.model import HystereticModel
 from recon.output_error.problem import OutputError, measured_error
 from recon.regression.criteria import decorrelation_lag
@@ -102,12 +103,19 @@ def fitted_stages(model: HystereticModel) -> list[str]:
     return [non] if hasattr(model, "stage_start") else [lin, non]
 
 
+def fitted_tuning(model: HystereticModel) -> EstimatorTuning:
+    """The estimator's tuning ``model`` was fitted with (its provenance's settings: the input's band
+    and the start state are made as the polish made them), else the defaults."""
+    t = ((model.provenance or {}).get("settings") or {}).get("tuning")
+    return EstimatorTuning.of(t) if t is not None else DEFAULT_TUNING
+
+
 class InputNoise:
     """Draws of the noise the stage's input u carries: white noise of the input channel's level
     through the filter that makes u from that channel (recon.signals.InputFilter)."""
 
-    def __init__(self, stage):
-        self.filter = input_filter(stage)
+    def __init__(self, stage, tuning: EstimatorTuning = DEFAULT_TUNING):
+        self.filter = input_filter(stage, tuning=tuning)
         self.n = self.filter.raw.size
         self.info = self.filter.info()
 
@@ -141,11 +149,12 @@ def parameter_intervals(model: HystereticModel, run: Run, settings: UncertaintyS
     if not names:
         raise UserFacingError(f"{run.source or 'run'}: none of the fitting stages {wanted} is recorded")
     data, noise = [], []
+    tuning = fitted_tuning(model)
     for name in names:
         st = run.stage(name)
-        u = model.stage_input(st)
-        data.append(model.fit_item(st, u))   # (t from 0, u, y, recorded start), as the polish fits it
-        noise.append(InputNoise(st))
+        u = model.stage_input(st, tuning=tuning)
+        data.append(model.fit_item(st, u, tuning))   # (t from 0, u, y, recorded start), as the polish fits it
+        noise.append(InputNoise(st, tuning))
     # the stages weighted as the polish weighted them: by their noise after the two-stage polish
     # (recon.estimator.two_stage), else by their rms
     polished = (model.provenance or {}).get("output_error_polish") or {}

@@ -17,13 +17,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-FIT_SECONDS = 4.0      # the start is fitted over the stage's first seconds (the transient of a wrong start)
-MAX_NFEV = 30
-
-
-def fit_start(simulate, y: np.ndarray, dt: float, edge: tuple, scales: tuple, n_free: int = 3,
-              seconds: float = FIT_SECONDS) -> tuple[tuple, dict]:
-    """The start (y0, y0', z0) that best fits the first ``seconds`` of the recorded ``y``.
+def fit_start(simulate, y: np.ndarray, dt: float, edge: tuple, scales: tuple, seconds: float, max_nfev: int,
+              n_free: int = 3) -> tuple[tuple, dict]:
+    """The start (y0, y0', z0) that best fits the first ``seconds`` of the recorded ``y`` (the
+    transient of a wrong start), in at most ``max_nfev`` simulations (EstimatorTuning's
+    start_fit_seconds and start_fit_nfev).
 
     ``simulate(init, n)`` returns the simulated y over the first n samples from ``init``;
     ``edge`` is the edge estimate the fit starts from, ``scales`` the typical size of each state;
@@ -48,7 +46,7 @@ def fit_start(simulate, y: np.ndarray, dt: float, edge: tuple, scales: tuple, n_
 
     with np.errstate(all="ignore"):
         r_edge = resid(np.zeros(n_free))
-        sol = least_squares(resid, np.zeros(n_free), method="trf", x_scale=1.0, max_nfev=MAX_NFEV,
+        sol = least_squares(resid, np.zeros(n_free), method="trf", x_scale=1.0, max_nfev=max_nfev,
                             xtol=1e-10, ftol=1e-10)
         ys_rest = simulate((0.0, 0.0, 0.0), n)
     e_rest = float(np.sqrt(np.sum(((ys_rest - seg) / rms) ** 2) / n)) if np.all(np.isfinite(ys_rest)) else np.inf

@@ -190,13 +190,10 @@ def project_lambda(params: HysteresisParams, system, c_m, K_m, g, fit_linear: bo
     return HysteresisParams(lam=lam, alpha=alpha, fn=fn, info=info), c_m, K_m, g
 
 
-# an fn term whose rms force is below this fraction of the elastic force K y is negligible:
-# the output-error fits drop it (SDOF pipeline and chains)
-NEGLIGIBLE = 2e-3
-
-
 def term_contributions(fn: dict, K: float, y, dy) -> dict:
-    """rms of each fn term over (y, y') relative to the rms of the elastic force K y."""
+    """rms of each fn term over (y, y') relative to the rms of the elastic force K y (a term below
+    EstimatorTuning.negligible of it is dropped after the polish: the SDOF pipeline and chains;
+    ConstitutiveSettings.negligible for a force law)."""
     ref = float(np.sqrt(np.mean((K * y) ** 2))) or 1.0
     out = {}
     for name, a in fn.items():

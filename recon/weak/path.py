@@ -35,7 +35,7 @@ Choices, each measured on ground truth (recon.testing.truth, 40 dB unless stated
   stage determines c to 2-14 % at 40 dB, and a K off by 0.1 % moved alpha by
   3.6 % at 80 dB. The K column uses the smoothed y (the raw one shares its
   noise with the left side: errors in variables, a spurious dy^3).
-- Reversals of the smoothed path smaller than GATE_SIGMAS noise standard
+- Reversals of the smoothed path smaller than ``weak_gate_sigmas`` noise standard
   deviations are removed (:func:`gated_path`): a spurious reversal at a
   turning point would start a new branch of the loop.
 - The fn terms are chosen stepwise (:func:`stepwise`) with (gamma, delta)
@@ -51,6 +51,12 @@ Choices, each measured on ground truth (recon.testing.truth, 40 dB unless stated
 
 Only the Bouc-Wen law with n = 1 is integrated (the law the model class
 holds); another hysteresis law (e.g. the MR damper) is approximated by it.
+
+These choices are EstimatorTuning fields (recon.estimator.tuning): ``weak_support_periods`` (half
+a period), ``weak_tile_overlap`` (a quarter of the width), ``weak_gate_sigmas``, and the evidence a
+term needs on Kass and Raftery's BIC scale: it enters only with strong evidence
+(``weak_enter_bic``, 6) and leaves when the evidence for it is not worth a mention
+(``weak_leave_bic``, 2).
 """
 from __future__ import annotations
 
@@ -60,20 +66,13 @@ import numpy as np
 from numba import njit
 from scipy.optimize import least_squares
 
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.library import monomials
 from recon.library.agent import phi
 from recon.regression.criteria import bartlett_correlation_length, bic
 from recon.regression.sparse import scaled_lstsq
 from recon.weak.segments import TestFunctions, tiled_windows
 from shakerlab.errors import UserFacingError
-
-GATE_SIGMAS = 4.0      # reversals smaller than this many noise std of the smoothed y are not reversals
-ROW_PERIODS = 0.5      # test-function support in periods of the dominant frequency
-ROW_OVERLAP = 4.0      # tiled supports advance by a quarter of their width
-# evidence a term needs (BIC units, Kass & Raftery's scale): it enters only with strong
-# evidence (> 6), and leaves when the evidence for it is not worth a mention (< 2)
-ENTER_BIC = 6.0
-LEAVE_BIC = 2.0
 
 
 @njit(cache=True)
@@ -139,8 +138,9 @@ def gated_path(y, gate):
     return out
 
 
-def path_width(y: np.ndarray, dt: float, periods: float = ROW_PERIODS) -> int:
-    """Test-function support: ``periods`` of the strongest spectral line of ``y``."""
+def path_width(y: np.ndarray, dt: float, tuning: EstimatorTuning = DEFAULT_TUNING) -> int:
+    """Test-function support: ``tuning.weak_support_periods`` of the strongest spectral line of ``y``."""
+    periods = tuning.weak_support_periods
     yy = y - y.mean()
     spec = np.abs(np.fft.rfft(yy * np.hanning(yy.size)))
     f = np.fft.rfftfreq(yy.size, dt)
@@ -163,12 +163,14 @@ class PathRows:
     first_row: int         # rows before this one start before the state is forgotten
 
 
-def path_rows(L, g: float, width: int, noise_y: float) -> PathRows:
-    """Rows of the integrated equation of motion for the WeakLayer ``L`` (recon/weak.py)."""
+def path_rows(L, g: float, width: int, noise_y: float, tuning: EstimatorTuning = DEFAULT_TUNING) -> PathRows:
+    """Rows of the integrated equation of motion for the WeakLayer ``L`` (recon/weak.py; ``tuning``:
+    the weak_* fields)."""
 
     n = L.y_raw.size
-    V0, V1, V2, _ = TestFunctions.build(tiled_windows(n, width), n, L.dt).V
-    path = gated_path(np.ascontiguousarray(L.y), GATE_SIGMAS * noise_y)
+    V0, V1, V2, _ = TestFunctions.build(tiled_windows(n, width, tuning.weak_tile_overlap), n, L.dt,
+                                        tuning.weak_bump_power).V
+    path = gated_path(np.ascontiguousarray(L.y), tuning.weak_gate_sigmas * noise_y)
     # the state from zeta(0) = 0 is forgotten after the path has reversed twice
     dpath = np.diff(path)
     turns = np.flatnonzero(np.diff(np.sign(dpath[dpath != 0])) != 0)
@@ -294,19 +296,21 @@ class PathProblem:
         return best.x
 
 
-def stepwise(prob: PathProblem, support: np.ndarray, gamma: float, delta: float, max_steps: int = 12):
+def stepwise(prob: PathProblem, support: np.ndarray, gamma: float, delta: float, max_steps: int = 12,
+             tuning: EstimatorTuning = DEFAULT_TUNING):
     """Stepwise choice of the fn terms with (gamma, delta) refitted for every accepted change.
 
     Each step scores every single addition and drop by the linearised fit (Z and its
     derivatives in gamma, delta among the columns, so the hysteresis can adapt), takes
     the best by BIC = n_eff ln(RSS) + k ln(n_eff) (n_eff = rows / (overlap x correlation
     length of the residual)), refits (gamma, delta) by variable projection and keeps the
-    change only if the exact BIC drops by ENTER_BIC (an addition) or rises by less than
-    LEAVE_BIC (a drop). Returns (support, gamma, delta, history)."""
+    change only if the exact BIC drops by ``tuning.weak_enter_bic`` (an addition) or rises by less
+    than ``tuning.weak_leave_bic`` (a drop). Returns (support, gamma, delta, history)."""
     lead = prob.n_lead + 2
     x, rss, A0 = prob.solve(gamma, delta, support)
-    # each sample lies in ROW_OVERLAP rows, and the noise in the rows is filtered on top
-    n_eff = max(2.0, prob.b.size / (ROW_OVERLAP * bartlett_correlation_length(prob.b - A0 @ x, int(4 * ROW_OVERLAP))))
+    # each sample lies in weak_tile_overlap rows, and the noise in the rows is filtered on top
+    overlap = tuning.weak_tile_overlap
+    n_eff = max(2.0, prob.b.size / (overlap * bartlett_correlation_length(prob.b - A0 @ x, int(4 * overlap))))
     cur = bic(rss, int(support.sum()), n_eff)
     history = [{"terms": [n for n, s_ in zip(prob.names, support) if s_], "bic": float(cur)}]
     tried = set()
@@ -322,7 +326,7 @@ def stepwise(prob: PathProblem, support: np.ndarray, gamma: float, delta: float,
             cols = np.r_[np.arange(lead), lead + np.flatnonzero(trial)]
             _, r = scaled_lstsq(A[:, cols], prob.b)
             pred = bic(r, int(trial.sum()), n_eff)
-            need = cur - ENTER_BIC if trial[j] else cur + LEAVE_BIC
+            need = cur - tuning.weak_enter_bic if trial[j] else cur + tuning.weak_leave_bic
             if pred < need:
                 scored.append((pred - need, pred, need, j, trial, key))
         scored.sort(key=lambda t: t[0])
@@ -345,13 +349,15 @@ def stepwise(prob: PathProblem, support: np.ndarray, gamma: float, delta: float,
 
 
 def fit_path(L, c: float, K: float, g: float, lam0: float, terms: list, library_order: int,
-             noise_y: float, width: int, select: bool = True, free=("c", "K")) -> PathFit:
+             noise_y: float, width: int, select: bool = True, free=("c", "K"),
+             tuning: EstimatorTuning = DEFAULT_TUNING) -> PathFit:
     """Bouc-Wen (alpha, gamma, delta), fn, c, K and a constant force from the integrated equation.
 
     ``terms``: the starting fn pattern (from the agent-model regression); with ``select``
     the pattern is revised stepwise over all monomials of degree 2..``library_order``
-    (:func:`stepwise`). ``free``: which of c, K are fitted here (the others stay as given)."""
-    rows = path_rows(L, g, width, noise_y)
+    (:func:`stepwise`). ``free``: which of c, K are fitted here (the others stay as given).
+    ``tuning``: the weak_* fields."""
+    rows = path_rows(L, g, width, noise_y, tuning)
     cand = monomials.up_to(library_order) if select else [tuple(t) for t in terms]
     names = [monomials.name(p, r) for p, r in cand]
     Phi = (np.column_stack([rows.V0 @ phi(L.y, L.dy, p, r) for p, r in cand]) if cand
@@ -365,7 +371,7 @@ def fit_path(L, c: float, K: float, g: float, lam0: float, terms: list, library_
     gamma, delta = prob.fit_hysteresis(lam0, support)
     history = None
     if select and cand:
-        support, gamma, delta, history = stepwise(prob, support, gamma, delta)
+        support, gamma, delta, history = stepwise(prob, support, gamma, delta, tuning=tuning)
     x, rss, _ = prob.solve(gamma, delta, support)
     sol = prob.unpack(x, support)
     return PathFit(alpha=sol["alpha"], gamma=float(gamma), delta=float(delta), c=sol["c"], K=sol["K"],

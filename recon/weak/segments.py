@@ -18,7 +18,8 @@ samples, so the differentiation bias of the pointwise form disappears, constant
 noise biases (e.g. E[n'^2]) integrate to zero against psi', and the remaining
 noise is averaged over the support.
 
-Test functions: psi(t) = (1 - x^2)^P, x in [-1, 1] over the support, P = 3. Its
+Test functions: psi(t) = (1 - x^2)^P, x in [-1, 1] over the support, P = 3
+(EstimatorTuning.weak_bump_power; the weak form's numbers are EstimatorTuning's weak_* fields). Its
 derivatives are not the analytic ones: psi^(d) is the d-fold 6th-order central
 finite difference of the sampled, zero-padded psi, so summation by parts is exact
 on the samples (the rows are psi-weighted sums of finite-difference derivatives).
@@ -53,6 +54,7 @@ import numpy as np
 from scipy import sparse
 
 from recon.differentiation import estimate_spectrum, savgol_coeffs
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.library import monomials
 from recon.library.agent import AgentLibrary, phi
 from recon.regression.sparse import GroupedSparseSelector
@@ -62,11 +64,9 @@ from recon.steps.linear import LinearFit, fit_linear
 from shakerlab.errors import EstimateRefused, UserFacingError
 from shakerlab.run_data import BASE, FORCE
 
-BUMP_POWER = 3
 DISCRETE = True
 # 6th-order central first-derivative stencil (x[i-3] .. x[i+3])
 FD_STENCIL = np.array([-1.0 / 60, 3.0 / 20, -3.0 / 4, 0.0, 3.0 / 4, -3.0 / 20, 1.0 / 60])
-MIN_SEGMENT = 12          # samples: shorter AB/CD runs (noise flicker near zero) are skipped
 
 
 # ------------------------------------------------------------------ test functions
@@ -93,16 +93,16 @@ class TestFunctions:
     n_segments: int
 
     @classmethod
-    def build(cls, windows: list, n_samples: int, dt: float, discrete: bool | None = None,
-              power: int | None = None) -> "TestFunctions":
-        """``windows``: (start, length, sign, segment) tuples.
+    def build(cls, windows: list, n_samples: int, dt: float, power: int,
+              discrete: bool | None = None) -> "TestFunctions":
+        """``windows``: (start, length, sign, segment) tuples; ``power``: P of the bump
+        (1 - x^2)^P (EstimatorTuning.weak_bump_power).
 
         ``discrete`` (default: module DISCRETE): psi^(d) is the d-fold central finite
         difference (6th order) of the sampled psi, zero-padded. Summation by parts is then
         exact on the samples: sum psi (S^d D) = (-1)^d sum (S^d psi) D, so the weak rows are
         psi-weighted sums of finite-difference derivatives and carry no quadrature error."""
         discrete = DISCRETE if discrete is None else discrete
-        power = BUMP_POWER if power is None else power
         pad = 3 * (FD_STENCIL.size // 2) if discrete else 0
         rows, cols, vals = [], [], [[], [], [], []]
         kept = []
@@ -144,36 +144,30 @@ def runs(h: np.ndarray):
     return [(int(a), int(b - a), int(h[a])) for a, b in zip(starts, ends)]
 
 
-def segment_windows(h: np.ndarray, values=(1, -1), min_len: int = MIN_SEGMENT, sign_of=None,
-                    width: float = 1.0, per_segment: int = 3) -> list:
-    """Test-function supports inside the runs of h whose value is in ``values``.
-
-    ``width`` < 1: supports of that fraction of the run (at least ``min_len`` samples),
-    ``per_segment`` of them spread evenly from the start to the end of the run;
-    ``width`` = 1: the whole run plus its first and last two thirds."""
+def segment_windows(h: np.ndarray, min_len: int, values=(1, -1), sign_of=None) -> list:
+    """Test-function supports inside the runs of h whose value is in ``values`` and that are at least
+    ``min_len`` samples long (EstimatorTuning.weak_min_segment): the whole run plus, when it is long
+    enough, its first and last two thirds."""
     out = []
     seg = 0
     for a, n, v in runs(h):
         if v not in values or n < min_len:
             continue
         s = float(v) if sign_of is None else float(sign_of(a, n))
-        if width >= 1.0:
-            out.append((a, n, s, seg))
-            if n >= 3 * min_len // 2 * 2:
-                m = (2 * n) // 3
-                out.append((a, m, s, seg))
-                out.append((a + n - m, m, s, seg))
-        else:
-            m = max(min_len, int(width * n))
-            starts = np.unique(np.round(np.linspace(a, a + n - m, per_segment)).astype(int))
-            out.extend((int(b), m, s, seg) for b in starts)
+        out.append((a, n, s, seg))
+        if n >= 3 * min_len // 2 * 2:
+            m = (2 * n) // 3
+            out.append((a, m, s, seg))
+            out.append((a + n - m, m, s, seg))
         seg += 1
     return out
 
 
-def tiled_windows(n_samples: int, width: int) -> list:
+def tiled_windows(n_samples: int, width: int, overlap: float) -> list:
+    """Supports of ``width`` samples tiled over the stage, each advancing by 1/``overlap`` of the width
+    (EstimatorTuning.weak_tile_overlap: each sample lies in that many rows)."""
     width = int(max(9, min(width, n_samples)))
-    step = max(1, width // 4)
+    step = max(1, int(width // overlap))
     return [(a, width, 0.0, k) for k, a in enumerate(range(0, n_samples - width + 1, step))]
 
 
@@ -294,17 +288,19 @@ def weak_refit(params: HysteresisParams, parts: WeakParts, c, K, g, fit_g: bool,
                           form="weak")
 
 
-def weak_delta(params: HysteresisParams, L: WeakLayer, h: np.ndarray, c, K, g, Ddd: np.ndarray) -> HysteresisParams:
+def weak_delta(params: HysteresisParams, L: WeakLayer, h: np.ndarray, c, K, g, Ddd: np.ndarray,
+               tuning: EstimatorTuning = DEFAULT_TUNING) -> HysteresisParams:
     """delta from the h = 0 segments (y and y' of opposite signs, sigma = sgn(y') constant):
         -int psi' (Fn - fn) + lam sigma int psi y' z = delta int psi (|y'| z - y' |z|)
     The left side is integrated by parts; the right needs z pointwise, built with the
     Savitzky-Golay D'' (second derivative only)."""
     sgn_dy = np.sign(L.dy)
-    win = segment_windows(h, values=(0,), sign_of=lambda a, n: np.sign(np.sum(sgn_dy[a:a + n])))
+    win = segment_windows(h, tuning.weak_min_segment, values=(0,),
+                          sign_of=lambda a, n: np.sign(np.sum(sgn_dy[a:a + n])))
     if len(win) < 3:
         raise EstimateRefused("no segments where y' and z have opposite signs: delta cannot be identified "
                               "(the nonlinear stage must cycle through the whole loop)")
-    tf = TestFunctions.build(win, L.y.size, L.dt)
+    tf = TestFunctions.build(win, L.y.size, L.dt, tuning.weak_bump_power)
     V0, V1, V2, V3 = tf.V
     sig = tf.sign
     y, dy = L.y, L.dy
@@ -328,10 +324,6 @@ def weak_delta(params: HysteresisParams, L: WeakLayer, h: np.ndarray, c, K, g, D
                             gamma=params.lam - delta, info=info)
 
 
-SEGMENT_WIDTH = 1.0      # support of a nonlinear-step test function, fraction of its AB/CD segment
-PER_SEGMENT = 3
-
-
 @dataclass
 class WeakLayerFit:
     params: HysteresisParams
@@ -346,10 +338,12 @@ class WeakLayerFit:
 
 
 def fit_layer(L: WeakLayer, lib: AgentLibrary, c, K, g, fit_g: bool, Ddd: np.ndarray, n_folds: int = 5,
-              refit: bool = True, refit_linear: bool = True, stage_name: str = "nonlinear") -> WeakLayerFit:
-    """Sparse regression of the weak agent model, parameter extraction, refit, delta."""
+              refit: bool = True, refit_linear: bool = True, stage_name: str = "nonlinear",
+              tuning: EstimatorTuning = DEFAULT_TUNING) -> WeakLayerFit:
+    """Sparse regression of the weak agent model, parameter extraction, refit, delta (``tuning``:
+    the weak_* fields)."""
     h = L.kernel()
-    tf = TestFunctions.build(segment_windows(h, width=SEGMENT_WIDTH, per_segment=PER_SEGMENT), L.y.size, L.dt)
+    tf = TestFunctions.build(segment_windows(h, tuning.weak_min_segment), L.y.size, L.dt, tuning.weak_bump_power)
     parts = weak_parts(L, tf, lib.terms)
     theta, target = weak_theta(lib, parts, c, K, g)
     if theta.shape[0] < 2 * theta.shape[1]:
@@ -361,19 +355,20 @@ def fit_layer(L: WeakLayer, lib: AgentLibrary, c, K, g, fit_g: bool, Ddd: np.nda
     hp = extract(lib, sp.coef, sp.stderr, sp.support)
     if refit:
         hp, c, K, g = weak_refit(hp, parts, c, K, g, fit_g=fit_g, fit_linear_terms=refit_linear)
-    hp = weak_delta(hp, L, h, c, K, g, Ddd)
+    hp = weak_delta(hp, L, h, c, K, g, Ddd, tuning)
     return WeakLayerFit(params=hp, c_m=c, K_m=K, g=g, sparse=sp.summary(), library_names=lib.names,
                         library_coef=[float(v) for v in sp.coef], n_rows=len(tf), n_segments=tf.n_segments)
 
 
 def linear_weak(y_raw, D_raw, F, dt: float, width: int, fit_g: bool, noise: dict, stage_name: str = "linear",
-                input_lines=None) -> LinearFit:
+                input_lines=None, tuning: EstimatorTuning = DEFAULT_TUNING) -> LinearFit:
     """Weak linear step: int psi'' D = g int psi F + c int psi' y - K int psi y, test functions
     tiled over the stage, solved by :func:`recon.steps.linear.fit_linear` (conditioning, refusal of a
-    rank-deficient excitation, noise-aware rank decision) on the integrated columns."""
+    rank-deficient excitation, noise-aware rank decision) on the integrated columns (``tuning``: the
+    weak_* fields)."""
 
     n = y_raw.size
-    tf = TestFunctions.build(tiled_windows(n, width), n, dt)
+    tf = TestFunctions.build(tiled_windows(n, width, tuning.weak_tile_overlap), n, dt, tuning.weak_bump_power)
     V0, V1, V2, _ = tf.V
     Y0 = V0 @ y_raw
     Y1 = -(V1 @ y_raw)            # int psi y'
