@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from rig import analysis
 from rig.decisions import next_level, nonlinearity_reached, resonance_found, search_grid, settled_response
-from rig.messages import BeginStage, Checkpoint, ControlSine, EndStage, Log, Rest, SetFrequency
+from rig.messages import PRE_TRIGGER_S, BeginStage, Checkpoint, ControlSine, EndStage, Log, Rest, SetFrequency
 from shakerlab.errors import UserFacingError
 
 MM = 1e-3
@@ -34,10 +34,10 @@ def _control_summary(res) -> dict:
     return {"control": res.to_dict()}
 
 
-def linear_stage(p: dict, settle_s: float):
+def linear_stage(p: dict, settle_s: float, pre_trigger_s: float = PRE_TRIGGER_S):
     target = p["base_amplitude_mm"] * MM
     yield Rest(settle_s)
-    yield BeginStage("linear", {"kind": "harmonic", "control": "base_displacement", **p})
+    yield BeginStage("linear", {"kind": "harmonic", "control": "base_displacement", **p}, pre_trigger_s=pre_trigger_s)
     yield SetFrequency(p["frequency_hz"])
     res = yield ControlSine(target, p["duration_s"], label="linear", **_ceilings(p))
     w = res.window
@@ -49,11 +49,12 @@ def linear_stage(p: dict, settle_s: float):
     return r
 
 
-def resonance_search(p: dict, settle_s: float, ctx):
+def resonance_search(p: dict, settle_s: float, ctx, pre_trigger_s: float = PRE_TRIGGER_S):
     """Stepped sine at a constant base amplitude (closed loop at every frequency)."""
     target = p["base_amplitude_mm"] * MM
     yield Rest(settle_s)
-    yield BeginStage("resonance_search", {"kind": "stepped_sine", "control": "base_displacement", **p})
+    yield BeginStage("resonance_search", {"kind": "stepped_sine", "control": "base_displacement", **p},
+                     pre_trigger_s=pre_trigger_s)
     table, controls = [], []
 
     def measure(freqs):
@@ -78,7 +79,7 @@ def resonance_search(p: dict, settle_s: float, ctx):
     return f_res
 
 
-def nonlinear_stage(p: dict, settle_s: float, ctx):
+def nonlinear_stage(p: dict, settle_s: float, ctx, pre_trigger_s: float = PRE_TRIGGER_S):
     """Raise the base target level by level near the resonance (closed loop) until clear
     nonlinearity, a response ceiling, a limit, or a level the generator cannot reach."""
 
@@ -86,7 +87,8 @@ def nonlinear_stage(p: dict, settle_s: float, ctx):
     tmax = p["max_base_mm"] * MM
     yield Rest(settle_s)
     yield BeginStage("nonlinear", {"kind": "stepped_amplitude", "control": "base_displacement", **p,
-                                   "drive_frequency_hz": f, "resonance_hz": ctx.resonance_hz})
+                                   "drive_frequency_hz": f, "resonance_hz": ctx.resonance_hz},
+                     pre_trigger_s=pre_trigger_s)
     yield SetFrequency(f)
     levels, stop_reason, first, last_ok = [], None, None, None
     target = p["start_base_mm"] * MM
@@ -140,7 +142,7 @@ def nonlinear_stage(p: dict, settle_s: float, ctx):
     return final_res.vpp
 
 
-def validation_stage(v: dict, settle_s: float, ctx):
+def validation_stage(v: dict, settle_s: float, ctx, pre_trigger_s: float = PRE_TRIGGER_S):
     f = v["frequency_hz"] if v["frequency_hz"] is not None else v["frequency_factor"] * ctx.resonance_hz
     if v["base_amplitude_mm"] is not None:
         target = v["base_amplitude_mm"] * MM
@@ -148,7 +150,7 @@ def validation_stage(v: dict, settle_s: float, ctx):
         target = v["amplitude_fraction"] * ctx.nonlinear_base_m
     yield Rest(settle_s)
     yield BeginStage(v["name"], {"kind": "harmonic", "control": "base_displacement", **v,
-                                 "drive_frequency_hz": f, "base_target_m": target})
+                                 "drive_frequency_hz": f, "base_target_m": target}, pre_trigger_s=pre_trigger_s)
     yield SetFrequency(f)
     res = yield ControlSine(target, v["duration_s"], label=v["name"], **_ceilings(v))
     w = res.window

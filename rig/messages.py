@@ -13,12 +13,24 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+# the protocol's default pre-trigger (``[run] pre_trigger_s``): recorded rest at the start of every stage
+PRE_TRIGGER_S = 0.1
+
+
 @dataclass(frozen=True)
 class BeginStage:
-    """Start recording a stage; ``settings`` go into the run file with it."""
+    """Start recording a stage; ``settings`` go into the run file with it.
+
+    ``pre_trigger_s`` > 0: the runner first records that long at the current state (at least
+    that long, in whole acquisition blocks) before it executes the plan's next message, so a
+    stage that a plan begins after a :class:`Rest` opens with the specimen at rest and the drive
+    switched on inside the record (the stage's first setpoint in its ``steps``), never before
+    its first sample. 0: the stage's first sample is the next one acquired.
+    """
 
     name: str
     settings: dict = field(default_factory=dict)
+    pre_trigger_s: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from rig import analysis, control_plans
 from rig.decisions import next_level, nonlinearity_reached, resonance_found, search_grid, settled_response
-from rig.messages import Acquire, BeginStage, Checkpoint, CheckSetpoint, EndStage, Log, Ramp, Rest, SetFrequency
+from rig.messages import (PRE_TRIGGER_S, Acquire, BeginStage, Checkpoint, CheckSetpoint, EndStage, Log, Ramp, Rest,
+                          SetFrequency)
 
 
 class PlanContext:
@@ -25,9 +26,9 @@ class PlanContext:
         self.results: dict = {}
 
 
-def linear_stage(p: dict, settle_s: float):
+def linear_stage(p: dict, settle_s: float, pre_trigger_s: float = PRE_TRIGGER_S):
     yield Rest(settle_s)
-    yield BeginStage("linear", {"kind": "harmonic", **p})
+    yield BeginStage("linear", {"kind": "harmonic", **p}, pre_trigger_s=pre_trigger_s)
     yield SetFrequency(p["frequency_hz"])
     yield Ramp(p["amplitude_vpp"], "linear")
     window = yield Acquire(p["duration_s"])
@@ -38,10 +39,10 @@ def linear_stage(p: dict, settle_s: float):
     return r
 
 
-def resonance_search(p: dict, settle_s: float, ctx: PlanContext):
+def resonance_search(p: dict, settle_s: float, ctx: PlanContext, pre_trigger_s: float = PRE_TRIGGER_S):
     """Stepped sine over a geometric grid, then a fine grid between the peak's neighbours."""
     yield Rest(settle_s)
-    yield BeginStage("resonance_search", {"kind": "stepped_sine", **p})
+    yield BeginStage("resonance_search", {"kind": "stepped_sine", **p}, pre_trigger_s=pre_trigger_s)
     table = []
 
     def measure(freqs):
@@ -64,14 +65,14 @@ def resonance_search(p: dict, settle_s: float, ctx: PlanContext):
     return f_res
 
 
-def nonlinear_stage(p: dict, settle_s: float, ctx: PlanContext):
+def nonlinear_stage(p: dict, settle_s: float, ctx: PlanContext, pre_trigger_s: float = PRE_TRIGGER_S):
     """Raise the amplitude step by step near the resonance until clear nonlinearity or a limit."""
     f = p["frequency_hz"] if p["frequency_hz"] is not None else p["frequency_factor"] * ctx.resonance_hz
     vmax = p["max_vpp"]
     yield CheckSetpoint(vmax, f, f"[nonlinear] drive frequency {drive_origin(p, ctx)}, levels up to max_vpp")
     yield Rest(settle_s)
     yield BeginStage("nonlinear", {"kind": "stepped_amplitude", **p, "drive_frequency_hz": f,
-                                   "resonance_hz": ctx.resonance_hz})
+                                   "resonance_hz": ctx.resonance_hz}, pre_trigger_s=pre_trigger_s)
     yield SetFrequency(f)
     levels, stop_reason, first = [], None, None
     vpp = p["start_vpp"]
@@ -120,7 +121,7 @@ def drive_origin(p: dict, ctx: PlanContext) -> str:
     return f"(frequency_factor {p['frequency_factor']:g} x the resonance found, {ctx.resonance_hz:g} Hz)"
 
 
-def validation_stage(v: dict, settle_s: float, ctx: PlanContext):
+def validation_stage(v: dict, settle_s: float, ctx: PlanContext, pre_trigger_s: float = PRE_TRIGGER_S):
     f = v["frequency_hz"] if v["frequency_hz"] is not None else v["frequency_factor"] * ctx.resonance_hz
     if v["amplitude_vpp"] is not None:
         vpp, amplitude_origin = v["amplitude_vpp"], "amplitude_vpp"
@@ -131,7 +132,8 @@ def validation_stage(v: dict, settle_s: float, ctx: PlanContext):
     yield CheckSetpoint(vpp, f, f"[{v['name']}] drive {vpp:g} Vpp ({amplitude_origin}) at {f:g} Hz "
                                 f"{drive_origin(v, ctx)}")
     yield Rest(settle_s)
-    yield BeginStage(v["name"], {"kind": "harmonic", **v, "drive_frequency_hz": f, "drive_vpp": vpp})
+    yield BeginStage(v["name"], {"kind": "harmonic", **v, "drive_frequency_hz": f, "drive_vpp": vpp},
+                     pre_trigger_s=pre_trigger_s)
     yield SetFrequency(f)
     yield Ramp(vpp, v["name"])
     w = yield Acquire(v["duration_s"])
@@ -144,22 +146,23 @@ def protocol_plan(protocol, limits: dict, ctx: PlanContext | None = None):
     """The whole protocol: linear, resonance search, nonlinear, validation stages."""
     ctx = ctx or PlanContext(limits)
     settle = protocol["run"]["settle_s"]
+    pre = protocol["run"]["pre_trigger_s"]   # recorded rest at the start of every stage
     yield Log("info", f"protocol {protocol.source}")
     cp = control_plans  # stages given in base displacement targets run closed loop (rig.sine_control)
     ctx.results["linear"] = yield from (cp.linear_stage if cp.uses_base_targets(protocol["linear"])
-                                        else linear_stage)(protocol["linear"], settle)
+                                        else linear_stage)(protocol["linear"], settle, pre)
     yield Checkpoint()
     if protocol["resonance_search"]["enabled"]:
         ctx.results["resonance_hz"] = yield from (
             cp.resonance_search if cp.uses_base_targets(protocol["resonance_search"])
-            else resonance_search)(protocol["resonance_search"], settle, ctx)
+            else resonance_search)(protocol["resonance_search"], settle, ctx, pre)
         yield Checkpoint()
     ctx.results["nonlinear_vpp"] = yield from (cp.nonlinear_stage if cp.uses_base_targets(protocol["nonlinear"])
-                                               else nonlinear_stage)(protocol["nonlinear"], settle, ctx)
+                                               else nonlinear_stage)(protocol["nonlinear"], settle, ctx, pre)
     for v in protocol.validation:
         yield Checkpoint()
         yield from (cp.validation_stage if cp.validation_uses_base_targets(v, ctx)
-                    else validation_stage)(v, settle, ctx)
+                    else validation_stage)(v, settle, ctx, pre)
     yield Rest(0.0)
     return ctx
 

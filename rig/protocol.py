@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from rig.messages import PRE_TRIGGER_S
 from rig.safety import LimitError, Supervisor
 from rig.control_plans import base_targets, check_amplitude_fields  # volts or base targets (rig.sine_control)
 from shakerlab.errors import UserFacingError
@@ -50,6 +51,10 @@ SCHEMA = {
     "run": {
         "settle_s": Field("number", 1.0, min=0.0,
                           help="rest (output off, not recorded) before each stage, so it starts near rest"),
+        "pre_trigger_s": Field("number", PRE_TRIGGER_S, min=0.0, max=10.0,
+                               help="recorded at the start of each stage with the output still off, before "
+                                    "its drive goes on (whole acquisition blocks); 0: the record starts "
+                                    "with the drive"),
     },
     "linear": {
         "frequency_hz": Field("number", **_POS, help="drive frequency, away from the resonance"),

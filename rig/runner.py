@@ -234,10 +234,21 @@ class Runner:
     # The message-type -> handler table (bluesky's RunEngine command registry, kept small): each
     # handler takes the message and returns what the plan receives back from its ``yield``.
     def _begin_stage(self, msg: BeginStage) -> None:
+        if msg.pre_trigger_s > 0:
+            self.sup.check_duration(msg.pre_trigger_s)
         self.stage = msg.name
         self.stage_status[msg.name] = "recording"
-        self._notify("on_stage_begin", msg.name, dict(msg.settings), self.index)
+        settings = dict(msg.settings)
+        if msg.pre_trigger_s > 0:
+            settings["pre_trigger_s"] = msg.pre_trigger_s
+        self._notify("on_stage_begin", msg.name, settings, self.index)
         self.log("info", f"stage {msg.name} begins")
+        if msg.pre_trigger_s > 0:
+            # the pre-trigger: recorded before the plan's first drive command of the stage
+            if self.inst.output:
+                self.log("warning", f"stage {msg.name}: the pre-trigger is recorded with the output on "
+                                    f"({self.inst.vpp:.3f} Vpp)")
+            self._acquire(msg.pre_trigger_s)
 
     def _end_stage(self, msg: EndStage) -> None:
         self._ramp_to(0.0, self.ramp_rate)

@@ -68,6 +68,8 @@ PROTOCOL_CASES = [
     ("amplitude_fraction = 1.0", "amplitude_fraction = 1.0\nname = \"check\"",
      r"\[validation #1\] name: 'check' must start with 'validation'"),
     ("thd_threshold = 0.05", "thd_threshold = true", r"\[nonlinear\] thd_threshold: expected a number"),
+    ("pre_trigger_s = 0.1", "pre_trigger_s = -0.1", r"\[run\] pre_trigger_s: expected a number >= 0 and <= 10, got -0.1"),
+    ("pre_trigger_s = 0.1", "pre_trigger_s = 100", r"\[run\] pre_trigger_s: expected a number >= 0 and <= 10, got 100"),
 ]
 
 
