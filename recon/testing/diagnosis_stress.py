@@ -324,6 +324,12 @@ def run_row(d: dict, make) -> dict:
                partly=out.get("partly_explained"), baseline_warnings=out.get("baseline_warnings", []),
                baseline_fallback=bool(out.get("baseline_note")),
                candidates=[{k: c[k] for k in CANDIDATE_KEYS if k in c} for c in out.get("candidates_tested", [])])
+    if baseline == "paper":
+        # how far the reconstructed baseline's c and K = k + alpha are from the truth's (relative): what a
+        # linear step on a noisy linear stage, or its stand-in, left the diagnosis to work from
+        bm, tr = dg.baseline.baseline, rec["truth"]
+        row["baseline_cK_error"] = {"c_m": abs(bm.c_m / tr["c_m"] - 1),
+                                    "K_m": abs(bm.K_m / (tr["k_m"] + tr["alpha_m"]) - 1)}
     size = true_size(rec, out)
     if size is not None:
         row["truth_size"] = size
@@ -503,20 +509,32 @@ def report_pairs(rows: list[dict]) -> list[str]:
     n = len(rows)
     first, both = sum(r["right_first"] for r in rows), sum(r["both"] for r in rows)
     wrong = [r for r in ok if r["wrong_names"]]
+    amb = [r for r in ok if r["right_first"] and r["first"] == "ambiguous"]
+    lacking = [r for r in wrong if set(r["wrong_names"]) <= set(r.get("baseline_lacks") or [])]
     named = [r for r in ok if r["named"]]
     beats = sum(r.get("after_beats_both", False) for r in named)
     refused = [r for r in rows if r["status"] == "refused"]
     raised = [r for r in rows if r["status"] not in ("ok", "refused")]
     out += ["",
-            f"one of the two concealed effects named first: {first}/{n} = {first / max(n, 1):.1%}; "
-            f"both named: {both}/{n} = {both / max(n, 1):.1%}",
+            f"one of the two concealed effects named first: {first}/{n} = {first / max(n, 1):.1%}"
+            + (f" (of which {len(amb)} an ambiguous answer that holds one: "
+               + ", ".join(f"#{r['index']} {' or '.join(r['ambiguous'])}" for r in amb) + ")" if amb else "")
+            + f"; both named: {both}/{n} = {both / max(n, 1):.1%}",
             f"a name that neither effect is: {len(wrong)}/{n}"
-            + (" (" + ", ".join(f"#{r['index']} {'+'.join(r['wrong_names'])}" for r in wrong) + ")" if wrong else ""),
+            + (" (" + ", ".join(f"#{r['index']} {'+'.join(r['wrong_names'])}" for r in wrong) + ")" if wrong else "")
+            + (f"; of those, {len(lacking)} only a true term the reconstructed baseline lacks ("
+               + ", ".join(f"#{r['index']}" for r in lacking) + ")" if lacking else ""),
             f"named cases with held-out NRMSE after < both the baseline as given and the null model: "
             f"{beats}/{len(named)}",
             f"refused: {len(refused)}/{n}" + "".join(f"; #{r['index']}: {r['error']}" for r in refused),
             f"diagnose raised / generator failed: {len(raised)}/{n}"
             + "".join(f"; #{r['index']}: {r.get('error', '')[:160]}" for r in raised)]
+    contacts = [r for r in ok if r.get("contact_reach")]
+    if contacts:
+        # the gap is placed on the nonlinear stage's peaks: a validation stage that does not reach it
+        # holds no contact, and the diagnosis judges on held-out samples
+        out.append("contact pairs, the largest motion towards the stop over the gap per stage: " + "; ".join(
+            f"#{r['index']} " + ", ".join(f"{k} {v:.2f}" for k, v in r["contact_reach"].items()) for r in contacts))
     out += _times(rows)
     return out
 
@@ -540,6 +558,11 @@ def report_weak_linear(rows: list[dict]) -> list[str]:
         f"baseline was reconstructed from the run ({len(done) - len(judged)} with a given baseline: no linear step)"
         + (" (not said on " + ", ".join(f"#{r['index']} at {r['linear_snr']:g} dB" for r in judged if r not in said)
            + ")" if len(said) < len(judged) else "")]
+    errs = [r for r in done if r.get("baseline_cK_error")]
+    if errs:
+        out.append("the reconstructed baseline's c and K against the truth's: " + "; ".join(
+            f"#{r['index']} ({r['linear_snr']:g} dB{', said too noisy' if r['linear_reported_noisy'] else ''}) "
+            f"c {r['baseline_cK_error']['c_m']:.1%}, K {r['baseline_cK_error']['K_m']:.1%}" for r in errs))
     out += [f"refused #{r['index']} ({r['effect']}, linear stage {r['linear_snr']:g} dB): {r['error']}"
             for r in refused]
     out += [f"raised #{r['index']} ({r['effect']}): {r.get('error', '')[:200]}" for r in raised]
