@@ -9,6 +9,8 @@
     python bench/diagnose.py --stress --rows 6 45 54 --workers 2 --jsonl r.jsonl   # chosen recordings
     python bench/diagnose.py --stress --oracle-of a.jsonl --jsonl o.jsonl   # saved rows' oracle (below)
     python bench/diagnose.py --stress --corner --rows 0 1 2 --workers 2   # issue 76's corner, reported apart
+    python bench/diagnose.py --stress --pairs --rows 0 1 2 --jsonl p.jsonl  # two effects concealed together
+    python bench/diagnose.py --stress --weak-linear --rows 0 1 2 --jsonl w.jsonl   # a linear stage at 0-10 dB
 
 --stress: recordings of recon/testing/independent.py (no code shared with recon): random
 systems, protocols (paper, rig, sweep, multisine), sample rates, SNR and effect strengths,
@@ -58,7 +60,7 @@ def main(argv=None) -> int:
     ap.add_argument("--jsonl", default=None, help="--stress: one JSON row per recording")
     ap.add_argument("--from-jsonl", nargs="+", default=None, metavar="JSONL",
                     help="--stress: print the table of rows saved by --jsonl (several files are joined; a "
-                         "recording index seen twice keeps its last row) instead of running")
+                         "block's recording index seen twice keeps its last row) instead of running")
     ap.add_argument("--oracle-of", nargs="+", default=None, metavar="JSONL",
                     help="--stress: put the truth of each saved row's recording (generated again) to the "
                          "diagnosis's rule against that row's reference (a row's own oracle, counted on its "
@@ -70,6 +72,14 @@ def main(argv=None) -> int:
                     help="--stress: the recordings of issue 76's corner (recon.testing.stress.corner_draw: negative "
                          "delta with a hardening cubic, 5 kHz, sub-micron noise, validation above resonance, a "
                          "second mode above 3 f_n) instead of the random block; their rows carry 'corner'")
+    ap.add_argument("--pairs", action="store_true",
+                    help="--stress: two effects concealed together (recon.testing.stress.pair_draw: pairs in turn, "
+                         "each at 0.5-1.5 of nominal, SNR 50-80 dB) instead of the random block; rows carry "
+                         "block 'pairs' and are reported apart (one of the two first, both named)")
+    ap.add_argument("--weak-linear", action="store_true",
+                    help="--stress: the linear stage at 0-10 dB SNR, the others at 40-80 dB "
+                         "(recon.testing.stress.weak_linear_draw) instead of the random block; rows carry block "
+                         "'weak_linear' and are reported apart (diagnosed or refused, linear stage said too noisy)")
     ap.add_argument("--rows", nargs="+", type=int, default=None, metavar="I",
                     help="--stress: these recording indices (instead of --first/--n)")
     args = ap.parse_args(argv)

@@ -10,26 +10,12 @@ import multiprocessing as mp
 import os
 import time
 
-from recon.testing.diagnosis_stress import oracle_of_stored, report, rescore, run_one, run_one_corner
-
-
-def report_apart(rows: list[dict]) -> list[str]:
-    """The report of the random block's rows and, apart, of each corner's rows (``row["corner"]``):
-    figures on one do not transfer to the other."""
-    groups = {}
-    for r in rows:
-        groups.setdefault(r.get("corner"), []).append(r)
-    out = []
-    for name in sorted(groups, key=lambda k: (k is not None, str(k))):
-        rs = groups[name]
-        if len(groups) > 1 or name is not None:
-            out += ["", f"== {'the random block' if name is None else 'corner ' + name}: {len(rs)} rows =="]
-        out += report(rs)
-    return out
+from recon.testing.diagnosis_stress import RUN_ONE, block_of, oracle_of_stored, report_apart, rescore
 
 
 def load_rows(paths: list[str]) -> list[dict]:
-    """Rows saved by --jsonl, joined by recording index (a later file's row replaces an earlier one)."""
+    """Rows saved by --jsonl, joined by block and recording index (a later file's row replaces an
+    earlier one; the blocks' indices are their own: random #3 and pair #3 are two recordings)."""
     rows = {}
     for p in paths:
         try:
@@ -37,12 +23,21 @@ def load_rows(paths: list[str]) -> list[dict]:
                 for n, line in enumerate(f, 1):
                     if line.strip():
                         r = json.loads(line)
-                        rows[r["index"]] = r
+                        rows[(block_of(r), r["index"])] = r
         except OSError as exc:
             raise SystemExit(f"{p}: cannot read it ({exc.strerror})")
         except (json.JSONDecodeError, KeyError, TypeError) as exc:
             raise SystemExit(f"{p}, line {n}: not a row saved by --jsonl ({type(exc).__name__}: {exc})")
-    return [rows[i] for i in sorted(rows)]
+    return [rows[k] for k in sorted(rows, key=lambda k: (k[0] != "random", k))]
+
+
+def block_flag(args) -> str:
+    """The block the flags ask for (--corner, --pairs, --weak-linear: at most one), else "random"."""
+    asked = [b for b, flag in (("corner", "corner"), ("pairs", "pairs"), ("weak_linear", "weak_linear"))
+             if getattr(args, flag, False)]
+    if len(asked) > 1:
+        raise SystemExit("--corner, --pairs and --weak-linear are blocks of their own: name one")
+    return asked[0] if asked else "random"
 
 
 def main(args) -> int:
@@ -102,23 +97,30 @@ def main(args) -> int:
     if workers > 1:     # a process per core: the fits' finite differences on one thread each
         os.environ.setdefault("SHAKERLAB_THREADS", "1")
     pool = mp.get_context("fork").Pool(workers) if workers > 1 else None
-    one = run_one_corner if getattr(args, "corner", False) else run_one
+    one = RUN_ONE[block_flag(args)]
     it = pool.imap_unordered(one, ids) if pool else map(one, ids)
     for k, r in enumerate(it, 1):
         rows.append(r)
         if out:
             out.write(json.dumps(r, default=float) + "\n")
             out.flush()
-        print(f"[{k}/{n}] #{r['index']} {r['effect']} ({r['strength']:.2f}) {r['protocol']} fs {r['fs']:g} "
-              + (f"snr {r['snr']:g}" if r.get("snr") is not None else f"noise {r.get('noise_m', 0) * 1e6:.2g} um") + f": {r['status']} first={r.get('first')} named={r.get('named')} "
-              f"sim {r.get('sim_seconds', 0):.1f} s diag {r.get('seconds', 0):.1f} s"
-              + (f" ERROR {r['error'][:120]}" if "error" in r else ""), flush=True)
+        effects = " + ".join(f"{e} ({x:.2f})" for e, x in [(r["effect"], r["strength"])] + list(r.get("also", [])))
+        noise = (f"snr {r['snr']:g}" if r.get("snr") is not None else f"noise {r.get('noise_m', 0) * 1e6:.2g} um") \
+            + (f" (linear stage {r['linear_snr']:g})" if r.get("linear_snr") is not None else "")
+        print(f"[{k}/{n}] #{r['index']} {effects} {r['protocol']} fs {r['fs']:g} {noise}: {r['status']} "
+              f"first={r.get('first')} named={r.get('named')} "
+              + (f"both={r['both']} " if "both" in r else "")
+              + (f"linear reported too noisy={r['linear_reported_noisy']} " if "linear_reported_noisy" in r else "")
+              + f"sim {r.get('sim_seconds', 0):.1f} s diag {r.get('seconds', 0):.1f} s"
+              + (f" {'REFUSED' if r['status'] == 'refused' else 'ERROR'} {r['error'][:160]}" if "error" in r else ""),
+              flush=True)
     if pool:
         pool.close()
         pool.join()
     if out:
         out.close()
-    print(f"\n{n} recordings of the independent generator (#{min(ids)}..#{max(ids)}), {workers} worker(s), "
+    print(f"\n{n} recordings of the independent generator ({block_flag(args)} block, #{min(ids)}..#{max(ids)}), "
+          f"{workers} worker(s), "
           f"wall {time.perf_counter() - t0:.0f} s")
     print("\n".join(report_apart(rows)))
     return 0

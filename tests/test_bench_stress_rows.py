@@ -35,3 +35,20 @@ def test_from_jsonl_joins_files_by_index_and_refuses_files_without_rows(tmp_path
     assert "1 saved rows" in p.stdout and "false alarms on clean recordings: 0/1" in p.stdout
     p = _bench("--from-jsonl", str(empty), cwd=tmp_path)
     assert p.returncode != 0 and "no rows" in p.stderr
+
+
+def test_from_jsonl_keeps_blocks_apart_by_index_and_in_the_table(tmp_path):
+    # random row #0 and pair row #0 are two recordings: both kept, each counted in its own table
+    row = {"index": 0, "effect": "none", "protocol": "paper", "status": "ok", "first": "none", "named": [],
+           "right": True, "strength": 1.0, "held_out": {}, "seconds": 1.0, "sim_seconds": 1.0}
+    pair = {**row, "block": "pairs", "effect": "higher_mode", "also": [["coulomb_friction", 0.7]],
+            "first": "sensor_scale", "named": ["sensor_scale", "coulomb_friction"], "right": False}
+    a = tmp_path / "a.jsonl"
+    a.write_text(json.dumps(row) + "\n" + json.dumps(pair) + "\n")
+    p = _bench("--from-jsonl", str(a), cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert "2 saved rows" in p.stdout
+    random_part, pair_part = p.stdout.split("== two effects concealed together: 1 rows ==")
+    assert "false alarms on clean recordings: 0/1" in random_part and "sensor_scale" not in random_part
+    assert "| higher_mode + coulomb_friction | 1 |" in pair_part
+    assert "one of the two concealed effects named first: 0/1" in pair_part and "both named: 0/1" in pair_part

@@ -7,7 +7,10 @@ against the truth without that term, as a user's saved model (`--baseline MODEL.
 baseline would contain the term already. :func:`run_one` makes a row (a JSON-able dict),
 :func:`report` the table and figures of rows, :func:`rescore` puts the current significance rule
 to rows' stored candidate figures; the row's truth figures (:func:`oracle`,
-:func:`effect_signature`, :func:`true_size`) say what the record can show at all.
+:func:`effect_signature`, :func:`true_size`) say what the record can show at all. Blocks reported
+apart from the random one (:func:`block_of`): issue 76's corner, two effects concealed together
+(:func:`run_one_pair`, scored by :func:`score_pair`) and a linear stage at 0-10 dB
+(:func:`run_one_weak_linear`, :func:`score_weak_linear`).
 """
 from __future__ import annotations
 
@@ -26,7 +29,10 @@ from recon.diagnosis.diagnose import diagnose
 from recon.diagnosis.settings import DEFAULT_RULE
 from recon.output_error.problem import get_parameter
 from recon.testing.runs import model_of, to_run, true_model
-from recon.testing.stress import CORNER_EFFECTS, corner_draw, corner_recording, draw, effect_cycle, recording
+from recon.testing.stress import (CORNER_EFFECTS, PAIRS, concealed_effects, corner_draw, corner_recording, draw,
+                                  effect_cycle, pair_draw, pair_recording, recording, weak_linear_draw,
+                                  weak_linear_recording)
+from shakerlab.errors import UserFacingError
 
 
 def _ambiguous_ids(out: dict) -> list[str] | None:
@@ -111,8 +117,9 @@ def effect_off(rec: dict, am):
     if "baseline" in rec:
         return AugmentedModel(model_of(rec["baseline"], am.baseline.excitation))
     off = AugmentedModel(copy.deepcopy(am.baseline))
-    for term in {"amplitude_damping": ("y^2*dy",), "offset": ("y^0",)}.get(rec["effect"], ()):
-        off.baseline.fn_m.pop(term, None)
+    for effect in [rec["effect"]] + [a[0] for a in rec.get("also", [])]:
+        for term in {"amplitude_damping": ("y^2*dy",), "offset": ("y^0",)}.get(effect, ()):
+            off.baseline.fn_m.pop(term, None)
     return off
 
 
@@ -204,6 +211,65 @@ def run_one_corner(i: int) -> dict:
     return run_row(corner_draw(i), corner_recording)
 
 
+def run_one_pair(i: int) -> dict:
+    """The row of pair recording i (:func:`recon.testing.stress.pair_draw`: two effects concealed
+    together), scored by :func:`score_pair`."""
+    return run_row(pair_draw(i), pair_recording)
+
+
+def run_one_weak_linear(i: int) -> dict:
+    """The row of weak-linear recording i (:func:`recon.testing.stress.weak_linear_draw`: the linear
+    stage at 0-10 dB), scored by :func:`score_weak_linear` besides the usual figures."""
+    return run_row(weak_linear_draw(i), weak_linear_recording)
+
+
+# the blocks of rows: their draws and recordings (a row's block: :func:`block_of`)
+BLOCKS = {"random": (draw, recording), "corner": (corner_draw, corner_recording),
+          "pairs": (pair_draw, pair_recording), "weak_linear": (weak_linear_draw, weak_linear_recording)}
+RUN_ONE = {"random": run_one, "corner": run_one_corner, "pairs": run_one_pair, "weak_linear": run_one_weak_linear}
+
+
+def block_of(row: dict) -> str:
+    """The block a row belongs to: its ``block`` field, "corner" for a corner's row (rows saved
+    before the field), else "random"."""
+    return row.get("block") or ("corner" if row.get("corner") else "random")
+
+
+def recording_of(row: dict) -> dict:
+    """The recording of a stored row, generated again from its block and index."""
+    d, make = BLOCKS[block_of(row)]
+    return make(d(row["index"]))
+
+
+def score_pair(row: dict) -> dict:
+    """The scoring of a pair row (two effects concealed together): ``right_first`` when the first id
+    named is one of the two (or an ambiguous answer holds one of them), ``both`` when both are named,
+    ``wrong_names`` the ids named that neither effect is. A row whose diagnosis did not answer scores
+    False on both."""
+    pair = concealed_effects(row)
+    if row.get("status") != "ok":
+        return {"pair": pair, "right_first": False, "both": False, "wrong_names": []}
+    named, amb = list(row.get("named") or []), list(row.get("ambiguous") or [])
+    first = row.get("first")
+    right = first in pair or (first == "ambiguous" and any(e in amb for e in pair))
+    return {"pair": pair, "right_first": bool(right), "both": all(e in named + amb for e in pair),
+            "wrong_names": [x for x in dict.fromkeys(named + amb) if x not in pair]}
+
+
+def score_weak_linear(row: dict) -> dict:
+    """What a weak-linear row adds to the usual scoring: ``diagnosed`` (the diagnosis answered),
+    ``exit`` (what `shakerlab diagnose` would exit with: 0 answered, 2 refused, 1 raised),
+    ``refusal`` (its message) and ``linear_reported_noisy`` (the answer says the linear stage was too
+    noisy for c and K; None where the baseline was not reconstructed from the run, so that no linear
+    step ran)."""
+    status = row.get("status")
+    reconstructed = row.get("baseline") == "paper"
+    noisy = any("too noisy" in w for w in row.get("baseline_warnings") or [])
+    return {"diagnosed": status == "ok", "exit": {"ok": 0, "refused": 2}.get(status, 1),
+            "refusal": row.get("error") if status == "refused" else None,
+            "linear_reported_noisy": (noisy if reconstructed else None) if status == "ok" else None}
+
+
 def run_row(d: dict, make) -> dict:
     """A row of the draw ``d``, its recording made by ``make(d)``."""
     warnings.filterwarnings("ignore")
@@ -229,10 +295,13 @@ def run_row(d: dict, make) -> dict:
         run = to_run(rec)
         dg = diagnose(run, baseline=baseline)
         out = dg.to_dict()
+    except UserFacingError as exc:   # `shakerlab diagnose` refuses (exit 2, the message; under --json an object)
+        row.update(status="refused", error=f"{type(exc).__name__}: {exc}"[:400], seconds=time.perf_counter() - t1)
+        return _block_scores(row)
     except Exception as exc:  # noqa: BLE001 - a raised diagnosis is a row
         row.update(status="failed", error=f"{type(exc).__name__}: {exc}"[:400],
                    trace=traceback.format_exc(limit=4)[-800:], seconds=time.perf_counter() - t1)
-        return row
+        return _block_scores(row)
     row["seconds"] = time.perf_counter() - t1
     ids = [m["id"] for m in out["missing_physics"]]
     amb = _ambiguous_ids(out)
@@ -252,9 +321,15 @@ def run_row(d: dict, make) -> dict:
                parameters={m["id"]: {k: v["value"] for k, v in m["parameters"].items()}
                            for m in out["missing_physics"]},
                result=out["result"], unexplained=bool(out.get("unexplained_mismatch")),
-               partly=out.get("partly_explained"),
+               partly=out.get("partly_explained"), baseline_warnings=out.get("baseline_warnings", []),
                baseline_fallback=bool(out.get("baseline_note")),
                candidates=[{k: c[k] for k in CANDIDATE_KEYS if k in c} for c in out.get("candidates_tested", [])])
+    if baseline == "paper":
+        # how far the reconstructed baseline's c and K = k + alpha are from the truth's (relative): what a
+        # linear step on a noisy linear stage, or its stand-in, left the diagnosis to work from
+        bm, tr = dg.baseline.baseline, rec["truth"]
+        row["baseline_cK_error"] = {"c_m": abs(bm.c_m / tr["c_m"] - 1),
+                                    "K_m": abs(bm.K_m / (tr["k_m"] + tr["alpha_m"]) - 1)}
     size = true_size(rec, out)
     if size is not None:
         row["truth_size"] = size
@@ -263,6 +338,17 @@ def run_row(d: dict, make) -> dict:
     if ids:
         row["after_beats_both"] = bool(h["after"] is not None and h["null"] is not None and h["as_given"] is not None
                                        and h["after"] < h["null"] and h["after"] < h["as_given"])
+    return _block_scores(row)
+
+
+def _block_scores(row: dict) -> dict:
+    """A pair row's and a weak-linear row's own scores (:func:`score_pair`, :func:`score_weak_linear`)
+    added to the row; a pair row's ``right`` is its ``right_first``."""
+    if row.get("block") == "pairs":
+        row.update(score_pair(row))
+        row["right"] = row["right_first"]
+    elif row.get("block") == "weak_linear":
+        row.update(score_weak_linear(row))
     return row
 
 
@@ -402,6 +488,121 @@ def report(rows: list[dict]) -> list[str]:
     return out
 
 
+def report_pairs(rows: list[dict]) -> list[str]:
+    """The table of pair rows (:func:`score_pair`): per pair, what was named first, how often one of
+    the two came first and how often both were named."""
+    for r in rows:
+        if "right_first" not in r:       # a row stored without its scores
+            r.update(score_pair(r))
+    ok = [r for r in rows if r["status"] == "ok"]
+    cols = sorted({r["first"] for r in ok} - {"none", "ambiguous"}) + ["none", "ambiguous", "error"]
+    out = ["| pair concealed \\ named first | n | " + " | ".join(cols) + " | one of the two first | both named |",
+           "| --- | --- | " + " | ".join("---" for _ in cols) + " | --- | --- |"]
+    pairs = list(dict.fromkeys([" + ".join(p) for p in PAIRS] + [" + ".join(r["pair"]) for r in rows]))
+    for p in pairs:
+        rs = [r for r in rows if " + ".join(r["pair"]) == p]
+        if not rs:
+            continue
+        c = collections.Counter("error" if r["status"] != "ok" else r["first"] for r in rs)
+        out.append(f"| {p} | {len(rs)} | " + " | ".join(str(c.get(k, 0) or ".") for k in cols)
+                   + f" | {sum(r['right_first'] for r in rs)}/{len(rs)} | {sum(r['both'] for r in rs)}/{len(rs)} |")
+    n = len(rows)
+    first, both = sum(r["right_first"] for r in rows), sum(r["both"] for r in rows)
+    wrong = [r for r in ok if r["wrong_names"]]
+    amb = [r for r in ok if r["right_first"] and r["first"] == "ambiguous"]
+    lacking = [r for r in wrong if set(r["wrong_names"]) <= set(r.get("baseline_lacks") or [])]
+    named = [r for r in ok if r["named"]]
+    beats = sum(r.get("after_beats_both", False) for r in named)
+    refused = [r for r in rows if r["status"] == "refused"]
+    raised = [r for r in rows if r["status"] not in ("ok", "refused")]
+    out += ["",
+            f"one of the two concealed effects named first: {first}/{n} = {first / max(n, 1):.1%}"
+            + (f" (of which {len(amb)} an ambiguous answer that holds one: "
+               + ", ".join(f"#{r['index']} {' or '.join(r['ambiguous'])}" for r in amb) + ")" if amb else "")
+            + f"; both named: {both}/{n} = {both / max(n, 1):.1%}",
+            f"a name that neither effect is: {len(wrong)}/{n}"
+            + (" (" + ", ".join(f"#{r['index']} {'+'.join(r['wrong_names'])}" for r in wrong) + ")" if wrong else "")
+            + (f"; of those, {len(lacking)} only a true term the reconstructed baseline lacks ("
+               + ", ".join(f"#{r['index']}" for r in lacking) + ")" if lacking else ""),
+            f"named cases with held-out NRMSE after < both the baseline as given and the null model: "
+            f"{beats}/{len(named)}",
+            f"refused: {len(refused)}/{n}" + "".join(f"; #{r['index']}: {r['error']}" for r in refused),
+            f"diagnose raised / generator failed: {len(raised)}/{n}"
+            + "".join(f"; #{r['index']}: {r.get('error', '')[:160]}" for r in raised)]
+    contacts = [r for r in ok if r.get("contact_reach")]
+    if contacts:
+        # the gap is placed on the nonlinear stage's peaks: a validation stage that does not reach it
+        # holds no contact, and the diagnosis judges on held-out samples
+        out.append("contact pairs, the largest motion towards the stop over the gap per stage: " + "; ".join(
+            f"#{r['index']} " + ", ".join(f"{k} {v:.2f}" for k, v in r["contact_reach"].items()) for r in contacts))
+    out += _times(rows)
+    return out
+
+
+def report_weak_linear(rows: list[dict]) -> list[str]:
+    """The usual table of weak-linear rows (:func:`report`), then whether each was diagnosed at all and
+    whether the answer said that the linear stage was too noisy (:func:`score_weak_linear`)."""
+    for r in rows:
+        if "diagnosed" not in r:         # a row stored without its scores
+            r.update(score_weak_linear(r))
+    n = len(rows)
+    done = [r for r in rows if r["diagnosed"]]
+    refused = [r for r in rows if r["status"] == "refused"]
+    raised = [r for r in rows if r["status"] not in ("ok", "refused")]
+    judged = [r for r in done if r["linear_reported_noisy"] is not None]
+    said = [r for r in judged if r["linear_reported_noisy"]]
+    out = report(rows) + [
+        f"linear stage at {min(r['linear_snr'] for r in rows):g}-{max(r['linear_snr'] for r in rows):g} dB: "
+        f"diagnosed {len(done)}/{n}, refused {len(refused)}/{n}, raised {len(raised)}/{n}",
+        f"the answer says the linear stage was too noisy: {len(said)}/{len(judged)} of the diagnosed rows whose "
+        f"baseline was reconstructed from the run ({len(done) - len(judged)} with a given baseline: no linear step)"
+        + (" (not said on " + ", ".join(f"#{r['index']} at {r['linear_snr']:g} dB" for r in judged if r not in said)
+           + ")" if len(said) < len(judged) else "")]
+    errs = [r for r in done if r.get("baseline_cK_error")]
+    if errs:
+        out.append("the reconstructed baseline's c and K against the truth's: " + "; ".join(
+            f"#{r['index']} ({r['linear_snr']:g} dB{', said too noisy' if r['linear_reported_noisy'] else ''}) "
+            f"c {r['baseline_cK_error']['c_m']:.1%}, K {r['baseline_cK_error']['K_m']:.1%}" for r in errs))
+    out += [f"refused #{r['index']} ({r['effect']}, linear stage {r['linear_snr']:g} dB): {r['error']}"
+            for r in refused]
+    out += [f"raised #{r['index']} ({r['effect']}): {r.get('error', '')[:200]}" for r in raised]
+    return out
+
+
+def _times(rows: list[dict]) -> list[str]:
+    secs = [r["seconds"] for r in rows if "seconds" in r]
+    sims = [r["sim_seconds"] for r in rows if "sim_seconds" in r]
+    if not secs:
+        return []
+    return [f"time per recording: generate median {np.median(sims):.1f} s (max {max(sims):.1f}), diagnose "
+            f"median {np.median(secs):.1f} s (max {max(secs):.1f})"]
+
+
+BLOCK_TITLES = {"random": "the random block", "pairs": "two effects concealed together",
+                "weak_linear": "a linear stage at 0-10 dB SNR"}
+
+
+def report_apart(rows: list[dict]) -> list[str]:
+    """The report of each block's rows apart (:func:`block_of`; a corner's rows per corner): figures
+    on one block do not transfer to another, and a pair row or a weak-linear row never enters the
+    random block's confusion table."""
+    groups = {}
+    for r in rows:
+        b = block_of(r)
+        groups.setdefault((b, r.get("corner") if b == "corner" else None), []).append(r)
+    order = ("random", "corner", "pairs", "weak_linear")
+    out = []
+    for key in sorted(groups, key=lambda k: (order.index(k[0]) if k[0] in order else len(order), str(k[1]))):
+        rs = groups[key]
+        block, corner = key
+        if len(groups) > 1 or block != "random":
+            title = f"corner {corner}" if block == "corner" else BLOCK_TITLES.get(block, block)
+            out += ["", f"== {title}: {len(rs)} rows =="]
+        out += (report_pairs(rs) if block == "pairs" else report_weak_linear(rs) if block == "weak_linear"
+                else report(rs))
+    return out
+
+
 def _passes_now(o: dict) -> bool:
     """The current significance rule on stored held-out figures (an oracle's, a candidate's); the
     stored verdict where a figure is missing."""
@@ -459,10 +660,9 @@ def oracle_of_stored(row: dict) -> dict:
     changed since) gets ``oracle = {"stale": ...}``."""
     warnings.filterwarnings("ignore")
     row = dict(row)
-    i = row["index"]
     if row.get("status") != "ok" or row["effect"] == "none":
         return row
-    rec = corner_recording(corner_draw(i)) if row.get("corner") else recording(draw(i))
+    rec = recording_of(row)
     n = sum(int(s["t"].size) for s in rec["stages"].values())
     if n != row.get("samples"):
         row["oracle"] = {"stale": f"the recording has {n} samples now, {row.get('samples')} when diagnosed"}

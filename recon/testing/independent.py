@@ -760,7 +760,8 @@ def simulate(system: dict, protocol: str = "paper", fs: float = 2000.0, effect: 
     ``mode_ratio``: the range of the second mode's frequency over f_n (default 2.5-3.5).
     ``also``: further (effect, strength) pairs concealed together with ``effect`` (two effects at
     once), each a physical effect other than the contact (whose gap is calibrated on its own);
-    their signs are drawn apart from ``effect``'s, so ``effect`` keeps the values it has alone."""
+    their signs are drawn apart from ``effect``'s, so ``effect`` keeps the values it has alone (a
+    contact's gap excepted: it is placed on the peaks the motion reaches with the further effects on)."""
     if protocol not in PROTOCOLS + MORE_PROTOCOLS:
         raise ValueError(f"unknown protocol {protocol!r} (known: {', '.join(PROTOCOLS + MORE_PROTOCOLS)})")
     if effect not in EFFECTS:
@@ -775,19 +776,23 @@ def simulate(system: dict, protocol: str = "paper", fs: float = 2000.0, effect: 
     eff = {} if effect in STRUCTURAL_EFFECTS else effect_parameters(effect, strength, s, rng)
     if effect == "higher_mode" and mode_drive:
         eff["drive2"] = float(mode_drive)
+    others = {}     # the further effects' parameters
     for other, other_strength in also:
         if other not in PHYSICAL_EFFECTS or other in (effect, "contact_stiffness"):
             raise ValueError(f"a second concealed effect must be another physical effect than the contact, "
                              f"got {other!r}")
-        eff.update(effect_parameters(other, float(other_strength), s, np.random.default_rng([seed, 31])))
+        others.update(effect_parameters(other, float(other_strength), s, np.random.default_rng([seed, 31])))
+    eff.update(others)
     f_max = max(2.0 * s["f_n"], eff.get("w2", 0.0) / (2 * math.pi))   # highest drive / mode frequency
     sim = _Sim(s, {k: v for k, v in eff.items() if k not in ("kc",)}, excitation, fs, f_max)
     if effect == "contact_stiffness":
         # the gap is placed relative to the clean nonlinear-stage peak on its side: calibrate
         # the protocol without the contact first
-        probe_sim = _Sim(s, {}, excitation, fs, f_max)
+        # (with the further effects of ``also`` on: they stay in the recording, and the gap is placed
+        # on the peaks the motion reaches with them)
+        probe_sim = _Sim(s, dict(others), excitation, fs, f_max)
         peaks = _PROTOCOL_FNS[protocol](probe_sim, s, np.random.default_rng(seed))
-        eff = effect_parameters(effect, strength, s, np.random.default_rng(seed + 7), peaks)
+        eff = {**others, **effect_parameters(effect, strength, s, np.random.default_rng(seed + 7), peaks)}
         sim = _Sim(s, eff, excitation, fs, f_max)
     _PROTOCOL_FNS[protocol](sim, s, rng)
     rec = {"generator": "recon.testing.independent", "excitation": excitation, "fs": float(fs),
@@ -801,11 +806,15 @@ def simulate(system: dict, protocol: str = "paper", fs: float = 2000.0, effect: 
 
 
 def add_noise(rec: dict, snr_db: float | None, seed: int, quantisation: float | None = None,
-              quantity: str = "displacement", flicker_share: float = 0.5, noise_std: float | None = None) -> dict:
+              quantity: str = "displacement", flicker_share: float = 0.5, noise_std: float | None = None,
+              stage_snr_db: dict | None = None) -> dict:
     """A copy with white sensor noise at ``snr_db`` of each channel's rms (per stage) and an
     optional quantisation step ``quantisation`` (as a fraction of the noise std).
     ``noise_std`` (in the channel's unit) in place of ``snr_db``: one noise level for every channel
     and stage, as a sensor's own resolution (sub-micron on a laser displacement sensor).
+    ``stage_snr_db``: {stage: SNR [dB]} in place of ``snr_db`` for the stages it names (a stage recorded
+    noisier than the others, as a linear stage whose small motion sits near the sensor's floor); the
+    draws are taken in the same order, so the stages it does not name get the noise they get without it.
 
     ``quantity``: how the response (x_tip, or x under force excitation) is recorded: "displacement",
     "velocity" (a laser vibrometer: v_tip, v) or "acceleration" (a_tip, a; white noise), at ``snr_db``
@@ -819,7 +828,8 @@ def add_noise(rec: dict, snr_db: float | None, seed: int, quantisation: float | 
     rng = np.random.default_rng(seed)
     flicker_rng = np.random.default_rng([seed, 1])
     out = dict(rec, stages={}, snr_db=snr_db, noise_seed=int(seed), quantisation=quantisation, quantity=quantity,
-               **({"noise_std": float(noise_std)} if noise_std is not None else {}))
+               **({"noise_std": float(noise_std)} if noise_std is not None else {}),
+               **({"stage_snr_db": {k: float(v) for k, v in stage_snr_db.items()}} if stage_snr_db else {}))
     response = "x_tip" if rec["excitation"] == "base" else "x"
     velocity = "v" + response[1:]
     recorded = {"displacement": response, "velocity": velocity, "acceleration": "a" + response[1:]}[quantity]
@@ -827,11 +837,12 @@ def add_noise(rec: dict, snr_db: float | None, seed: int, quantisation: float | 
         new = {k: v for k, v in st.items() if k not in (response, velocity, "a" + response[1:]) or k == recorded}
         chans = ("x_base", "x_tip") if rec["excitation"] == "base" else ("force", "x")
         chans = tuple(recorded if c == response else c for c in chans)
+        snr = stage_snr_db[name] if stage_snr_db and name in stage_snr_db else snr_db
         for ch in chans:
             x = st[ch]
-            if snr_db is not None or noise_std is not None:
+            if snr is not None or noise_std is not None:
                 sd = (float(noise_std) if noise_std is not None
-                      else float(np.sqrt(np.mean(x ** 2))) / 10 ** (snr_db / 20))
+                      else float(np.sqrt(np.mean(x ** 2))) / 10 ** (snr / 20))
                 if ch == velocity:
                     x = (x + rng.normal(0.0, sd * math.sqrt(1.0 - flicker_share), x.size)
                          + flicker_noise(flicker_rng, x.size, sd * math.sqrt(flicker_share)))

@@ -68,40 +68,51 @@ def score(model: HystereticModel, truth: dict) -> dict:
 
 def true_model(rec: dict):
     """The recording's own truth as the diagnosis's augmented model: the system with its
-    concealed effect, mapped from the generator's SI effect parameters to the per-unit-mass
-    extras of recon.diagnosis.augmented (the two share no code; this is the one place that
-    knows both). Returns (model, number of parameters the effect adds), or None for an effect
-    the augmented model cannot state."""
-    effect, e, m = rec["effect"], rec["effect_parameters"], rec["system"]["m"]
+    concealed effect (and the further ones of a pair, ``rec["also"]``), mapped from the generator's
+    SI effect parameters to the per-unit-mass extras of recon.diagnosis.augmented (the two share no
+    code; this is the one place that knows both). Returns (model, number of parameters the effects
+    add), or None for an effect the augmented model cannot state."""
+    e, m = rec["effect_parameters"], rec["system"]["m"]
     exc = "force" if "inv_m" in rec["truth"] else "base"
     truth = dict(rec["truth"], fn_m=dict(rec["truth"]["fn_m"]))
     extras, k = {}, 0
+    for effect in [rec["effect"]] + [a[0] for a in rec.get("also", [])]:
+        more = _effect_terms(effect, e, m, truth)
+        if more is None:
+            return None
+        extras.update(more[0])
+        k += more[1]
+    return AugmentedModel(model_of(truth, exc), extras), k
+
+
+def _effect_terms(effect: str, e: dict, m: float, truth: dict):
+    """(extras, parameter count) of one concealed effect; an fn term goes into ``truth`` in place.
+    None for an effect the augmented model cannot state."""
     if effect == "coulomb_friction":
-        extras, k = {"mu": e["Fc"] / m, "v0": e["v_eps"]}, 1
-    elif effect == "quadratic_damping":
-        extras, k = {"c2": e["c2"] / m}, 1
-    elif effect == "amplitude_damping":
+        return {"mu": e["Fc"] / m, "v0": e["v_eps"]}, 1
+    if effect == "quadratic_damping":
+        return {"c2": e["c2"] / m}, 1
+    if effect == "amplitude_damping":
         truth["fn_m"]["y^2*dy"] = truth["fn_m"].get("y^2*dy", 0.0) + e["b2"] / m
-        k = 1
-    elif effect == "channel_delay":
-        extras, k = {"delay": e["tau"]}, 1
-    elif effect == "higher_mode":
-        extras, k = {"w2": e["w2"], "zeta2": e["zeta2"], "phi2": e["phi2"]}, 3
+        return {}, 1
+    if effect == "channel_delay":
+        return {"delay": e["tau"]}, 1
+    if effect == "higher_mode":
+        extras = {"w2": e["w2"], "zeta2": e["zeta2"], "phi2": e["phi2"]}
         if e.get("drive2"):
             extras["drive2"] = e["drive2"]
-    elif effect == "parameter_drift":
-        extras, k = {"drift": e["drift_rate"]}, 1
-    elif effect == "sensor_scale":
-        extras, k = {"tip_scale": e["tip_scale"]}, 1
-    elif effect == "contact_stiffness":
-        extras, k = {"kc": e["kc"] / m, "gap": e["gap"], "side": e["side"]}, 2
-    elif effect == "offset":
+        return extras, 3
+    if effect == "parameter_drift":
+        return {"drift": e["drift_rate"]}, 1
+    if effect == "sensor_scale":
+        return {"tip_scale": e["tip_scale"]}, 1
+    if effect == "contact_stiffness":
+        return {"kc": e["kc"] / m, "gap": e["gap"], "side": e["side"]}, 2
+    if effect == "offset":
         truth["fn_m"]["y^0"] = -e["F0"] / m
-        k = 1
-    elif effect in ("cubic_stiffness", "quadratic_stiffness"):
-        k = 1
-    elif effect == "hysteresis":
-        k = 3
-    else:
-        return None
-    return AugmentedModel(model_of(truth, exc), extras), k
+        return {}, 1
+    if effect in ("cubic_stiffness", "quadratic_stiffness"):
+        return {}, 1
+    if effect == "hysteresis":
+        return {}, 3
+    return None
