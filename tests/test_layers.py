@@ -394,11 +394,8 @@ def _root_name(node: ast.AST) -> str | None:
     return node.id if isinstance(node, ast.Name) else None
 
 
-# (test file, attribute) a test may still replace, each with its reason. model_force: |y|, |y'| < 1 keep
-# every finite fn term finite, and z_from_velocity's exact step keeps a stiff law's z bounded; the laws
-# found that overflow z on the recorded y' (gamma < 0, gamma + delta << 0) diverge in the baseline's own
-# simulation too, which check_null refuses before the force is ever taken
-RECON_PATCHES_KEPT = {("tests/test_diagnosis_failures.py", "model_force")}
+# (test file, attribute) a test may still replace, each with its reason: none
+RECON_PATCHES_KEPT: set = set()
 
 
 def test_no_test_monkeypatches_a_recon_module():
