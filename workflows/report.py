@@ -27,7 +27,6 @@ import json
 import os
 import secrets
 import shutil
-import sys
 import time
 from pathlib import Path
 

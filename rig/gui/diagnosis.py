@@ -15,14 +15,12 @@ closed cleanly), so the Results tab shows it the next time the file is opened.
 """
 from __future__ import annotations
 
-import math
 import multiprocessing as mp
 import queue
 import sys
 import time
 import traceback
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
