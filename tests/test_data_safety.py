@@ -4,7 +4,6 @@ file and field named) instead of tracebacks, and plausibility warnings. Real run
 point), and every test checks that the files it started with are still there, byte for byte."""
 import hashlib
 import json
-import os
 import re
 import signal
 import subprocess

@@ -25,9 +25,8 @@ from shakerlab.cli import main
 from shakerlab.errors import UserFacingError
 from shakerlab.output_files import OutputLock, inside
 from shakerlab.run_data import check_stage_name
-from shakerlab.runfile.reader import load_run, read_info, read_run
+from shakerlab.runfile.reader import read_info, read_run
 from shakerlab.runfile.results import add_result, read_results, store_result
-from shakerlab.runfile.writer import RunWriter
 from workflows.batch import write_simulated_run
 
 from test_rig_acquisition import SMALL_PROTOCOL

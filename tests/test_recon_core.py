@@ -5,7 +5,7 @@ import pytest
 from recon import ReconSettings, reconstruct
 from recon.testing.truth import Multisine, make_stage, sdof_run, sdof_truth
 from shakerlab.errors import UserFacingError
-from shakerlab.run_data import Run, Stage
+from shakerlab.run_data import Stage
 
 PARAMS = ("c_m", "k_m", "alpha_m", "gamma", "delta")
 

@@ -7,7 +7,7 @@ import pytest
 
 from rig.config import DEFAULT_RIG_PATH, load_config, parse_config
 from rig.messages import BeginStage, CheckSetpoint
-from rig.plans import PlanContext, protocol_plan
+from rig.plans import protocol_plan
 from rig.protocol import load_protocol, parse_protocol
 from rig.safety import LimitError, Supervisor
 from rig.session import acquire, simulated_rig
