@@ -471,11 +471,7 @@ def report(rows: list[dict]) -> list[str]:
                                        f" x the limit" for r in below) + ")" if below else ""))
     out.append(f"effects named nothing: {len(missed)}, of which {len(flagged)} flagged as an unexplained mismatch; "
                f"clean recordings named nothing but flagged: {len(clean_flag)}/{len(clean)}")
-    secs = [r["seconds"] for r in rows if "seconds" in r]
-    sims = [r["sim_seconds"] for r in rows if "sim_seconds" in r]
-    if secs:
-        out.append(f"time per recording: generate median {np.median(sims):.1f} s (max {max(sims):.1f}), diagnose "
-                   f"median {np.median(secs):.1f} s (max {max(secs):.1f})")
+    out += _times(rows)
     by_p = collections.defaultdict(list)
     for r in rows:
         by_p[r["protocol"]].append(r.get("right", False))
