@@ -35,7 +35,7 @@ from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.library import monomials
 from recon.model import HystereticModel
 from recon.output_error.polish import decimate, output_noise
-from recon.output_error.problem import FD_STEP, OutputError
+from recon.output_error.problem import FD_STEP, OutputError, motion_scales, term_scale
 from recon.threads import fd_map
 from recon.validation import nrmse
 from shakerlab.run_data import BASE, Run
@@ -142,8 +142,9 @@ def _linear_start(run: Run, linear_stage: str, excitation: str, lin=None) -> tup
 def _fit(model: HystereticModel, data: list, free: list, max_nfev: int, tuning: EstimatorTuning) -> HystereticModel:
     prob = OutputError(model, data, free=free)
     with np.errstate(all="ignore"):
-        sol = least_squares(prob.residual, np.zeros(len(prob.keys)), method="trf", x_scale=1.0, diff_step=FD_STEP,
-                            max_nfev=max_nfev, xtol=1e-10, ftol=1e-12, workers=fd_map(),
+        sol = least_squares(prob.residual, np.zeros(len(prob.keys)), jac=prob.jac_option(), method="trf",
+                            x_scale=1.0, diff_step=FD_STEP, max_nfev=max_nfev, xtol=1e-10, ftol=1e-12,
+                            workers=None if prob.analytic else fd_map(),
                             callback=prob.stop([output_noise(d) for d in data], tuning.stop_chi2))
     return prob.build(sol.x)
 
@@ -251,14 +252,10 @@ def with_term_scales(model: HystereticModel, data: list) -> HystereticModel:
     zero = [k for k, v in model.fn_m.items() if v == 0.0]
     if not zero:
         return model
-    y = data[-1][2]
-    y_rms = float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0
-    dt = float(data[-1][0][1] - data[-1][0][0])
-    v_rms = float(np.sqrt(np.mean(np.diff(y) ** 2))) / dt or 1.0
+    y_rms, v_rms = motion_scales(data)
     fn = dict(model.fn_m)
     for k in zero:
-        p, r = monomials.parse(k)
-        fn[k] = 0.01 * abs(model.K_m) * y_rms / (y_rms ** p * v_rms ** r)
+        fn[k] = term_scale(k, model.K_m, y_rms, v_rms)
     m = HystereticModel.from_dict(model.to_dict())
     m.fn_m = fn
     m.provenance = model.provenance

@@ -69,8 +69,8 @@ def polish(model: HystereticModel, data: list, max_nfev: int | None = None, mask
     prob = OutputError(model, data, masks, free=free, noise=noise)
     p0 = np.zeros(len(prob.keys))
     r0 = prob.residual(p0)
-    sol = least_squares(prob.residual, p0, method="trf", x_scale=1.0, diff_step=FD_STEP,
-                        max_nfev=max_nfev, xtol=1e-10, ftol=1e-12, workers=fd_map(),
+    sol = least_squares(prob.residual, p0, jac=prob.jac_option(), method="trf", x_scale=1.0, diff_step=FD_STEP,
+                        max_nfev=max_nfev, xtol=1e-10, ftol=1e-12, workers=None if prob.analytic else fd_map(),
                         callback=prob.stop(stop_noise, tuning.stop_chi2))
     new = prob.build(sol.x)
     cost0 = float(np.sqrt(r0 @ r0 / len(data)))

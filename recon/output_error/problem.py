@@ -17,10 +17,15 @@ compares a simulated response with the measured one. What they share is here:
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
-from recon.model import PARAMETER_NAMES, HystereticModel
+from recon.library import monomials
+from recon.model import MAX_SUBSTEPS, PARAMETER_NAMES, HystereticModel
 from recon.output_error.stopping import ChiSquareStop
+from recon.simulation.rk4 import substeps
+from recon.simulation.sensitivity import column_codes, simulate_plain_sensitivities
 from shakerlab.run_data import BASE
 
 # The residual entry of a diverged trial. Normalised residuals of a finite simulation stay
@@ -34,6 +39,17 @@ DIVERGED_RESIDUAL = 1e3
 # Jacobian's error is about 6 h down to h = 1e-8, where rounding takes over; 1e-6 puts it at
 # 3e-6 to 9e-6 for both simulators, far below what moves a trust-region step.
 FD_STEP = 1e-6
+# How the fits get their Jacobian: "sensitivities" (recon.simulation.sensitivity: the states and every
+# column in one pass, about the cost of one simulation) wherever the problem allows it (the plain
+# model's parameters, a response compared in displacement or velocity), forward differences with
+# FD_STEP otherwise; "differences" everywhere (SHAKERLAB_JACOBIAN=differences), the checked
+# fallback the tests compare the sensitivities with.
+JACOBIAN = os.environ.get("SHAKERLAB_JACOBIAN", "sensitivities").strip() or "sensitivities"
+if JACOBIAN not in ("sensitivities", "differences"):
+    raise ValueError(f"SHAKERLAB_JACOBIAN must be 'sensitivities' or 'differences', not {JACOBIAN!r}")
+# the kernel column of each parameter key the sensitivities cover (an fn term: its index)
+SENSITIVITY_COLUMNS = {"c_m": "c", "k_m": "k", "alpha_m": "alpha", "gamma": "gamma", "delta": "delta",
+                       "inv_m": "g", "input_offset": "offset"}
 
 
 def parameter_keys(model: HystereticModel, extra_terms=()) -> list[str]:
@@ -89,6 +105,23 @@ def parameter_scales(keys, x0, lam, overrides: dict | None = None) -> np.ndarray
     return scale
 
 
+def motion_scales(data: list) -> tuple[float, float]:
+    """(rms y, rms y') of the last data item's recorded displacement (the nonlinear stage of a
+    fit's items), y' by differences: the motion a term's size is judged at."""
+    y = data[-1][2]
+    y_rms = float(np.sqrt(np.mean((y - y.mean()) ** 2))) or 1.0
+    dt = float(data[-1][0][1] - data[-1][0][0])
+    v_rms = float(np.sqrt(np.mean(np.diff(y) ** 2))) / dt or 1.0
+    return y_rms, v_rms
+
+
+def term_scale(term: str, K: float, y_rms: float, v_rms: float) -> float:
+    """The coefficient of the fn term ``term`` at which it makes 1 % of the elastic force K y at the
+    motion (y_rms, v_rms): the size at which a term starts to matter to a record."""
+    p, r = monomials.parse(term)
+    return 0.01 * abs(K) * y_rms / (y_rms ** p * v_rms ** r)
+
+
 def item_start(d: tuple):
     """The recorded start (y, y', y'') of a data item, None (rest) when it has none."""
     return d[3] if len(d) > 3 else None
@@ -135,12 +168,24 @@ class OutputError:
         if "input_offset" in self.keys:      # an offset starting at 0: on the scale of the input itself
             overrides["input_offset"] = max(abs(self.x0[self.keys.index("input_offset")]),
                                             0.1 * max(float(np.std(d[1])) for d in data)) or 1.0
+        # an fn term's scale is at least the size at which it matters (term_scale): from a value far
+        # below it (a spurious term nearly dropped, a true one started small) the trust region,
+        # which grows by doubling on the scaled parameters, would need many iterations to reach it
+        y_rms, v_rms = motion_scales(data)
+        for i, k in enumerate(self.keys):
+            if k.startswith("fn:") and k not in overrides:
+                floor = term_scale(k[3:], model.K_m, y_rms, v_rms)
+                if np.isfinite(floor) and abs(self.x0[i]) < floor:
+                    overrides[k] = floor
         self.scale = parameter_scales(self.keys, self.x0, model.gamma + model.delta, overrides)
         self.masks = masks if masks is not None else [None] * len(data)
         self.targets = [item_target(d) for d in data]
         self.rms = [float(np.sqrt(np.mean((x - x.mean()) ** 2))) or 1.0 for _, x in self.targets]
         self.n_rows = sum(int(d[2].size if m is None else np.count_nonzero(m)) for d, m in zip(data, self.masks))
         self.item_weights = [1.0] * len(data)
+        self.analytic = (JACOBIAN == "sensitivities" and not getattr(model, "has_drive", False)
+                         and all(k in SENSITIVITY_COLUMNS or k.startswith("fn:") for k in self.keys)
+                         and all(t[0] in (0, 1) for t in self.targets))
         self.noise = list(noise) if noise is not None and all(np.isfinite(noise)) and min(noise) > 0 else None
         if noise is not None:        # maximum likelihood under white output noise of std noise[i] per item
             n = [int(d[2].size if m is None else np.count_nonzero(m)) for d, m in zip(data, self.masks)]
@@ -216,3 +261,48 @@ class OutputError:
         if res is None:
             return np.full(self.n_rows, DIVERGED_RESIDUAL)
         return self.weighted(res)
+
+    def jac_option(self):
+        """What ``least_squares`` takes as ``jac``: :meth:`jacobian` when the problem allows
+        sensitivities (``self.analytic``), else scipy's forward differences."""
+        return self.jacobian if self.analytic else "2-point"
+
+    def jacobian(self, p) -> np.ndarray:
+        """d residual / d p (n_rows x len(keys)) from the forward sensitivities of each item's
+        simulation (recon.simulation.sensitivity): the residual's own arithmetic (the same states,
+        the start's z0 balanced for the trial, the velocity mean taken out, masks and weights)
+        differentiated. A trial whose simulation diverges has a constant residual: zeros."""
+        m = self.build(p)
+        coef, pe, re = m.fn_arrays()
+        fn_index = {k: j for j, k in enumerate(m.fn_m)}
+        names = [fn_index[k[3:]] if k.startswith("fn:") else SENSITIVITY_COLUMNS[k] for k in self.keys]
+        fi, eq = column_codes(names)
+        g = m.input_gain
+        off = m.input_offset if m.input_offset is not None else 0.0
+        cols = []
+        for d, target, r, mk, w in zip(self.data, self.targets, self.rms, self.masks, self.item_weights):
+            t, u = d[0], np.asarray(d[1], float) - off
+            dt = float(np.median(np.diff(t)))
+            n_sub = min(substeps(dt, max(abs(m.K_m), abs(m.k_m), 1.0)), MAX_SUBSTEPS)
+            S0 = np.zeros((3, len(names)))
+            y0 = v0 = z0 = 0.0
+            start = item_start(d)
+            if start is not None:
+                y0, v0, a0 = (float(v) for v in start)
+                if m.alpha_m != 0.0:       # z0 = g (u0 - off) - a0 - c v0 - k y0 - fn(y0, v0) (start_z)
+                    z0 = m.balance(d[1][0], y0, v0, a0)
+                    for col, name in enumerate(names):
+                        S0[2, col] = {"g": u[0], "offset": -g, "c": -v0, "k": -y0}.get(name, 0.0) \
+                            if not isinstance(name, int) else -(y0 ** pe[name] * v0 ** re[name])
+            states, sens = simulate_plain_sensitivities(u, dt, int(n_sub), g, m.c_m, m.k_m, m.alpha_m, m.gamma,
+                                                        m.delta, coef, pe, re, y0, v0, z0, fi, eq, S0,
+                                                        int(target[0]))
+            if not np.all(np.isfinite(states[int(target[0])])):
+                return np.zeros((self.n_rows, len(names)))
+            J = sens * (self.scale / r)
+            if target[0]:
+                J = J - J.mean(axis=0)
+            if mk is not None:
+                J = J[mk]
+            cols.append(J * (w / np.sqrt(J.shape[0])))
+        return np.concatenate(cols, axis=0)
