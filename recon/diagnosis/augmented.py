@@ -127,6 +127,19 @@ class AugmentedModel:
                                  **named)
 
     # --------------------------------------------------------------- simulation
+    def substeps(self, dt: float) -> int:
+        """RK4 sub-steps per sample of interval ``dt``: 64 steps per period of the stiffest
+        resonance (the model's, with a contact's stiffness added), 20 per period of the higher mode
+        (it is linear), h mu / v0 (the friction's local damping) inside RK4's stability; at most 64."""
+        m = self.baseline
+        mu = self.get("mu")
+        w2 = self.get("w2")
+        stiff = max(abs(m.K_m), abs(m.k_m), 1.0, abs(self.get("kc")) + abs(m.K_m))
+        n_sub = max(substeps(dt, stiff), substeps(dt, w2 ** 2, 20))   # the extra mode is linear: 20 steps/period
+        if mu != 0.0:   # keep h * mu / v0 (the friction's local damping) inside RK4's stability
+            n_sub = max(n_sub, int(math.ceil(dt * abs(mu) / self.friction_v0() / 1.5)))
+        return min(n_sub, 64)
+
     def simulate(self, t: np.ndarray, u: np.ndarray, x_in: np.ndarray | None = None, initial=None,
                  dt: float | None = None, order: int = 0):
         """Recorded-output prediction for input ``u`` on time base ``t`` (from rest, or from
@@ -145,14 +158,7 @@ class AugmentedModel:
             dt = float(np.median(np.diff(t)))
         u = m.drive(np.asarray(u, float), dt)        # the exciter's force, when the baseline models one
         coef, p, r = m.fn_arrays()
-        mu = self.get("mu")
-        v0 = self.friction_v0()
-        w2 = self.get("w2")
-        stiff = max(abs(m.K_m), abs(m.k_m), 1.0, abs(self.get("kc")) + abs(m.K_m))
-        n_sub = max(substeps(dt, stiff), substeps(dt, w2 ** 2, 20))   # the extra mode is linear: 20 steps/period
-        if mu != 0.0:   # keep h * mu / v0 (the friction's local damping) inside RK4's stability
-            n_sub = max(n_sub, int(math.ceil(dt * abs(mu) / v0 / 1.5)))
-        n_sub = min(n_sub, 64)
+        n_sub = self.substeps(dt)
         P = self.kernel_vector()
         y0, dy0, z0 = (0.0, 0.0, 0.0) if initial is None else (float(v) for v in initial)
         st = simulate_extended(np.ascontiguousarray(u, float), float(t[0]), dt, int(n_sub), P, coef, p, r, y0, dy0, z0)

@@ -67,6 +67,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from recon.diagnosis.augmented import AugmentedModel
+from recon.diagnosis.jacobian import fit_jacobian
 from recon.diagnosis.locate import equation_residual
 from recon.differentiation import estimate_spectrum
 from recon.library import monomials
@@ -692,8 +693,12 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
         # recon.output_error.stopping
         stop = stop_for_stages([int(d.fit.sum()) for d in data if d.fit.any()],
                                min((d.stop_chi2 for d in data), default=DEFAULTS.stop_chi2))
-        sol = least_squares(resid, p0, method="trf", bounds=(lo, hi), x_scale=1.0, diff_step=FD_STEP,
-                            max_nfev=max_nfev, xtol=1e-10, ftol=1e-10, workers=fd_map(), callback=stop)
+        # the Jacobian from forward sensitivities where they reach (recon.diagnosis.jacobian), else
+        # forward differences
+        jac = fit_jacobian(build, keys, sc, data, initial_for, fit_scale, am)
+        sol = least_squares(resid, p0, jac=jac or "2-point", method="trf", bounds=(lo, hi), x_scale=1.0,
+                            diff_step=FD_STEP, max_nfev=max_nfev, xtol=1e-10, ftol=1e-10,
+                            workers=None if jac else fd_map(), callback=stop)
         p = sol.x
         cost = float(sol.fun @ sol.fun)
         stderr = {} if not scored else _standard_errors(sol, keys, sc, cost, resid, p, hi)

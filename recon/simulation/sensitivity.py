@@ -33,7 +33,8 @@ import numpy as np
 from numba import njit
 
 from recon.simulation.powers import ipow
-from recon.simulation.rk4 import cubic_weights
+from recon.simulation.rk4 import (I_ALPHA, I_C, I_C2, I_DELTA, I_DRIFT, I_DRIVE2, I_G, I_GAMMA, I_GAP, I_GU2, I_K, I_KC,
+                                  I_MU, I_SIDE, I_V0, I_W2, I_ZETA2, cubic_weights)
 
 # the features a column's source is one of: index, equation (0: y'', 1: z')
 FEATURES = {"g": (0, 0), "c": (1, 0), "k": (2, 0), "alpha": (3, 1), "gamma": (4, 1), "delta": (5, 1),
@@ -193,3 +194,298 @@ def simulate_plain_sensitivities(u, dt, n_sub, g, c, k, alpha, gamma, delta, coe
             for col in range(m):
                 sens[i + 1, col] = s1[col]
     return out, sens
+
+
+# ----------------------------------------------------------------------------- the extended model
+# The same scheme for the extended kernel (recon.simulation.rk4.simulate_extended: friction,
+# quadratic damping, contact, stiffness drift and a higher mode q beside the plain model), whose
+# states are (y, y', z, q, q'). A column's source may act on three equations at once (the input
+# gain drives both y'' and the higher mode), so each column names one feature per equation:
+# (acceleration, z', q''), feature 0 being zero. The higher mode's drive holds -drive2 y'', so q''
+# depends on the parameters also through y'': the kernel adds -drive2 times the acceleration's
+# own variation, as it does for the states.
+XF = {"zero": 0, "g": 1, "c": 2, "k": 3, "alpha": 4, "gamma": 5, "delta": 6, "mu": 7, "v0": 8, "c2": 9,
+      "kc": 10, "gap": 11, "drift": 12, "g_q": 13, "w2": 14, "zeta2": 15, "drive2": 16}
+XN_FIXED = len(XF)       # fn term j is feature XN_FIXED + j (in the acceleration's equation)
+# the kernel slots a column may be taken by, and its feature in each equation (acc, z', q'')
+X_COLUMNS = {"g": ("g", "zero", "g_q"), "c": ("c", "zero", "zero"), "k": ("k", "zero", "zero"),
+             "alpha": ("zero", "alpha", "zero"), "gamma": ("zero", "gamma", "zero"),
+             "delta": ("zero", "delta", "zero"), "mu": ("mu", "zero", "zero"), "v0": ("v0", "zero", "zero"),
+             "c2": ("c2", "zero", "zero"), "kc": ("kc", "zero", "zero"), "gap": ("gap", "zero", "zero"),
+             "drift": ("drift", "zero", "zero"), "w2": ("zero", "zero", "w2"),
+             "zeta2": ("zero", "zero", "zeta2"), "drive2": ("zero", "zero", "drive2")}
+
+
+def extended_column_codes(names: list) -> np.ndarray:
+    """(m, 3) feature indices (acc, z', q'') of columns named as kernel slots in ``X_COLUMNS`` or
+    by an int j (the j-th fn term)."""
+    out = np.zeros((len(names), 3), np.int64)
+    for c, name in enumerate(names):
+        if isinstance(name, (int, np.integer)):
+            out[c] = (XN_FIXED + int(name), 0, 0)
+        elif name in X_COLUMNS:
+            out[c] = [XF[f] for f in X_COLUMNS[name]]
+        else:
+            raise ValueError(f"sensitivity column {name!r}: not one of {sorted(X_COLUMNS)} or an fn term index")
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _xstage(y, v, z, q, w, t, u, pg, pc, pk, palpha, pgamma, pdelta, pmu, pv0, pc2, pkc, pgap, pside, pdrift,
+            pw2, pzeta2, pdrive2, pgu2,
+            coef, p, r, force, friction, F):
+    """(acc, dz, aq, a_y, a_v, dz_v, dz_z, aq_q, aq_w, aq_acc) at one RK stage of the extended
+    model (recon.simulation.rk4._rhs), its features into F (XF). ``friction``: friction is on or a
+    column needs its features (else they stay 0 and no tanh is taken)."""
+    fn = 0.0
+    fn_y = 0.0
+    fn_v = 0.0
+    for j in range(coef.size):
+        mono = ipow(y, p[j]) * ipow(v, r[j])
+        fn += coef[j] * mono
+        F[XN_FIXED + j] = -mono
+        if p[j] > 0:
+            fn_y += coef[j] * p[j] * ipow(y, p[j] - 1) * ipow(v, r[j])
+        if r[j] > 0:
+            fn_v += coef[j] * r[j] * ipow(y, p[j]) * ipow(v, r[j] - 1)
+    g = pg
+    k0 = pk
+    kt = k0
+    if pdrift != 0.0:
+        kt = k0 * (1.0 + pdrift * t)
+    gu = g * u
+    acc = gu - pc * v - kt * y - fn - z
+    a_y = -kt - fn_y
+    a_v = -pc - fn_v
+    F[0] = 0.0
+    F[1] = u
+    F[2] = -v
+    F[3] = -(1.0 + pdrift * t) * y
+    # friction: its features also where mu = 0 (a fit from mu = 0 moves it), with v0 as the caller
+    # set it (the smoothing velocity friction would be simulated with)
+    if friction:
+        v0s = pv0
+        th = math.tanh(v / v0s)
+        F[7] = -th
+        F[8] = pmu * (1.0 - th * th) * v / (v0s * v0s)
+        if pmu != 0.0:
+            acc -= pmu * th
+            a_v -= pmu * (1.0 - th * th) / v0s
+    if pc2 != 0.0:
+        acc -= pc2 * v * abs(v)
+        a_v -= 2.0 * pc2 * abs(v)
+    F[9] = -v * abs(v)
+    F[10] = 0.0
+    F[11] = 0.0
+    d = pside * y - pgap
+    if d > 0.0:
+        F[10] = -pside * d
+        if pkc != 0.0:
+            acc -= pside * pkc * d
+            a_y -= pkc * pside * pside
+            F[11] = pside * pkc
+    F[12] = -k0 * t * y
+    av = abs(v)
+    az = abs(z)
+    sv = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else 0.0)
+    sz = 1.0 if z > 0.0 else (-1.0 if z < 0.0 else 0.0)
+    dz = palpha * v - pgamma * av * z - pdelta * v * az
+    F[4] = v
+    F[5] = -av * z
+    F[6] = -v * az
+    aq = 0.0
+    aq_q = 0.0
+    aq_w = 0.0
+    aq_acc = 0.0
+    F[13] = 0.0
+    F[14] = 0.0
+    F[15] = 0.0
+    F[16] = 0.0
+    if pw2 > 0.0:
+        drive = gu
+        F[13] = u
+        if pdrive2 != 0.0:
+            drive = pgu2 * gu - pdrive2 * acc
+            aq_acc = -pdrive2
+            F[13] = pgu2 * u
+        # d/d drive2 of the drive; under force excitation gu2 = 1 - drive2 moves with it
+        F[16] = -acc - (gu if force else 0.0)
+        aq = drive - 2.0 * pzeta2 * pw2 * w - pw2 * pw2 * q
+        aq_q = -pw2 * pw2
+        aq_w = -2.0 * pzeta2 * pw2
+        F[14] = -2.0 * pzeta2 * w - 2.0 * pw2 * q
+        F[15] = -2.0 * pw2 * w
+    return acc, dz, aq, a_y, a_v, palpha - pgamma * sv * z - pdelta * az, \
+        -pgamma * av - pdelta * v * sz, aq_q, aq_w, aq_acc
+
+
+@njit(cache=True, nogil=True)
+def simulate_extended_sensitivities(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0, codes, S0, order, force):
+    """:func:`recon.simulation.rk4.simulate_extended`'s states (5, n) and the sensitivities of
+    y and q (``order`` 0) or of y' and q' (1) to the columns ``codes`` (extended_column_codes), two
+    (n, m) arrays, from the initial sensitivities S0 (5 x m: of y, y', z, q, q'; the higher mode
+    starts at rest, so its rows are 0). ``force``: force excitation (the higher mode's input share
+    is 1 - drive2). NaN from the first non-finite step on."""
+    n = u.size
+    m = codes.shape[0]
+    nf = XN_FIXED + coef.size
+    out = np.zeros((5, n))
+    sy = np.zeros((n, m))
+    sq = np.zeros((n, m))
+    F1 = np.zeros(nf)
+    F2 = np.zeros(nf)
+    F3 = np.zeros(nf)
+    F4 = np.zeros(nf)
+    s0 = np.empty(m)
+    s1 = np.empty(m)
+    s2 = np.empty(m)
+    s3 = np.empty(m)
+    s4 = np.empty(m)
+    for col in range(m):
+        s0[col] = S0[0, col]
+        s1[col] = S0[1, col]
+        s2[col] = S0[2, col]
+        s3[col] = S0[3, col]
+        s4[col] = S0[4, col]
+        sy[0, col] = S0[order, col]
+        sq[0, col] = S0[3 + order, col]
+    fa_ = np.empty(m, np.int64)
+    fz_ = np.empty(m, np.int64)
+    fq_ = np.empty(m, np.int64)
+    pg, pc, pk, palpha, pgamma, pdelta = P[I_G], P[I_C], P[I_K], P[I_ALPHA], P[I_GAMMA], P[I_DELTA]
+    pmu, pv0, pc2, pkc, pgap, pside, pdrift = P[I_MU], P[I_V0], P[I_C2], P[I_KC], P[I_GAP], P[I_SIDE], P[I_DRIFT]
+    pw2, pzeta2, pdrive2, pgu2 = P[I_W2], P[I_ZETA2], P[I_DRIVE2], P[I_GU2]
+    friction = P[I_MU] != 0.0
+    for col in range(m):
+        fa_[col] = codes[col, 0]
+        fz_[col] = codes[col, 1]
+        fq_[col] = codes[col, 2]
+        if codes[col, 0] == 7 or codes[col, 0] == 8:
+            friction = True
+    y = y0
+    v = v0
+    z = z0
+    q = 0.0
+    w = 0.0
+    out[0, 0] = y0
+    out[1, 0] = v0
+    out[2, 0] = z0
+    h = dt / n_sub
+    mode = P[I_W2] > 0.0
+    W = cubic_weights(n_sub)
+    for i in range(n - 1):
+        um1 = u[i - 1] if i > 0 else 2.0 * u[0] - u[1]
+        up2 = u[i + 2] if i + 2 < n else 2.0 * u[n - 1] - u[n - 2]
+        for sub in range(n_sub):
+            ta = t0 + i * dt + sub * h
+            tm = ta + 0.5 * h
+            te = ta + h
+            jw = 2 * sub
+            ua = W[jw, 0] * um1 + W[jw, 1] * u[i] + W[jw, 2] * u[i + 1] + W[jw, 3] * up2
+            um = W[jw + 1, 0] * um1 + W[jw + 1, 1] * u[i] + W[jw + 1, 2] * u[i + 1] + W[jw + 1, 3] * up2
+            ue = W[jw + 2, 0] * um1 + W[jw + 2, 1] * u[i] + W[jw + 2, 2] * u[i + 1] + W[jw + 2, 3] * up2
+            a1, z1, q1, ay1, av1, zv1, zz1, qq1, qw1, qc1 = _xstage(y, v, z, q, w, ta, ua, pg, pc, pk, palpha, pgamma, pdelta, pmu, pv0, pc2, pkc, pgap, pside, pdrift, pw2, pzeta2, pdrive2, pgu2,
+                coef, p, r, force,
+                                                                    friction, F1)
+            y2 = y + 0.5 * h * v
+            v2 = v + 0.5 * h * a1
+            zs2 = z + 0.5 * h * z1
+            q2 = q + 0.5 * h * w
+            w2 = w + 0.5 * h * q1
+            a2, z2, qa2, ay2, av2, zv2, zz2, qq2, qw2, qc2 = _xstage(y2, v2, zs2, q2, w2, tm, um, pg, pc, pk, palpha, pgamma, pdelta, pmu, pv0, pc2, pkc, pgap, pside, pdrift, pw2, pzeta2, pdrive2, pgu2,
+                coef, p, r,
+                                                                    force, friction, F2)
+            y3 = y + 0.5 * h * v2
+            v3 = v + 0.5 * h * a2
+            zs3 = z + 0.5 * h * z2
+            q3 = q + 0.5 * h * (w + 0.5 * h * q1)
+            w3 = w + 0.5 * h * qa2
+            a3, z3, qa3, ay3, av3, zv3, zz3, qq3, qw3, qc3 = _xstage(y3, v3, zs3, q3, w3, tm, um, pg, pc, pk, palpha, pgamma, pdelta, pmu, pv0, pc2, pkc, pgap, pside, pdrift, pw2, pzeta2, pdrive2, pgu2,
+                coef, p, r,
+                                                                    force, friction, F3)
+            y4 = y + h * v3
+            v4 = v + h * a3
+            zs4 = z + h * z3
+            q4 = q + h * (w + 0.5 * h * qa2)
+            w4 = w + h * qa3
+            a4, z4, qa4, ay4, av4, zv4, zz4, qq4, qw4, qc4 = _xstage(y4, v4, zs4, q4, w4, te, ue, pg, pc, pk, palpha, pgamma, pdelta, pmu, pv0, pc2, pkc, pgap, pside, pdrift, pw2, pzeta2, pdrive2, pgu2,
+                coef, p, r,
+                                                                    force, friction, F4)
+            for col in range(m):
+                fa = fa_[col]
+                fz = fz_[col]
+                b0 = s0[col]
+                b1 = s1[col]
+                b2 = s2[col]
+                k10 = b1
+                k11 = ay1 * b0 + av1 * b1 - b2 + F1[fa]
+                k12 = zv1 * b1 + zz1 * b2 + F1[fz]
+                t0_ = b0 + 0.5 * h * k10
+                t1_ = b1 + 0.5 * h * k11
+                t2_ = b2 + 0.5 * h * k12
+                k20 = t1_
+                k21 = ay2 * t0_ + av2 * t1_ - t2_ + F2[fa]
+                k22 = zv2 * t1_ + zz2 * t2_ + F2[fz]
+                t0_ = b0 + 0.5 * h * k20
+                t1_ = b1 + 0.5 * h * k21
+                t2_ = b2 + 0.5 * h * k22
+                k30 = t1_
+                k31 = ay3 * t0_ + av3 * t1_ - t2_ + F3[fa]
+                k32 = zv3 * t1_ + zz3 * t2_ + F3[fz]
+                t0_ = b0 + h * k30
+                t1_ = b1 + h * k31
+                t2_ = b2 + h * k32
+                k40 = t1_
+                k41 = ay4 * t0_ + av4 * t1_ - t2_ + F4[fa]
+                k42 = zv4 * t1_ + zz4 * t2_ + F4[fz]
+                s0[col] = b0 + h / 6.0 * (k10 + 2.0 * k20 + 2.0 * k30 + k40)
+                s1[col] = b1 + h / 6.0 * (k11 + 2.0 * k21 + 2.0 * k31 + k41)
+                s2[col] = b2 + h / 6.0 * (k12 + 2.0 * k22 + 2.0 * k32 + k42)
+                if mode:   # the higher mode (its drive holds -drive2 y'': the k*1 terms)
+                    fq = fq_[col]
+                    b3 = s3[col]
+                    b4 = s4[col]
+                    k13 = b4
+                    k14 = qq1 * b3 + qw1 * b4 + qc1 * k11 + F1[fq]
+                    t3_ = b3 + 0.5 * h * k13
+                    t4_ = b4 + 0.5 * h * k14
+                    k23 = t4_
+                    k24 = qq2 * t3_ + qw2 * t4_ + qc2 * k21 + F2[fq]
+                    t3_ = b3 + 0.5 * h * k23
+                    t4_ = b4 + 0.5 * h * k24
+                    k33 = t4_
+                    k34 = qq3 * t3_ + qw3 * t4_ + qc3 * k31 + F3[fq]
+                    t3_ = b3 + h * k33
+                    t4_ = b4 + h * k34
+                    k43 = t4_
+                    k44 = qq4 * t3_ + qw4 * t4_ + qc4 * k41 + F4[fq]
+                    s3[col] = b3 + h / 6.0 * (k13 + 2.0 * k23 + 2.0 * k33 + k43)
+                    s4[col] = b4 + h / 6.0 * (k14 + 2.0 * k24 + 2.0 * k34 + k44)
+            y += h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
+            v += h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+            z += h / 6.0 * (z1 + 2.0 * z2 + 2.0 * z3 + z4)
+            if mode:
+                w2m = w + 0.5 * h * q1
+                w3m = w + 0.5 * h * qa2
+                w4m = w + h * qa3
+                q += h / 6.0 * (w + 2.0 * w2m + 2.0 * w3m + w4m)
+                w += h / 6.0 * (q1 + 2.0 * qa2 + 2.0 * qa3 + qa4)
+        if not (math.isfinite(y) and math.isfinite(v) and math.isfinite(z) and math.isfinite(q)):
+            out[:, i + 1:] = np.nan
+            sy[i + 1:, :] = np.nan
+            sq[i + 1:, :] = np.nan
+            return out, sy, sq
+        out[0, i + 1] = y
+        out[1, i + 1] = v
+        out[2, i + 1] = z
+        out[3, i + 1] = q
+        out[4, i + 1] = w
+        if order == 0:
+            for col in range(m):
+                sy[i + 1, col] = s0[col]
+                sq[i + 1, col] = s3[col]
+        else:
+            for col in range(m):
+                sy[i + 1, col] = s1[col]
+                sq[i + 1, col] = s4[col]
+    return out, sy, sq
