@@ -55,8 +55,12 @@ def reconstruct_pointwise(run: Run, s: ReconSettings, validate_model: bool = Tru
     groups, core = lib.groups()
     selector = GroupedSparseSelector(groups, core, n_folds=s.n_folds, corr_len=filter_correlation_length(nl.choice))
     sp = selector.fit(theta, target)
+    del theta
     hp = extract(lib, sp.coef, sp.stderr, sp.support)
-    problem = {"A": theta, "b": target, "groups": groups, "core": core, "lib": lib, "terms": sorted(hp.fn),
+    # the regression's inputs, not its matrix: term_inclusion rebuilds the matrix (lib.build, the same
+    # numbers) when asked, and the result does not hold a rows x columns copy for the rest of the run
+    problem = {"signals": (y, dy, ddy, Fn, dFn, h), "b": target, "groups": groups, "core": core, "lib": lib,
+               "terms": sorted(hp.fn),
                "options": {"n_folds": selector.n_folds, "grid": selector.grid, "max_groups": selector.max_groups,
                            "corr_len": selector.corr_len}}
     c_m, K_m = lf.c_m, lf.K_m

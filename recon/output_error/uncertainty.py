@@ -295,7 +295,7 @@ def term_inclusion(problem: dict | None, n_models: int = 20, keep: float = 0.8, 
     if problem is None:
         return {"available": False, "reason": "this reconstruction has no sparse selection to resample"}
 
-    A, b = problem["A"], problem["b"]
+    A, b = problem["A"] if "A" in problem else problem["lib"].build(*problem["signals"])[0], problem["b"]
     n = A.shape[0]
     chunk = np.arange(n) * n_chunks // n
     rng = np.random.default_rng(seed)

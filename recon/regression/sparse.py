@@ -153,24 +153,36 @@ class AutoSTLSQ:
 
 
 
+def column_sum_squares(A: np.ndarray, rows: int = 16384) -> np.ndarray:
+    """np.sum(A * A, axis=0), to the bit, without the n x p temporary: numpy adds the rows of a
+    C-ordered array one after another along axis 0, and so does this, a block of rows at a time
+    (each block's sum starting from the running total)."""
+    acc = None
+    for start in range(0, A.shape[0], rows):
+        block = A[start:start + rows]
+        sq = block * block
+        acc = np.add.reduce(sq, axis=0) if acc is None else np.add.reduce(np.vstack([acc[None], sq]), axis=0)
+    return acc if acc is not None else np.zeros(A.shape[1])
+
+
 class CompressedFolds:
     """Interleaved K-fold split of a normalised regression, each fold QR-compressed."""
 
     def __init__(self, A: np.ndarray, b: np.ndarray, n_folds: int = 5):
         n, p = A.shape
         self.p = p
-        self.norms = np.sqrt(np.sum(A * A, axis=0))
+        self.A = A          # the caller's matrix: normalised a fold (or a support's columns) at a time
+        self.norms = np.sqrt(column_sum_squares(A))
         self.norms[self.norms == 0] = 1.0
         self.bn = float(np.sqrt(b @ b)) or 1.0
-        An = A / self.norms
         bs = b / self.bn
-        self.An, self.bs = An, bs
+        self.bs = bs
         chunk = max(1, n // (20 * n_folds))
         fold_of = (np.arange(n) // chunk) % n_folds
         self.Rf, self.df, self.ef, self.bbf = [], [], [], []
         for i in range(n_folds):
             sl = fold_of == i
-            Q, R = np.linalg.qr(An[sl])
+            Q, R = np.linalg.qr(A[sl] / self.norms)
             d = Q.T @ bs[sl]
             self.Rf.append(R)
             self.df.append(d)
@@ -181,6 +193,10 @@ class CompressedFolds:
         self.n_folds = n_folds
         # rows of each fold's R in the stack (a fold with fewer rows than columns has a shorter R)
         self.offsets = np.cumsum([0] + [R.shape[0] for R in self.Rf])
+
+    def normalised(self, idx: np.ndarray) -> np.ndarray:
+        """The normalised columns ``idx`` of the matrix (what the folds were made of)."""
+        return self.A[:, idx] / self.norms[idx]
 
     def cv(self, support: np.ndarray) -> np.ndarray:
         """Held-out relative squared residual of LS on ``support``, one value per fold."""
@@ -262,11 +278,12 @@ class GroupedSparseSelector:
         idx = np.flatnonzero(sup)
         coef = np.zeros(p)
         stderr = np.zeros(p)
-        sol, *_ = np.linalg.lstsq(cf.An[:, idx], cf.bs, rcond=None)
-        res = cf.bs - cf.An[:, idx] @ sol
+        An = cf.normalised(idx)
+        sol, *_ = np.linalg.lstsq(An, cf.bs, rcond=None)
+        res = cf.bs - An @ sol
         coef[idx] = sol * cf.bn / cf.norms[idx]
         s2 = float(res @ res) / max(n - idx.size, 1)
-        cov = s2 * np.linalg.pinv(cf.An[:, idx].T @ cf.An[:, idx])
+        cov = s2 * np.linalg.pinv(An.T @ An)
         stderr[idx] = np.sqrt(np.abs(np.diag(cov))) * cf.bn / cf.norms[idx]
         # threshold equivalent: the smallest |normalised coefficient| kept
         tau_eq = float(np.min(np.abs(sol))) if np.isnan(tau) else tau
