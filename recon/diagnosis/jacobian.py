@@ -31,6 +31,7 @@ from recon.output_error import problem
 from recon.simulation.rk4 import I_C2, I_DRIFT, I_G, I_KC, I_MU, I_V0, I_W2
 from recon.simulation.sensitivity import (FEATURES, X_COLUMNS, column_codes, extended_column_codes,
                                           simulate_extended_sensitivities, simulate_plain_sensitivities)
+from recon.threads import fd_map
 from shakerlab.run_data import BASE
 
 # the parameter keys of a fit whose column comes from the simulation's sensitivities: the kernel slot
@@ -101,8 +102,7 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
         P[I_V0] = m.get("v0") if m.get("v0") > 0.0 else (m.friction_v0() or 1e-4)
         force = base.excitation != BASE
         phi2, scale, delay = m.get("phi2"), 1.0 + m.get("tip_scale"), m.get("delay")
-        out = []
-        for d in stages:
+        def stage_columns(d):
             dt = d.dt
             u = base.drive(np.asarray(d.u, float), dt)
             y0, v0, z0 = (float(v) for v in initial_for(m, d))
@@ -123,7 +123,7 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
                                                              int(m.substeps(dt)), P, coef, pe, re, y0, v0, z0,
                                                              codes, S0, int(d.order), force)
             if not np.all(np.isfinite(st[d.order])):
-                return np.zeros((rows, len(keys)))
+                return None
             J = np.zeros((d.t.size, len(keys)))
             J[:, sim_cols] = scale * shift_columns(sy + phi2 * sq, delay, dt)
             read = st[d.order] + phi2 * st[3 + d.order]
@@ -139,7 +139,13 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
             if d.order:
                 J = J - J.mean(axis=0)     # the velocity's constant, fitted over the fitting samples
             w = 1.0 / (fit_scale(d) * math.sqrt(max(int(d.fit.sum()), 1)))
-            out.append(J * (w * scales))
+            return J * (w * scales)
+
+        # the stages side by side on the fits' threads (the kernels run without the GIL; each
+        # stage's columns are what they would be alone)
+        out = list((fd_map() if len(stages) > 1 else map)(stage_columns, stages))
+        if any(J is None for J in out):
+            return np.zeros((rows, len(keys)))
         return np.concatenate(out, axis=0)
 
     return jacobian

@@ -26,6 +26,7 @@ from recon.model import MAX_SUBSTEPS, PARAMETER_NAMES, HystereticModel
 from recon.output_error.stopping import ChiSquareStop
 from recon.simulation.rk4 import substeps
 from recon.simulation.sensitivity import column_codes, simulate_plain_sensitivities
+from recon.threads import fd_map
 from shakerlab.run_data import BASE
 
 # The residual entry of a diverged trial. Normalised residuals of a finite simulation stay
@@ -279,8 +280,8 @@ class OutputError:
         fi, eq = column_codes(names)
         g = m.input_gain
         off = m.input_offset if m.input_offset is not None else 0.0
-        cols = []
-        for d, target, r, mk, w in zip(self.data, self.targets, self.rms, self.masks, self.item_weights):
+        def item_columns(job):
+            d, target, r, mk, w = job
             t, u = d[0], np.asarray(d[1], float) - off
             dt = float(np.median(np.diff(t)))
             n_sub = min(substeps(dt, max(abs(m.K_m), abs(m.k_m), 1.0)), MAX_SUBSTEPS)
@@ -298,11 +299,18 @@ class OutputError:
                                                         m.delta, coef, pe, re, y0, v0, z0, fi, eq, S0,
                                                         int(target[0]))
             if not np.all(np.isfinite(states[int(target[0])])):
-                return np.zeros((self.n_rows, len(names)))
+                return None
             J = sens * (self.scale / r)
             if target[0]:
                 J = J - J.mean(axis=0)
             if mk is not None:
                 J = J[mk]
-            cols.append(J * (w / np.sqrt(J.shape[0])))
+            return J * (w / np.sqrt(J.shape[0]))
+
+        # the items side by side on the fits' threads (the kernel runs without the GIL; each item's
+        # columns are computed as they would be alone, so the result is the same to the bit)
+        jobs = list(zip(self.data, self.targets, self.rms, self.masks, self.item_weights))
+        cols = list((fd_map() if len(jobs) > 1 else map)(item_columns, jobs))
+        if any(c is None for c in cols):
+            return np.zeros((self.n_rows, len(names)))
         return np.concatenate(cols, axis=0)
