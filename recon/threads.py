@@ -12,11 +12,13 @@ at most MAX_THREADS. A process forked after the pool was made (Dask, multiproces
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 MAX_THREADS = 8
+POOL_PREFIX = "shakerlab-fd"
 
 _pool: ThreadPoolExecutor | None = None
 _pool_pid: int | None = None
@@ -47,10 +49,10 @@ def fd_map():
     (``np.errstate`` is per thread): a fit run under ``errstate(all="ignore")`` stays quiet."""
     global _pool, _pool_pid, _pool_size
     n = thread_count()
-    if n == 1:
-        return map
+    if n == 1 or threading.current_thread().name.startswith(POOL_PREFIX):
+        return map      # serial; and never a pool's task waiting on tasks queued behind it in the same pool
     if _pool is None or _pool_pid != os.getpid() or _pool_size != n:
-        _pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="shakerlab-fd")
+        _pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix=POOL_PREFIX)
         _pool_pid = os.getpid()
         _pool_size = n
     pool = _pool
