@@ -3,6 +3,7 @@ through the real import / reconstruct / report command line."""
 from __future__ import annotations
 
 import ast
+import functools
 import json
 from pathlib import Path
 
@@ -105,7 +106,10 @@ CASES = {
 }
 
 
+@functools.lru_cache(maxsize=None)
 def _case(name, snr, seed=0):
+    """The component test of a case (generated once per file: several tests read the same one, none
+    changes it)."""
     make, fn, kind = CASES[name]
     law = make(fn) if fn is not None else make()
     return ct.component_test(law, kind, snr, seed)

@@ -1,5 +1,7 @@
 """Weak (integral) form: the integrated agent-model equation holds for the true system,
 the weak linear step recovers c and K, and the estimator runs end to end."""
+import functools
+
 import numpy as np
 import pytest
 
@@ -10,12 +12,20 @@ from recon import ReconSettings, reconstruct
 from recon.testing.truth import sdof_run
 
 
-def _system(excitation, snr_db, power, discrete=True):
+@functools.lru_cache(maxsize=None)
+def _layer(excitation, snr_db):
+    """The nonlinear stage of seed 0 as a weak-form layer, built once per record (W.sdof_layer picks
+    the differentiation window, 2-3 s); the tests below only read it."""
     run, truth = sdof_run(excitation, snr_db=snr_db, seed=0)
     st = run.stage("nonlinear")
     L, Ddd = W.sdof_layer(st)
     if snr_db is None:                      # exact y, y' isolate the integration by parts
         L.y, L.dy = st.settings["truth"]["y"], st.settings["truth"]["dy"]
+    return L, truth
+
+
+def _system(excitation, snr_db, power, discrete=True):
+    L, truth = _layer(excitation, snr_db)
     tf = W.TestFunctions.build(W.segment_windows(L.kernel(), DEFAULT_TUNING.weak_min_segment), L.y.size, L.dt,
                                power=power, discrete=discrete)
     lib = AgentLibrary(5, "joint")
