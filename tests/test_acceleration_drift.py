@@ -1,13 +1,13 @@
-"""A tip recorded as acceleration keeps its hysteresis (issue 74): the equation-error step's
+"""A tip recorded as acceleration keeps its hysteresis (issue 74): the equation-error steps'
 displacement column, integrated twice from the record, has its cosine series below the record's band
 dropped (recon.signals.drift_free_displacement), where it holds only the integrated noise.
 
 Measured on the stress bench's draw 10 (paper protocol, 1.76 kHz, 60 dB, white accelerometer noise):
-the twice-integrated displacement of the nonlinear stage was 3.3 % off the true displacement (rms),
-almost all of it below half the drive frequency; the equation-error estimate read it, the polished
-model was inadequate and `reconstruct` answered with the equivalent-linear model (the hysteresis lost,
-c 126 % off). With the drift dropped the column is within 0.1 % and `reconstruct` gives the exact terms
-within 0.2 %, as close as the fit started at the truth."""
+the twice-integrated displacement was 18 %, 3.3 % and 19 % off the true displacement (rms; linear,
+nonlinear, validation stage), almost all of it below the band; the linear step refused the linear
+stage for that noise and `reconstruct` answered with the equivalent-linear model (the hysteresis
+lost, c 126 % off). Without the drift the column is within 0.1-0.9 % and `reconstruct` gives the
+exact terms within 0.19 %, as close as the fit started at the truth."""
 import numpy as np
 import pytest
 
