@@ -14,16 +14,18 @@ from __future__ import annotations
 import numpy as np
 
 from recon.differentiation import estimate_spectrum
+from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.estimator.fallback import held_out_stages
 from recon.signals import stage_signals
 from recon.steps.linear import LinearFit, NoisyLinearStage, count_lines, fit_linear
 from shakerlab.run_data import BASE, Run
 
 
-def stage_linear_fit(run: Run, name: str, offset: bool = False) -> tuple[LinearFit, object]:
+def stage_linear_fit(run: Run, name: str, offset: bool = False,
+                     tuning: EstimatorTuning = DEFAULT_TUNING) -> tuple[LinearFit, object]:
     """fit_linear on stage ``name`` (its pointwise-optimal signals), and those signals."""
     st = run.stage(name)
-    sig = stage_signals(st, deriv=2, for_regression=False)
+    sig = stage_signals(st, deriv=2, for_regression=False, tuning=tuning)
     lines = None
     if st.excitation != BASE:
         spec = estimate_spectrum(st.channels["force"], st.dt)
@@ -33,13 +35,13 @@ def stage_linear_fit(run: Run, name: str, offset: bool = False) -> tuple[LinearF
 
 
 def linear_step(run: Run, linear_stage: str, nonlinear_stage: str | None = None,
-                offset: bool = False) -> tuple[LinearFit, object, str]:
+                offset: bool = False, tuning: EstimatorTuning = DEFAULT_TUNING) -> tuple[LinearFit, object, str]:
     """(fit, signals, stage used). The linear stage first; when it is too noisy (NoisyLinearStage) the
     fitted stages other than the held-out ones, smallest motion first (the closest to the small-amplitude
     regime whose c and K = k + alpha the linear step stands for), the first whose columns determine c and
     K; the fit then carries a warning saying so. When none does, the linear stage's refusal stands."""
     try:
-        lf, sig = stage_linear_fit(run, linear_stage, offset)
+        lf, sig = stage_linear_fit(run, linear_stage, offset, tuning)
         return lf, sig, linear_stage
     except NoisyLinearStage as noisy:
         refusal = noisy
@@ -48,7 +50,7 @@ def linear_step(run: Run, linear_stage: str, nonlinear_stage: str | None = None,
     others.sort(key=lambda n: float(np.std(run.stage(n).y)))
     for name in others:
         try:
-            lf, sig = stage_linear_fit(run, name, offset)
+            lf, sig = stage_linear_fit(run, name, offset, tuning)
         except NoisyLinearStage:
             continue
         except Exception:      # noqa: BLE001 - a stage that cannot stand in (rank-deficient, too short): the next

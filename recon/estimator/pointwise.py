@@ -29,11 +29,12 @@ def reconstruct_pointwise(run: Run, s: ReconSettings, validate_model: bool = Tru
     # pointwise-optimal filter is used there; the nonlinear step uses the regression criterion.
     # A linear stage too noisy for c and K hands the step to the least noisy fitted stage
     # (recon.estimator.linear_start)
-    lf, lin, _ = linear_step(run, s.linear_stage, s.nonlinear_stage, offset=s.input_offset is True)
+    lf, lin, _ = linear_step(run, s.linear_stage, s.nonlinear_stage, offset=s.input_offset is True,
+                             tuning=s.tuning)
     timings["linear"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    nl = stage_signals(run.stage(s.nonlinear_stage), deriv=3, window=s.window, order=s.sg_order)
+    nl = stage_signals(run.stage(s.nonlinear_stage), deriv=3, window=s.window, order=s.sg_order, tuning=s.tuning)
     y, dy, ddy, dddy = nl.y
     g = 1.0 if exc == BASE else lf.inv_m
     # a fitted input offset b (a constant force) comes off the input before the nonlinear step: the

@@ -25,6 +25,8 @@ What each group decides:
   methods): ``start_fit_seconds``, ``start_fit_nfev``;
 - the model input's own band (recon.input_band, through recon.signals): ``band_slope_sigmas``,
   ``band_smooth``, ``band_false_alarm``, ``band_grow``;
+- the displacement column integrated twice from an acceleration record (recon.signals):
+  ``drift_band_share``, ``drift_keep_sigmas``;
 - the weak form (recon.weak, also the chain's path form): ``weak_bump_power``,
   ``weak_min_segment``, ``weak_tile_overlap``, ``weak_support_periods``, ``weak_gate_sigmas``,
   ``weak_enter_bic``, ``weak_leave_bic``.
@@ -102,6 +104,13 @@ class EstimatorTuning:
                                  "probability", 0.0, 1.0, lo_open=True)
     band_grow: float = _f(3.0, "model input: the band grows into neighbouring coefficients above this many "
                           "times the noise floor", "x noise floor", 0.0, 1e3)
+    drift_band_share: float = _f(0.5, "a displacement integrated twice from an acceleration record keeps its "
+                                 "cosine series from this share of the lowest frequency of the record's band up: "
+                                 "below it the column holds the integrated noise (its drift), not motion "
+                                 "(0: nothing dropped)", "fraction of the band's lowest frequency", 0.0, 1.0)
+    drift_keep_sigmas: float = _f(20.0, "... except a coefficient that stands more than this many times above the "
+                                  "integrated noise's expected level there: motion (a stage that starts or ends "
+                                  "in motion)", "noise std", 0.0, 1e3)
     weak_bump_power: int = _f(3, "weak form: the test functions are (1 - x^2)^P over their support, this P",
                               "power", 1, 100)
     weak_min_segment: int = _f(12, "weak form: AB/CD runs shorter than this are skipped (noise flicker near "
