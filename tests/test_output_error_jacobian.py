@@ -105,3 +105,21 @@ def test_a_small_fn_term_is_scaled_by_the_size_at_which_it_matters():
     expected = term_scale("y^3", m.K_m, float(np.std(y)), float(np.sqrt(np.mean(v ** 2))))
     assert prob.scale[i] == pytest.approx(expected, rel=1e-9)
     assert prob.scale[i] > 1e3
+
+
+def test_overflowing_sensitivities_give_way_to_forward_differences():
+    from recon.output_error.problem import finite_or_differences, forward_differences
+
+    def residual(p):
+        return np.array([p[0] ** 2, np.sin(p[1]), p[0] * p[1]])
+
+    def overflowing(p):
+        return np.full((3, 2), np.inf)
+
+    p = np.array([0.3, -1.2])
+    J = finite_or_differences(overflowing, residual)(p)
+    assert np.all(np.isfinite(J))
+    assert np.array_equal(J, forward_differences(residual, p))
+    assert J == pytest.approx(np.array([[0.6, 0.0], [0.0, np.cos(-1.2)], [-1.2, 0.3]]), abs=1e-5)
+    exact = lambda q: np.array([[2 * q[0], 0.0], [0.0, np.cos(q[1])], [q[1], q[0]]])  # noqa: E731
+    assert np.array_equal(finite_or_differences(exact, residual)(p), exact(p))

@@ -72,8 +72,8 @@ from recon.diagnosis.locate import equation_residual
 from recon.differentiation import estimate_spectrum
 from recon.library import monomials
 from recon.model import HystereticModel
-from recon.output_error.problem import (DIVERGED_RESIDUAL, FD_STEP, get_parameter,
-                                        parameter_scales, set_parameter)
+from recon.output_error.problem import (DIVERGED_RESIDUAL, FD_STEP, finite_or_differences, forward_differences,
+                                        get_parameter, parameter_scales, set_parameter)
 from recon.output_error.stopping import stop_for_stages
 from recon.regression.criteria import effective_samples
 from recon.signals import base_motion, measured_velocity, response_target
@@ -696,6 +696,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
         # the Jacobian from forward sensitivities where they reach (recon.diagnosis.jacobian), else
         # forward differences
         jac = fit_jacobian(build, keys, sc, data, initial_for, fit_scale, am)
+        jac = finite_or_differences(jac, resid, hi) if jac is not None else None
         sol = least_squares(resid, p0, jac=jac or "2-point", method="trf", bounds=(lo, hi), x_scale=1.0,
                             diff_step=FD_STEP, max_nfev=max_nfev, xtol=1e-10, ftol=1e-10,
                             workers=None if jac else fd_map(), callback=stop)
@@ -733,26 +734,12 @@ def _standard_errors(sol, keys: list[str], sc: np.ndarray, cost: float, resid, p
             # a column of zeros in the solver's last Jacobian (seen with friction's mu and v0
             # after a bounded fit ended on its evaluation limit) would give that parameter a
             # zero standard error: the Jacobian is taken again at the solution
-            J = _forward_jacobian(resid, p, sol.fun, hi)
+            J = forward_differences(resid, p, hi)
         dof = max(sol.fun.size - len(keys), 1)
         cov = np.linalg.pinv(J.T @ J) * (cost / dof)
         return {k: float(math.sqrt(max(cov[i, i], 0.0)) * sc[i]) for i, k in enumerate(keys)}
     except (np.linalg.LinAlgError, ValueError):
         return {}
-
-
-def _forward_jacobian(resid, p: np.ndarray, f0: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Forward differences of ``resid`` at ``p`` (a backward step where the upper bound ``hi`` is
-    nearer than the step)."""
-    J = np.empty((f0.size, p.size))
-    for i in range(p.size):
-        h = FD_STEP * max(1.0, abs(p[i]))
-        if p[i] + h > hi[i]:
-            h = -h
-        q = p.copy()
-        q[i] += h
-        J[:, i] = (resid(q) - f0) / h
-    return J
 
 
 def held_noise_mse(data: list[StageData]) -> float:

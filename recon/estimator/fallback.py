@@ -36,6 +36,7 @@ from recon.library import monomials
 from recon.model import HystereticModel
 from recon.output_error.polish import decimate, output_noise
 from recon.output_error.problem import FD_STEP, OutputError, motion_scales, term_scale
+from recon.steps.bouc_wen import hysteretic_share
 from recon.threads import fd_map
 from recon.validation import nrmse
 from shakerlab.run_data import BASE, Run
@@ -233,6 +234,17 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
                 tried.append(SimplerFit(kind, m, float("inf"), float("inf"), "the fitted model is not admissible",
                                         start=start_names[j] if start_names else None))
                 continue
+            if kind in HYSTERETIC_KINDS:
+                # a Bouc-Wen law whose force has vanished (rms z below tuning.negligible of the elastic
+                # force on the nonlinear stage, as pipeline._without_vanished_hysteresis judges it) is
+                # the elastic kind with three idle parameters: it does not compete as a hysteretic one
+                share = hysteretic_share(m, data[-1][0], data[-1][1])
+                if share < t.negligible:
+                    tried.append(SimplerFit(kind, m, float("inf"), float("inf"),
+                                            f"its Bouc-Wen force vanished ({share:.2g} of the elastic force): "
+                                            "the elastic kind is this model without it",
+                                            start=start_names[j] if start_names else None))
+                    continue
             # each fitted stage simulated once: their mean is the fit's figure, the nonlinear stage's
             # own is what an inadequate full model is compared on (pipeline._prefer_simpler)
             per_stage = {n: score(m, run, [n], t) for n in fitted}

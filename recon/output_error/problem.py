@@ -52,6 +52,32 @@ SENSITIVITY_COLUMNS = {"c_m": "c", "k_m": "k", "alpha_m": "alpha", "gamma": "gam
                        "inv_m": "g", "input_offset": "offset"}
 
 
+def forward_differences(residual, p: np.ndarray, hi: np.ndarray | None = None) -> np.ndarray:
+    """The forward-difference Jacobian of ``residual`` at ``p`` with the fits' step FD_STEP (relative,
+    at least FD_STEP; a backward step where the upper bound ``hi`` is nearer than the step)."""
+    p = np.asarray(p, float)
+    f0 = residual(p)
+    J = np.empty((f0.size, p.size))
+    for i in range(p.size):
+        h = FD_STEP * max(1.0, abs(p[i]))
+        if hi is not None and p[i] + h > hi[i]:
+            h = -h
+        q = p.copy()
+        q[i] += h
+        J[:, i] = (residual(q) - f0) / h
+    return J
+
+
+def finite_or_differences(jacobian, residual, hi: np.ndarray | None = None):
+    """``jacobian`` (sensitivities), with forward differences of ``residual`` at a point where its
+    columns are not finite: a trial far out (a huge cubic coefficient) can overflow the sensitivities
+    while its simulation stays finite, and a difference of two finite residuals stays finite."""
+    def jac(p):
+        J = jacobian(p)
+        return J if np.all(np.isfinite(J)) else forward_differences(residual, p, hi)
+    return jac
+
+
 def parameter_keys(model: HystereticModel, extra_terms=()) -> list[str]:
     """The parameter vector of an SDOF output-error fit: the physical parameters, every fn term
     of ``model``, then ``extra_terms`` it does not have, and ``inv_m`` under force excitation."""
@@ -265,7 +291,7 @@ class OutputError:
     def jac_option(self):
         """What ``least_squares`` takes as ``jac``: :meth:`jacobian` when the problem allows
         sensitivities (``self.analytic``), else scipy's forward differences."""
-        return self.jacobian if self.analytic else "2-point"
+        return finite_or_differences(self.jacobian, self.residual) if self.analytic else "2-point"
 
     def jacobian(self, p) -> np.ndarray:
         """d residual / d p (n_rows x len(keys)) from the forward sensitivities of each item's
