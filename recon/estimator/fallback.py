@@ -19,8 +19,10 @@ model of the simplest kinds below that predicts the held-out stages best:
 5. ``linear``: c y' + k y.
 
 Each is fitted by output error on the linear and nonlinear stages (simulated from their
-recorded start states) and scored on the held-out stages (the validation stages; the
-nonlinear stage when there is none, which the result says). The inadmissible estimate
+recorded start states) and scored on the held-out stages. A hysteretic kind whose fitted Bouc-Wen
+force has vanished (rms z below ``tuning.negligible`` of the elastic force) is the elastic kind
+with three idle parameters and does not compete. Held-out: the validation stages; the
+nonlinear stage when there is none, which the result says. The inadmissible estimate
 stays in the result for inspection (``adequacy.inadmissible_estimate``).
 """
 from __future__ import annotations
