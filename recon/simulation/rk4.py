@@ -125,6 +125,21 @@ def cubic_weights(n_sub):
     return W
 
 
+@njit(cache=True, nogil=True, inline="always")
+def substep_inputs(u, i, sub, W):
+    """The input at the start, mid-point and end of sub-step ``sub`` of interval [i, i+1]: the
+    4-point cubic through u[i-1], u[i], u[i+1], u[i+2] (:func:`cubic_weights` ``W``), the points
+    beyond the ends extrapolated linearly. Every RK4 kernel reads its input through this."""
+    n = u.size
+    um1 = u[i - 1] if i > 0 else 2.0 * u[0] - u[1]
+    up2 = u[i + 2] if i + 2 < n else 2.0 * u[n - 1] - u[n - 2]
+    j = 2 * sub
+    ua = W[j, 0] * um1 + W[j, 1] * u[i] + W[j, 2] * u[i + 1] + W[j, 3] * up2
+    um = W[j + 1, 0] * um1 + W[j + 1, 1] * u[i] + W[j + 1, 2] * u[i + 1] + W[j + 1, 3] * up2
+    ue = W[j + 2, 0] * um1 + W[j + 2, 1] * u[i] + W[j + 2, 2] * u[i + 1] + W[j + 2, 3] * up2
+    return ua, um, ue
+
+
 @njit(cache=True, nogil=True)
 def simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
     """States (y, y', z, q, q') as a (5, n) array; NaN from the first non-finite step on."""
@@ -142,14 +157,9 @@ def simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
     mode = P[I_W2] > 0.0
     W = cubic_weights(n_sub)
     for i in range(n - 1):
-        um1 = u[i - 1] if i > 0 else 2.0 * u[0] - u[1]
-        up2 = u[i + 2] if i + 2 < n else 2.0 * u[n - 1] - u[n - 2]
         for sub in range(n_sub):
             ta = t0 + i * dt + sub * h
-            j = 2 * sub
-            ua = W[j, 0] * um1 + W[j, 1] * u[i] + W[j, 2] * u[i + 1] + W[j, 3] * up2
-            um = W[j + 1, 0] * um1 + W[j + 1, 1] * u[i] + W[j + 1, 2] * u[i + 1] + W[j + 1, 3] * up2
-            ue = W[j + 2, 0] * um1 + W[j + 2, 1] * u[i] + W[j + 2, 2] * u[i + 1] + W[j + 2, 3] * up2
+            ua, um, ue = substep_inputs(u, i, sub, W)
             a1, z1, q1 = _rhs(y, v, z, q, w, ta, ua, P, coef, p, r)
             y2 = y + 0.5 * h * v
             v2 = v + 0.5 * h * a1

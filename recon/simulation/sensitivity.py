@@ -34,7 +34,7 @@ from numba import njit
 
 from recon.simulation.powers import ipow
 from recon.simulation.rk4 import (I_ALPHA, I_C, I_C2, I_DELTA, I_DRIFT, I_DRIVE2, I_G, I_GAMMA, I_GAP, I_GU2, I_K, I_KC,
-                                  I_MU, I_SIDE, I_V0, I_W2, I_ZETA2, cubic_weights)
+                                  I_MU, I_SIDE, I_V0, I_W2, I_ZETA2, cubic_weights, substep_inputs)
 
 # the features a column's source is one of: index, equation (0: y'', 1: z')
 FEATURES = {"g": (0, 0), "c": (1, 0), "k": (2, 0), "alpha": (3, 1), "gamma": (4, 1), "delta": (5, 1),
@@ -122,13 +122,8 @@ def simulate_plain_sensitivities(u, dt, n_sub, g, c, k, alpha, gamma, delta, coe
     h = dt / n_sub
     W = cubic_weights(n_sub)
     for i in range(n - 1):
-        um1 = u[i - 1] if i > 0 else 2.0 * u[0] - u[1]
-        up2 = u[i + 2] if i + 2 < n else 2.0 * u[n - 1] - u[n - 2]
         for sub in range(n_sub):
-            jw = 2 * sub
-            ua = W[jw, 0] * um1 + W[jw, 1] * u[i] + W[jw, 2] * u[i + 1] + W[jw, 3] * up2
-            um = W[jw + 1, 0] * um1 + W[jw + 1, 1] * u[i] + W[jw + 1, 2] * u[i + 1] + W[jw + 1, 3] * up2
-            ue = W[jw + 2, 0] * um1 + W[jw + 2, 1] * u[i] + W[jw + 2, 2] * u[i + 1] + W[jw + 2, 3] * up2
+            ua, um, ue = substep_inputs(u, i, sub, W)
             a1, z1, ay1, av1, zv1, zz1 = _stage(y, v, z, ua, g, c, k, alpha, gamma, delta, coef, p, r, F1)
             y2 = y + 0.5 * h * v
             v2 = v + 0.5 * h * a1
@@ -374,16 +369,11 @@ def simulate_extended_sensitivities(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0,
     mode = P[I_W2] > 0.0
     W = cubic_weights(n_sub)
     for i in range(n - 1):
-        um1 = u[i - 1] if i > 0 else 2.0 * u[0] - u[1]
-        up2 = u[i + 2] if i + 2 < n else 2.0 * u[n - 1] - u[n - 2]
         for sub in range(n_sub):
             ta = t0 + i * dt + sub * h
             tm = ta + 0.5 * h
             te = ta + h
-            jw = 2 * sub
-            ua = W[jw, 0] * um1 + W[jw, 1] * u[i] + W[jw, 2] * u[i + 1] + W[jw, 3] * up2
-            um = W[jw + 1, 0] * um1 + W[jw + 1, 1] * u[i] + W[jw + 1, 2] * u[i + 1] + W[jw + 1, 3] * up2
-            ue = W[jw + 2, 0] * um1 + W[jw + 2, 1] * u[i] + W[jw + 2, 2] * u[i + 1] + W[jw + 2, 3] * up2
+            ua, um, ue = substep_inputs(u, i, sub, W)
             a1, z1, q1, ay1, av1, zv1, zz1, qq1, qw1, qc1 = _xstage(y, v, z, q, w, ta, ua, pg, pc, pk, palpha, pgamma, pdelta, pmu, pv0, pc2, pkc, pgap, pside, pdrift, pw2, pzeta2, pdrive2, pgu2,
                 coef, p, r, force,
                                                                     friction, F1)
