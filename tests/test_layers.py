@@ -258,7 +258,7 @@ def test_the_diagnosis_rule_and_split_live_in_its_settings():
 # NUMBER_REASONS. A new module-level number is either a field of a settings object (EstimatorTuning,
 # DiagnosisSettings, ConstitutiveSettings) or added here with its reason.
 RECON_NUMBERS_ALLOWED = {
-    ("recon.content_cache", "CAPACITY"): "memory: how many results of a pure function are kept; a miss only costs "
+    ("recon.content_cache", "CAPACITY"): "numerical: how many results of a pure function are kept; a miss only costs "
                                          "the computation, never changes an answer",
     ("recon.simulation.sensitivity", "N_FIXED"): "numerical: the number of fixed features before the fn terms' in "
                                                  "the sensitivity kernel's feature vector",
