@@ -27,9 +27,9 @@ scale and the higher mode's reading act on the velocity the vibrometer measured.
 ``t`` in the drift term is the stage's recorded time (session time when the
 recording keeps it). Every extra is off when its parameter is 0, so an
 ``AugmentedModel`` with no extras simulates exactly like its baseline.
-The integrator is :func:`recon.simulation.rk4.simulate_extended`, the one RK4 kernel the
-plain model uses too (input interpolated linearly between samples, sub-steps when sampling
-is coarse).
+The integrator is :func:`recon.simulation.rk4.simulate_states`: the extended RK4 kernel, or
+its plain specialisation when no extra acts (the same numbers to the bit; input interpolated
+by a 4-point cubic between samples, sub-steps when sampling is coarse).
 """
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.model import HystereticModel, finite_number
-from recon.simulation.rk4 import P_NAMES, kernel_parameters, simulate_extended, substeps
+from recon.simulation.rk4 import P_NAMES, kernel_parameters, simulate_states, substeps
 from shakerlab.errors import UserFacingError
 from shakerlab.output_files import check_output, write_text
 from shakerlab.run_data import BASE, Stage
@@ -161,7 +161,7 @@ class AugmentedModel:
         n_sub = self.substeps(dt)
         P = self.kernel_vector()
         y0, dy0, z0 = (0.0, 0.0, 0.0) if initial is None else (float(v) for v in initial)
-        st = simulate_extended(np.ascontiguousarray(u, float), float(t[0]), dt, int(n_sub), P, coef, p, r, y0, dy0, z0)
+        st = simulate_states(np.ascontiguousarray(u, float), float(t[0]), dt, int(n_sub), P, coef, p, r, y0, dy0, z0)
         y = st[order] + self.get("phi2") * st[3 + order]
         scale = 1.0 + self.get("tip_scale")
         delay = self.get("delay")

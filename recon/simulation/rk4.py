@@ -16,8 +16,9 @@ excitation gu2 = 1 - drive2).
 
 Every extra is off when its parameter is 0; with all of them off the arithmetic is
 exactly that of the plain model (the extras are subtracted after the plain terms).
-:func:`simulate_sdof` is the plain model; the diagnosis's augmented models
-(:mod:`recon.diagnosis.augmented`) pass the extras.
+:func:`simulate_sdof` is the plain model (:func:`simulate_plain`, the same arithmetic
+specialised); the diagnosis's augmented models (:mod:`recon.diagnosis.augmented`) pass the
+extras through :func:`simulate_states`.
 
 ``u`` is sampled at the recording rate; between samples it is interpolated by
 the 4-point cubic (Lagrange) through u[i-1], u[i], u[i+1], u[i+2] (linear
@@ -194,11 +195,81 @@ def simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0):
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _plain_rhs(y, v, z, u, g, c, k, alpha, gamma, delta, coef, p, r):
+    fn = 0.0
+    for j in range(coef.size):
+        fn += coef[j] * ipow(y, p[j]) * ipow(v, r[j])
+    acc = g * u - c * v - k * y - fn - z
+    dz = alpha * v - gamma * abs(v) * z - delta * v * abs(z)
+    return acc, dz
+
+
+@njit(cache=True, nogil=True)
+def simulate_plain(u, dt, n_sub, g, c, k, alpha, gamma, delta, coef, p, r, y0, v0, z0):
+    """:func:`simulate_extended` with every extra off, specialised: the same arithmetic in the same
+    order (the states agree to the bit), about three times faster, since no extra's switch is read
+    inside the loop. States (y, y', z) as a (3, n) array; NaN from the first non-finite step on."""
+    n = u.size
+    out = np.zeros((3, n))
+    y = y0
+    v = v0
+    z = z0
+    out[0, 0] = y0
+    out[1, 0] = v0
+    out[2, 0] = z0
+    h = dt / n_sub
+    W = cubic_weights(n_sub)
+    for i in range(n - 1):
+        for sub in range(n_sub):
+            ua, um, ue = substep_inputs(u, i, sub, W)
+            a1, z1 = _plain_rhs(y, v, z, ua, g, c, k, alpha, gamma, delta, coef, p, r)
+            y2 = y + 0.5 * h * v
+            v2 = v + 0.5 * h * a1
+            zz2 = z + 0.5 * h * z1
+            a2, z2 = _plain_rhs(y2, v2, zz2, um, g, c, k, alpha, gamma, delta, coef, p, r)
+            y3 = y + 0.5 * h * v2
+            v3 = v + 0.5 * h * a2
+            zz3 = z + 0.5 * h * z2
+            a3, z3 = _plain_rhs(y3, v3, zz3, um, g, c, k, alpha, gamma, delta, coef, p, r)
+            y4 = y + h * v3
+            v4 = v + h * a3
+            zz4 = z + h * z3
+            a4, z4 = _plain_rhs(y4, v4, zz4, ue, g, c, k, alpha, gamma, delta, coef, p, r)
+            y += h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
+            v += h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+            z += h / 6.0 * (z1 + 2.0 * z2 + 2.0 * z3 + z4)
+        if not (math.isfinite(y) and math.isfinite(v) and math.isfinite(z)):
+            out[:, i + 1:] = np.nan
+            return out
+        out[0, i + 1] = y
+        out[1, i + 1] = v
+        out[2, i + 1] = z
+    return out
+
+
+def extras_off(P: np.ndarray) -> bool:
+    """Whether the parameter vector P switches every extra off (its model is the plain one)."""
+    return bool(P[I_MU] == 0.0 and P[I_C2] == 0.0 and P[I_KC] == 0.0 and P[I_DRIFT] == 0.0 and not P[I_W2] > 0.0)
+
+
+def simulate_states(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0) -> np.ndarray:
+    """:func:`simulate_extended`'s (5, n) states, from :func:`simulate_plain` when P switches every
+    extra off (the same numbers, to the bit)."""
+    if not extras_off(P):
+        return simulate_extended(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0)
+    plain = simulate_plain(u, dt, n_sub, P[I_G], P[I_C], P[I_K], P[I_ALPHA], P[I_GAMMA], P[I_DELTA], coef, p, r,
+                           y0, v0, z0)
+    out = np.zeros((5, plain.shape[1]))
+    out[:3] = plain
+    out[3:, np.isnan(plain[0])] = np.nan          # as simulate_extended marks a diverged step
+    return out
+
+
 def simulate_sdof(u, dt, n_sub, g, c, k, alpha, gamma, delta, coef, p, r, y0=0.0, v0=0.0, z0=0.0):
-    """The plain model (no extras): (y, y', z) arrays."""
-    P = kernel_parameters(g=g, c=c, k=k, alpha=alpha, gamma=gamma, delta=delta)
-    out = simulate_extended(np.ascontiguousarray(u, float), 0.0, float(dt), int(n_sub), P, coef, p, r,
-                            float(y0), float(v0), float(z0))
+    """The plain model (no extras): (y, y', z) arrays (:func:`simulate_plain`)."""
+    out = simulate_plain(np.ascontiguousarray(u, float), float(dt), int(n_sub), float(g), float(c), float(k),
+                         float(alpha), float(gamma), float(delta), coef, p, r, float(y0), float(v0), float(z0))
     return out[0], out[1], out[2]
 
 
