@@ -107,6 +107,10 @@ def simulate_plain_sensitivities(u, dt, n_sub, g, c, k, alpha, gamma, delta, coe
     s1 = np.empty(m)
     s2 = np.empty(m)
     wa = np.empty(m)
+    G1 = np.empty(m)
+    G2 = np.empty(m)
+    G3 = np.empty(m)
+    G4 = np.empty(m)
     for col in range(m):
         s0[col] = S0[0, col]
         s1[col] = S0[1, col]
@@ -137,35 +141,40 @@ def simulate_plain_sensitivities(u, dt, n_sub, g, c, k, alpha, gamma, delta, coe
             v4 = v + h * a3
             zs4 = z + h * z3
             a4, z4, ay4, av4, zv4, zz4 = _stage(y4, v4, zs4, ue, g, c, k, alpha, gamma, delta, coef, p, r, F4)
+            for col in range(m):       # the columns' sources, gathered first: the loop below has
+                f = fi[col]            # no indirect reads and the compiler can vectorise it
+                G1[col] = F1[f]
+                G2[col] = F2[f]
+                G3[col] = F3[f]
+                G4[col] = F4[f]
             for col in range(m):
-                f = fi[col]
                 w_a = wa[col]
                 w_z = 1.0 - w_a
                 b0 = s0[col]
                 b1 = s1[col]
                 b2 = s2[col]
-                x1 = F1[f]
+                x1 = G1[col]
                 k10 = b1
                 k11 = ay1 * b0 + av1 * b1 - b2 + w_a * x1
                 k12 = zv1 * b1 + zz1 * b2 + w_z * x1
                 t0 = b0 + 0.5 * h * k10
                 t1 = b1 + 0.5 * h * k11
                 t2 = b2 + 0.5 * h * k12
-                x2 = F2[f]
+                x2 = G2[col]
                 k20 = t1
                 k21 = ay2 * t0 + av2 * t1 - t2 + w_a * x2
                 k22 = zv2 * t1 + zz2 * t2 + w_z * x2
                 t0 = b0 + 0.5 * h * k20
                 t1 = b1 + 0.5 * h * k21
                 t2 = b2 + 0.5 * h * k22
-                x3 = F3[f]
+                x3 = G3[col]
                 k30 = t1
                 k31 = ay3 * t0 + av3 * t1 - t2 + w_a * x3
                 k32 = zv3 * t1 + zz3 * t2 + w_z * x3
                 t0 = b0 + h * k30
                 t1 = b1 + h * k31
                 t2 = b2 + h * k32
-                x4 = F4[f]
+                x4 = G4[col]
                 k40 = t1
                 k41 = ay4 * t0 + av4 * t1 - t2 + w_a * x4
                 k42 = zv4 * t1 + zz4 * t2 + w_z * x4
