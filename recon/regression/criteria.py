@@ -3,7 +3,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from recon.content_cache import ContentCache, digest
 from recon.differentiation import filter_coefficients
+
+_EFFECTIVE = ContentCache()      # effective_samples by the residual's content (the diagnosis scores every
+                                 # candidate against the same reference residual)
 
 
 def filter_correlation_length(choice: dict) -> float:
@@ -37,6 +41,15 @@ def effective_samples(r: np.ndarray, max_lag: int = 2000) -> float:
     """N / (1 + 2 sum rho_k), the sum truncated at the first non-positive autocorrelation: the
     number of independent samples a mean-square of ``r`` is worth."""
     r = np.asarray(r, float)
+    key = (digest(r), max_lag)
+    hit = _EFFECTIVE.get(key)
+    if hit is None:
+        hit = _effective_samples(r, max_lag)
+        _EFFECTIVE.put(key, hit)
+    return hit
+
+
+def _effective_samples(r: np.ndarray, max_lag: int) -> float:
     n = r.size
     if n < 8 or not np.any(r - np.mean(r)):
         return float(max(n, 1))
