@@ -65,6 +65,8 @@ def test_clean_recording_reports_nothing(clean):
     # nothing found: the fit after is the better of the baseline as given and the refit (issue 13)
     fb = out["fit_before"]
     assert out["fit_after"]["nrmse"] == (fb["refit_nrmse"] if fb["compared_with"] == "refit" else fb["nrmse"])
+    assert out["fit_after"]["held_out_nrmse"] == pytest.approx(min(fb["held_out_nrmse"], fb["refit_held_out_nrmse"]))
+    assert out["unexplained_mismatch"] is None     # the true model: nothing left above the noise
     # the refitted baseline sits within a few times the noise
     assert fb["refit_held_out_nrmse"] < 5 * fb["noise_nrmse"]["validation"]
 

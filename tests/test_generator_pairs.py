@@ -9,6 +9,9 @@ def _system():
     return ind.random_system(np.random.default_rng([3, 74]), hysteresis=True, cubic=True)
 
 
+# acceptance tier (two full recordings, > 10 s on 2 cores): the fast tier records a pair through the same
+# path (simulate's ``also``) in test_stress_blocks.py::test_pair_recording_conceals_both_effects
+@pytest.mark.slow
 def test_second_effect_is_added_and_the_first_kept():
     alone = ind.simulate(_system(), "paper", 1000.0, "coulomb_friction", 1.0, seed=3)
     pair = ind.simulate(_system(), "paper", 1000.0, "coulomb_friction", 1.0, seed=3,

@@ -127,6 +127,9 @@ def test_rig_protocol_judges_its_stop_criteria_from_the_second_level_like_the_ri
     assert all(np.isfinite(lv["loss_factor"]) for lv in levels)
 
 
+# acceptance tier: the settling of each level before it is judged runs in the fast tier's
+# test_rig_protocol_judges_its_stop_criteria_from_the_second_level_like_the_rig (seed 5, settle_extra_s > 0)
+@pytest.mark.slow
 def test_rig_protocol_settles_each_level_before_judging_it():
     # recon stress seed 41 (f_n 5.8 Hz, 1 % damping: it rings for 1.7 times the dwell): judged on the
     # dwell alone, its first level read 6.5 % distortion and the raising stopped at the second level,

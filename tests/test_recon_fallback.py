@@ -230,6 +230,9 @@ def test_polish_stuck_above_the_noise_floor_restarts_from_generic_starts(indepen
     assert val["nrmse"] < 0.005, val
 
 
+# acceptance tier: finish.refine_start runs after every polish (the fast tier's polished reconstructions,
+# e.g. test_recon_core.py's result_80db, pass through it); this is the stress-seed-24 regression
+@pytest.mark.slow
 def test_start_of_a_stage_in_motion_is_refitted_with_the_polished_model():
     """Issue 18: stress seed 24 (paper protocol, f_n 49.5 Hz at 1150 Hz, 80 dB). Its nonlinear stage
     starts while the specimen still moves; fitted with the equation-error estimate, the start had
@@ -260,6 +263,9 @@ def _no_hysteresis_record():
     return _as_run(rec, "independent:no hysteresis"), rec["truth"]
 
 
+# acceptance tier: the simpler fits, the elastic kind among them, run in the fast tier's
+# test_recon_simpler_fit_slack.py (the elastic model taken under a loose slack); this is stress #39
+@pytest.mark.slow
 def test_a_system_without_hysteresis_gets_the_elastic_simpler_model():
     """Diagnosis stress #39: a system with y^2 and no hysteresis, whose estimate was inadmissible,
     was answered by the Bouc-Wen law with lambda Y = 0.006 (a z that only adds stiffness) and no
