@@ -21,8 +21,8 @@ from recon.exciter import drive_force
 from recon.library import monomials
 from recon.simulation.rk4 import simulate_sdof, substeps
 from recon.simulation.start_state import fit_start
-from recon.signals import (at_rest, continuous_velocity_start, response_target, stage_input, start_derivatives,
-                           target_edge)
+from recon.signals import (at_rest, continuous_velocity_start, response_order, response_target, stage_input,
+                           start_derivatives, target_edge)
 from shakerlab.errors import UserFacingError
 from shakerlab.output_files import check_output, write_text
 from shakerlab.run_data import BASE, FORCE, Stage
@@ -328,23 +328,23 @@ class HystereticModel:
         judged in that quantity (recon.signals.response_target), never on the integrated
         displacement, whose drift (the integrated sensor noise) is no motion of the structure.
 
-        The edge of the recorded quantity says whether the stage starts at rest: in velocity, the value
-        within its edge noise and its derivative small, as the displacement rule judges y0 and y'0
-        (recon.signals.at_rest); under acceleration, the recorded value within 5 % of its rms or 4
-        times its edge noise, and the velocity of the displacement rule. At rest the start is the model's rest (0, 0, 0): a record in
-        velocity cannot see a static offset, and the rest is the state a stage recorded from rest
-        is in. Otherwise the start is fitted to the stage's first seconds in the recorded quantity
-        (recon.simulation.start_state), from the edge estimate."""
+        The edge of the target says whether the stage starts at rest. A velocity as recorded: its
+        value within 5 times its edge noise and its derivative small, as the displacement rule judges
+        y0 and y'0 (recon.signals.at_rest). A velocity integrated from an acceleration record: its
+        value within 5 % of its rms or 4 times its edge noise, since its edge value carries the
+        integration's constant (the line removed), an error the white floor does not measure: held
+        to the noise alone, a rest is taken for motion and the start is fitted to that error. At rest the start is the
+        model's rest (0, 0, 0): a record in velocity cannot see a static offset, and the rest is the
+        state a stage recorded from rest is in. Otherwise the start is fitted to the stage's first
+        seconds in the target's quantity (recon.simulation.start_state), from the edge estimate."""
         order, x = response_target(stage)
         x0, x1, sig, x_rms, sig1, x1_rms = target_edge(stage)
-        y0, v0d, a0d, _, sig_vd, v_rms_d = start_derivatives(stage)
-        if order == 1:
-            v0, a0, v_rms = x0, x1, x_rms
+        y0 = start_derivatives(stage)[0]
+        if response_order(stage) == order:          # measured as the target's quantity
             rest = at_rest(x0, sig, x1, sig1, x1_rms)
-        else:
-            v0, a0, v_rms = v0d, x0, v_rms_d
-            rest = ((abs(x0) < 0.05 * x_rms or abs(x0) < 4 * sig)
-                    and (abs(v0d) < 0.05 * v_rms_d or abs(v0d) < 4 * sig_vd))
+        else:                                       # integrated to it
+            rest = abs(x0) < 0.05 * x_rms or abs(x0) < 4 * sig
+        v0, a0, v_rms = x0, x1, x_rms
         if rest:
             return 0.0, 0.0, 0.0
         edge = (float(y0), float(v0), float(self.start_z(u[0], y0, v0, a0)))
