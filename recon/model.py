@@ -60,6 +60,16 @@ def finite_number(value, field_name: str) -> float:
     return out
 
 
+def sampling_interval(t: np.ndarray) -> float:
+    """The sampling interval of a uniformly sampled time base ``t``: the median of its intervals,
+    every interval within 1e-6 of it (else a UserFacingError)."""
+    dts = np.diff(t)
+    dt = float(np.median(dts))
+    if np.any(np.abs(dts - dt) > 1e-6 * dt + 1e-12):
+        raise UserFacingError("simulate: t must be uniformly sampled")
+    return dt
+
+
 @dataclass
 class HystereticModel:
     excitation: str
@@ -243,11 +253,12 @@ class HystereticModel:
             raise UserFacingError(f"{path}: {exc}") from None
 
     # -------------------------------------------------------------- simulation
-    def simulate(self, t, u, n_sub: int | None = None, initial=None):
+    def simulate(self, t, u, n_sub: int | None = None, initial=None, dt: float | None = None):
         """Response to the per-unit-mass input (base) or force (force), from rest.
 
         Returns (y, dy, z) sampled at ``t`` (uniform sampling required).
-        ``initial=(y0, dy0, z0)`` starts from that state instead of rest.
+        ``initial=(y0, dy0, z0)`` starts from that state instead of rest. ``dt``: ``t``'s
+        :func:`sampling_interval`, when the caller has it (a fit simulating one record many times).
         """
 
         t = np.asarray(t, float)
@@ -256,10 +267,7 @@ class HystereticModel:
             u = u - self.input_offset
         if t.shape != u.shape or t.size < 2:
             raise UserFacingError(f"simulate: t and u must be 1-D arrays of equal length (got {t.shape}, {u.shape})")
-        dts = np.diff(t)
-        dt = float(np.median(dts))
-        if np.any(np.abs(dts - dt) > 1e-6 * dt + 1e-12):
-            raise UserFacingError("simulate: t must be uniformly sampled")
+        dt = sampling_interval(t) if dt is None else dt
         u = self.drive(u, dt)
         coef, p, r = self.fn_arrays()
         if n_sub is None:   # capped: a trial stiffer than that (resonance above ~fs) is far from any record;
@@ -355,9 +363,10 @@ class HystereticModel:
                                    x, tuning)
         return start
 
-    def simulate_quantity(self, t, u, initial=None, order: int = 0) -> np.ndarray:
-        """The simulated y^(order) (0: y, 1: y', 2: y'' from the equation of motion) from ``initial``."""
-        y, dy, z = self.simulate(t, u, initial=initial)
+    def simulate_quantity(self, t, u, initial=None, order: int = 0, dt: float | None = None) -> np.ndarray:
+        """The simulated y^(order) (0: y, 1: y', 2: y'' from the equation of motion) from ``initial``
+        (``dt``: as :meth:`simulate`)."""
+        y, dy, z = self.simulate(t, u, initial=initial, dt=dt)
         if order == 0:
             return y
         if order == 1:

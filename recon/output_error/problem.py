@@ -22,7 +22,7 @@ import os
 import numpy as np
 
 from recon.library import monomials
-from recon.model import MAX_SUBSTEPS, PARAMETER_NAMES, HystereticModel
+from recon.model import MAX_SUBSTEPS, PARAMETER_NAMES, HystereticModel, sampling_interval
 from recon.output_error.stopping import ChiSquareStop
 from recon.simulation.rk4 import substeps
 from recon.simulation.sensitivity import column_codes, simulate_plain_sensitivities
@@ -205,6 +205,7 @@ class OutputError:
                     overrides[k] = floor
         self.scale = parameter_scales(self.keys, self.x0, model.gamma + model.delta, overrides)
         self.masks = masks if masks is not None else [None] * len(data)
+        self.dts = [sampling_interval(np.asarray(d[0], float)) for d in data]   # once: every trial simulates them
         self.targets = [item_target(d) for d in data]
         self.rms = [float(np.sqrt(np.mean((x - x.mean()) ** 2))) or 1.0 for _, x in self.targets]
         self.n_rows = sum(int(d[2].size if m is None else np.count_nonzero(m)) for d, m in zip(data, self.masks))
@@ -232,28 +233,29 @@ class OutputError:
                                input_offset=kw.pop("input_offset", m.input_offset), **kw)
 
     @staticmethod
-    def response(m: HystereticModel, t, u, start=None, order: int = 0) -> np.ndarray:
+    def response(m: HystereticModel, t, u, start=None, order: int = 0, dt: float | None = None) -> np.ndarray:
         """Simulated y (``order`` 1: y', 2: y'') of ``m`` from rest, or from the recorded start
-        (y, y', y'') with z0 from the equation of motion for this parameter set."""
+        (y, y', y'') with z0 from the equation of motion for this parameter set (``dt``: ``t``'s
+        sampling interval when known, HystereticModel.simulate)."""
         init = None
         if start is not None:
             y0, v0, a0 = start
             init = (y0, v0, m.start_z(u[0], y0, v0, a0))
         if order == 0:
-            return m.simulate(t, u, initial=init)[0]
-        return m.simulate_quantity(t, u, init, order)
+            return m.simulate(t, u, initial=init, dt=dt)[0]
+        return m.simulate_quantity(t, u, init, order, dt=dt)
 
     @staticmethod
-    def item_response(m: HystereticModel, d: tuple, u=None) -> np.ndarray:
+    def item_response(m: HystereticModel, d: tuple, u=None, dt: float | None = None) -> np.ndarray:
         """:meth:`response` of a data item in its measured quantity (``u``: another input)."""
-        return OutputError.response(m, d[0], d[1] if u is None else u, item_start(d), item_target(d)[0])
+        return OutputError.response(m, d[0], d[1] if u is None else u, item_start(d), item_target(d)[0], dt)
 
     def simulate(self, m: HystereticModel) -> list:
         """Normalised residual (sim - measured)/rms per data item over ALL samples, in each item's
         measured quantity (None: diverged)."""
         out = []
-        for d, target, r in zip(self.data, self.targets, self.rms):
-            ys = self.item_response(m, d)
+        for d, target, r, dt in zip(self.data, self.targets, self.rms, self.dts):
+            ys = self.item_response(m, d, dt=dt)
             if not np.all(np.isfinite(ys)):
                 return None
             out.append(measured_error(ys, target) / r)
@@ -306,9 +308,8 @@ class OutputError:
         g = m.input_gain
         off = m.input_offset if m.input_offset is not None else 0.0
         def item_columns(job):
-            d, target, r, mk, w = job
-            t, u = d[0], np.asarray(d[1], float) - off
-            dt = float(np.median(np.diff(t)))
+            d, target, r, mk, w, dt = job
+            u = np.asarray(d[1], float) - off
             n_sub = min(substeps(dt, max(abs(m.K_m), abs(m.k_m), 1.0)), MAX_SUBSTEPS)
             S0 = np.zeros((3, len(names)))
             y0 = v0 = z0 = 0.0
@@ -334,7 +335,8 @@ class OutputError:
 
         # one item after another: side by side on the fits' threads they cost 4 % more CPU and gave
         # reconstruct no wall time (most of its fits have one item)
-        cols = [item_columns(job) for job in zip(self.data, self.targets, self.rms, self.masks, self.item_weights)]
+        cols = [item_columns(job) for job in zip(self.data, self.targets, self.rms, self.masks, self.item_weights,
+                                                 self.dts)]
         if any(c is None for c in cols):
             return np.zeros((self.n_rows, len(names)))
         return np.concatenate(cols, axis=0)
