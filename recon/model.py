@@ -321,14 +321,15 @@ class HystereticModel:
                                   stage.y, tuning)
 
     def _fitted_start(self, stage: Stage, edge: tuple, v_rms: float, simulate, target: np.ndarray,
-                      tuning: EstimatorTuning) -> tuple:
+                      tuning: EstimatorTuning, offset: bool = False) -> tuple:
         """The start (y, y', z) fitted to the stage's first seconds of ``target`` (what ``simulate``
-        gives), from the edge estimate, each on the scale of its motion (recon.simulation.start_state)."""
+        gives), from the edge estimate, each on the scale of its motion (recon.simulation.start_state;
+        ``offset``: a constant offset of the target is a nuisance of the fit)."""
         y_rms = float(np.std(stage.y)) or 1.0
         scales = (max(abs(edge[0]), 0.05 * y_rms), max(abs(edge[1]), 0.05 * v_rms),
                   max(abs(edge[2]), 0.05 * abs(self.alpha_m) * y_rms, 1e-12))
         start, _ = fit_start(simulate, target, stage.dt, edge, scales, tuning.start_fit_seconds,
-                             tuning.start_fit_nfev, n_free=2 if self.alpha_m == 0.0 else 3)
+                             tuning.start_fit_nfev, n_free=2 if self.alpha_m == 0.0 else 3, offset=offset)
         return start
 
     def measured_start(self, stage: Stage, u: np.ndarray, fit: bool = True, tuning: EstimatorTuning = DEFAULT_TUNING):
@@ -338,7 +339,8 @@ class HystereticModel:
 
         The edge of the target says whether the stage starts at rest. A velocity as recorded: its
         value within 5 times its edge noise and its derivative small, as the displacement rule judges
-        y0 and y'0 (recon.signals.at_rest). A velocity integrated from an acceleration record: its
+        y0 and y'0 (recon.signals.at_rest); the start is then fitted with a constant velocity offset
+        as a nuisance, as every fit in velocity takes it, so a sensor's offset is no start in motion. A velocity integrated from an acceleration record: its
         value within 5 % of its rms or 4 times its edge noise, since its edge value carries the
         integration's constant (the line removed), an error the white floor does not measure: held
         to the noise alone, a rest is taken for motion and the start is fitted to that error. At rest the start is the
@@ -360,7 +362,7 @@ class HystereticModel:
             return edge
         t = stage.t - stage.t[0]
         start = self._fitted_start(stage, edge, v_rms, lambda init, n: self.simulate_quantity(t[:n], u[:n], init, order),
-                                   x, tuning)
+                                   x, tuning, offset=response_order(stage) == order)
         return start
 
     def simulate_quantity(self, t, u, initial=None, order: int = 0, dt: float | None = None) -> np.ndarray:

@@ -19,8 +19,9 @@ TRUTH = dict(excitation="base", c_m=1.0, k_m=4000.0, alpha_m=2500.0, gamma=240.0
              fn_m={"y^2": -9.5e4})
 
 
-def _stage(start, snr_db=60.0, seed=0, seconds=6.0):
-    """A base-excited stage recorded as relative tip velocity, simulated from ``start`` = (y, y', z)."""
+def _stage(start, snr_db=60.0, seed=0, seconds=6.0, offset=0.0):
+    """A base-excited stage recorded as relative tip velocity, simulated from ``start`` = (y, y', z);
+    ``offset``: the velocity sensor's constant offset, as a share of the channel's rms."""
     m = HystereticModel(**TRUTH)
     t = np.arange(int(seconds * FS)) / FS
     w = 2 * np.pi * 10.0
@@ -30,7 +31,8 @@ def _stage(start, snr_db=60.0, seed=0, seconds=6.0):
     vb = 2e-3 * w * np.cos(w * t)
     rng = np.random.default_rng(seed)
     v_tip = vb + dy
-    v_tip = v_tip + rng.normal(0.0, np.sqrt(np.mean(v_tip ** 2)) / 10 ** (snr_db / 20), t.size)
+    v_tip = v_tip + offset * np.sqrt(np.mean(v_tip ** 2)) \
+        + rng.normal(0.0, np.sqrt(np.mean(v_tip ** 2)) / 10 ** (snr_db / 20), t.size)
     xb = xb + rng.normal(0.0, np.sqrt(np.mean(xb ** 2)) / 10 ** (snr_db / 20), t.size)
     return m, Stage("nonlinear", t, {"x_base": xb, "v_tip": v_tip}, "base"), y, dy
 
@@ -57,6 +59,17 @@ def test_a_small_start_in_motion_is_fitted_not_taken_for_rest():
 def test_a_stage_recorded_from_rest_is_still_at_rest():
     m, st, _, _ = _stage((0.0, 0.0, 0.0))
     assert m.stage_start(st) == (0.0, 0.0, 0.0)
+
+
+def test_a_constant_sensor_offset_is_no_motion():
+    # a velocity sensor's constant offset (1 % of the channel's rms) stands out of the noise, so the
+    # start is fitted; the fit takes the offset as a nuisance, as the output-error fits do, and the
+    # start stays near rest instead of taking the offset for a start velocity
+    m, st, _, _ = _stage((0.0, 0.0, 0.0), offset=0.01)
+    off = 0.01 * float(np.sqrt(np.mean(st.measured["v_tip"] ** 2)))
+    assert abs(m.stage_start(st)[1]) < 0.2 * off
+    m, st, _, _ = _stage((-1e-4, 8e-3, -0.3), offset=0.01)
+    assert m.stage_start(st)[1] == pytest.approx(8e-3, rel=0.2)
 
 
 def test_rest_needs_both_the_value_and_its_derivative_within_the_noise():
