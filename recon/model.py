@@ -21,8 +21,8 @@ from recon.exciter import drive_force
 from recon.library import monomials
 from recon.simulation.rk4 import simulate_sdof, substeps
 from recon.simulation.start_state import fit_start
-from recon.signals import (continuous_velocity_start, response_target, stage_input, start_derivatives,
-                           target_edge)
+from recon.signals import (at_rest, continuous_velocity_start, response_order, response_target, stage_input,
+                           start_derivatives, target_edge)
 from shakerlab.errors import UserFacingError
 from shakerlab.output_files import check_output, write_text
 from shakerlab.run_data import BASE, FORCE, Stage
@@ -321,14 +321,15 @@ class HystereticModel:
                                   stage.y, tuning)
 
     def _fitted_start(self, stage: Stage, edge: tuple, v_rms: float, simulate, target: np.ndarray,
-                      tuning: EstimatorTuning) -> tuple:
+                      tuning: EstimatorTuning, offset: bool = False) -> tuple:
         """The start (y, y', z) fitted to the stage's first seconds of ``target`` (what ``simulate``
-        gives), from the edge estimate, each on the scale of its motion (recon.simulation.start_state)."""
+        gives), from the edge estimate, each on the scale of its motion (recon.simulation.start_state;
+        ``offset``: a constant offset of the target is a nuisance of the fit)."""
         y_rms = float(np.std(stage.y)) or 1.0
         scales = (max(abs(edge[0]), 0.05 * y_rms), max(abs(edge[1]), 0.05 * v_rms),
                   max(abs(edge[2]), 0.05 * abs(self.alpha_m) * y_rms, 1e-12))
         start, _ = fit_start(simulate, target, stage.dt, edge, scales, tuning.start_fit_seconds,
-                             tuning.start_fit_nfev, n_free=2 if self.alpha_m == 0.0 else 3)
+                             tuning.start_fit_nfev, n_free=2 if self.alpha_m == 0.0 else 3, offset=offset)
         return start
 
     def measured_start(self, stage: Stage, u: np.ndarray, fit: bool = True, tuning: EstimatorTuning = DEFAULT_TUNING):
@@ -336,30 +337,32 @@ class HystereticModel:
         judged in that quantity (recon.signals.response_target), never on the integrated
         displacement, whose drift (the integrated sensor noise) is no motion of the structure.
 
-        The edge of the recorded quantity says whether the stage starts at rest: its value within
-        5 % of its rms or within 4 times its edge noise (under acceleration, the velocity of the
-        displacement rule too). At rest the start is the model's rest (0, 0, 0): a record in
-        velocity cannot see a static offset, and the rest is the state a stage recorded from rest
-        is in. Otherwise the start is fitted to the stage's first seconds in the recorded quantity
-        (recon.simulation.start_state), from the edge estimate."""
+        The edge of the target says whether the stage starts at rest. A velocity as recorded: its
+        value within 5 times its edge noise and its derivative small, as the displacement rule judges
+        y0 and y'0 (recon.signals.at_rest); the start is then fitted with a constant velocity offset
+        as a nuisance, as every fit in velocity takes it, so a sensor's offset is no start in motion. A velocity integrated from an acceleration record: its
+        value within 5 % of its rms or 4 times its edge noise, since its edge value carries the
+        integration's constant (the line removed), an error the white floor does not measure: held
+        to the noise alone, a rest is taken for motion and the start is fitted to that error. At rest the start is the
+        model's rest (0, 0, 0): a record in velocity cannot see a static offset, and the rest is the
+        state a stage recorded from rest is in. Otherwise the start is fitted to the stage's first
+        seconds in the target's quantity (recon.simulation.start_state), from the edge estimate."""
         order, x = response_target(stage)
-        x0, x1, sig, x_rms = target_edge(stage)
-        y0, v0d, a0d, _, sig_vd, v_rms_d = start_derivatives(stage)
-        if order == 1:
-            v0, a0, v_rms = x0, x1, x_rms
-            at_rest = abs(x0) < 0.05 * x_rms or abs(x0) < 4 * sig
-        else:
-            v0, a0, v_rms = v0d, x0, v_rms_d
-            at_rest = ((abs(x0) < 0.05 * x_rms or abs(x0) < 4 * sig)
-                       and (abs(v0d) < 0.05 * v_rms_d or abs(v0d) < 4 * sig_vd))
-        if at_rest:
+        x0, x1, sig, x_rms, sig1, x1_rms = target_edge(stage)
+        y0 = start_derivatives(stage)[0]
+        if response_order(stage) == order:          # measured as the target's quantity
+            rest = at_rest(x0, sig, x1, sig1, x1_rms)
+        else:                                       # integrated to it
+            rest = abs(x0) < 0.05 * x_rms or abs(x0) < 4 * sig
+        v0, a0, v_rms = x0, x1, x_rms
+        if rest:
             return 0.0, 0.0, 0.0
         edge = (float(y0), float(v0), float(self.start_z(u[0], y0, v0, a0)))
         if not fit:
             return edge
         t = stage.t - stage.t[0]
         start = self._fitted_start(stage, edge, v_rms, lambda init, n: self.simulate_quantity(t[:n], u[:n], init, order),
-                                   x, tuning)
+                                   x, tuning, offset=response_order(stage) == order)
         return start
 
     def simulate_quantity(self, t, u, initial=None, order: int = 0, dt: float | None = None) -> np.ndarray:
