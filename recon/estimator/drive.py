@@ -5,8 +5,8 @@ force, the finished model is refitted by output error on the fitted stages with 
 exciter's two parameters free as well (recon.exciter: the force is HP_hp(u + u2 u^2)),
 every other parameter free too. The refit is kept when it is admissible and predicts
 the held-out (validation) stages better; either way the figures go to the model's provenance
-(``drive_fit``). On the real bolted beam (docs/real-data.md) it lowers every held-out
-record's NRMSE, the 9.5 Hz sine's from 0.402 to 0.203.
+(``drive_fit``). On the real bolted beam (docs/real-data.md) it finds the exciter's distortion
+and roll-off that the records show.
 """
 from __future__ import annotations
 
