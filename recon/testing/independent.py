@@ -67,6 +67,7 @@ QUANTITIES = ("displacement", "velocity", "acceleration")    # how the response 
 # the complex gain of y over the base to SETTLE_TOLERANCE, waiting at most SETTLE_MAX_S more
 SETTLE_TOLERANCE = 0.005
 SETTLE_MAX_S = 20.0
+_TWO_PI = 2 * math.pi
 
 
 # --------------------------------------------------------------------------- systems
@@ -185,10 +186,12 @@ class Segment:
             return s @ A, c @ (A * w), -(s @ (A * w ** 2))
         _, f0, f1, ph = self.carrier
         L = math.log(f1 / f0) / self.T_ref
-        f = f0 * np.exp(L * tl)
-        th = 2 * math.pi * f0 * (np.exp(L * tl) - 1) / L + ph
+        ex = np.exp(L * tl)                 # each function value taken once (the same values)
+        f = f0 * ex
+        th = 2 * math.pi * f0 * (ex - 1) / L + ph
         w, dw = 2 * math.pi * f, 2 * math.pi * f * L
-        return np.sin(th), w * np.cos(th), dw * np.cos(th) - w ** 2 * np.sin(th)
+        sn, cs = np.sin(th), np.cos(th)
+        return sn, w * cs, dw * cs - w ** 2 * sn
 
     def end_phase(self):
         """Phase of each carrier component at t1 (to continue a tone phase-continuously)."""
@@ -199,30 +202,48 @@ class Segment:
         return 2 * math.pi * f0 * (f1 / f0 - 1) * T / math.log(f1 / f0) + ph
 
     def accel(self, t: float) -> float:
-        """x''(t) for a scalar t (the integrator's fast path: plain floats for one component)."""
-        T = self.t1 - self.t0
-        if self.e0 == self.e1:
-            e, de, dde = self.e0, 0.0, 0.0
-        else:
+        """x''(t) for a scalar t (the integrator's fast path: plain floats for one component).
+
+        The right side calls it at every stage of every step, so the segment's constants are
+        taken apart once (:meth:`_accel_constants`); the arithmetic is the same, operation for
+        operation, as it was inline (the recordings are the same to the bit: issue 70)."""
+        try:
+            ramp, T, e0, d, dtp, T2, tone = self._acc
+        except AttributeError:
+            ramp, T, e0, d, dtp, T2, tone = self._acc = self._accel_constants()
+        if ramp:
             sc = min(max((t - self.t0) / T, 0.0), 1.0)
-            tp = 2 * math.pi
-            d = self.e1 - self.e0
-            e = self.e0 + d * (sc - math.sin(tp * sc) / tp)
-            de = d * (1 - math.cos(tp * sc)) / T
-            dde = d * tp * math.sin(tp * sc) / T ** 2
-        c = self.carrier
-        if c[0] == "tones" and c[1].size == 1:
-            w, A = float(c[1][0]), float(c[2][0])
-            th = w * (t - self.t_ref) + float(c[3][0])
-            sn, cs = math.sin(th), math.cos(th)
-            s, ds, dds = A * sn, A * w * cs, -A * w * w * sn
-        elif c[0] == "tones":
+            sn_r = math.sin(_TWO_PI * sc)
+            e = e0 + d * (sc - sn_r / _TWO_PI)
+            de = d * (1 - math.cos(_TWO_PI * sc)) / T
+            dde = dtp * sn_r / T2
+        else:
+            e, de, dde = e0, 0.0, 0.0
+        if tone is not None:
+            w, A, ph, t_ref, Aw, mAww = tone
+            th = w * (t - t_ref) + ph
+            sn = math.sin(th)
+            s, ds, dds = A * sn, Aw * math.cos(th), mAww * sn
+        elif self.carrier[0] == "tones":
+            c = self.carrier
             if not hasattr(self, "_M"):     # (s, s', s'') = Im(M exp(i theta)), one product per call
                 self._M = np.array([c[2], 1j * c[2] * c[1], -c[2] * c[1] ** 2], complex)
             s, ds, dds = (self._M @ np.exp(1j * (c[1] * (t - self.t_ref) + c[3]))).imag
         else:
             s, ds, dds = (float(v) for v in self.carrier_values(np.float64(t)))
         return dde * s + 2 * de * ds + e * dds
+
+    def _accel_constants(self):
+        """(ramp?, T, e0, e1 - e0, (e1 - e0) 2 pi, T^2, tone) for :meth:`accel`; tone: (w, A, phase,
+        t_ref, A w, -A w w) as floats for a single-tone carrier, else None."""
+        T = self.t1 - self.t0
+        d = self.e1 - self.e0
+        c = self.carrier
+        tone = None
+        if c[0] == "tones" and c[1].size == 1:
+            w, A = float(c[1][0]), float(c[2][0])
+            tone = (w, A, float(c[3][0]), self.t_ref, A * w, -A * w * w)
+        return self.e0 != self.e1, T, self.e0, d, d * _TWO_PI, T ** 2, tone
 
     def __call__(self, t):
         """(x, x', x'') of the drive at t (scalar or array)."""
@@ -276,10 +297,14 @@ def _rhs_factory(s: dict, eff: dict, excitation: str, seg: Segment):
     rate, F0 = eff.get("drift_rate", 0.0), eff.get("F0", 0.0)
     w2, zeta2, d2 = eff.get("w2", 0.0), eff.get("zeta2", 0.0), eff.get("drive2", 0.0)
     base = excitation == "base"
+    accel = seg.accel
 
     def rhs(t, x):
-        y, v, z, q, qd = x
-        u = -seg.accel(t) if base else float(seg(t)[0]) / m     # input per unit mass
+        # plain floats (x.tolist(), float(t)): the same IEEE arithmetic as on numpy scalars, without
+        # their overhead (the recordings are the same to the bit: issue 70)
+        y, v, z, q, qd = x.tolist()
+        t = float(t)
+        u = -accel(t) if base else float(seg(t)[0]) / m     # input per unit mass
         f = c * v + k * (1.0 + rate * t) * y + k2 * y * y + k3 * y * y * y + z - F0
         if Fc:
             f += Fc * math.tanh(v / v_eps)
@@ -321,15 +346,49 @@ def _integrate(s, eff, excitation, segs, x0, f_max):
     return sols, x
 
 
-def _evaluate(segs, sols, t):
-    """States (5, n) and drive (x, x', x'') at times t (zero state and drive before the stage)."""
+def _dense(sol, t):
+    """``sol.sol(t)`` (states (5, n) at the times t, a 1-D array) in one vectorised pass.
+
+    scipy's OdeSolution finds each time's step and calls that step's DOP853 interpolant on the
+    times in it, one Python call per step (tens of thousands per stage); here every time takes
+    its step the same way (searchsorted on the step times, the same side) and the interpolant's
+    arithmetic runs on all times at once, operation for operation as Dop853DenseOutput._call_impl
+    does it (each time's value on its own: the same values to the bit, issue 70). Anything but a
+    solution of DOP853 steps goes to scipy."""
+    ode = sol.sol
+    packed = getattr(sol, "_packed", None)
+    if packed is None:
+        ip = ode.interpolants
+        if not (ode.ascending and ip and all(type(i).__name__ == "Dop853DenseOutput" for i in ip)):
+            return ode(t)
+        packed = sol._packed = (np.array([i.F for i in ip]), np.array([i.t_old for i in ip]),
+                                np.array([i.h for i in ip]), np.array([i.y_old for i in ip]))
+    F, t_old, h, y_old = packed
+    seg = np.searchsorted(ode.ts_sorted, t, side=ode.side) - 1
+    np.clip(seg, 0, ode.n_segments - 1, out=seg)
+    x = ((t - t_old[seg]) / h[seg])[:, None]
+    y = np.zeros((t.size, y_old.shape[1]))
+    for i in range(F.shape[1]):          # Dop853DenseOutput._call_impl: reversed(F), x and 1 - x in turn
+        y += F[seg, F.shape[1] - 1 - i]
+        if i % 2 == 0:
+            y *= x
+        else:
+            y *= 1 - x
+    y += y_old[seg]
+    return y.T
+
+
+def _evaluate(segs, sols, t, drive=True):
+    """States (5, n) and drive (x, x', x'') at times t (zero state and drive before the stage);
+    ``drive=False``: the states only (the drive None)."""
     st = np.zeros((5, t.size))
-    dr = np.zeros((3, t.size))
+    dr = np.zeros((3, t.size)) if drive else None
     for seg, sol in zip([g for g in segs if g.t1 > g.t0], sols):
         sel = (t >= seg.t0) & (t <= seg.t1)
         if sel.any():
-            st[:, sel] = sol.sol(t[sel])
-            dr[:, sel] = np.array(seg(t[sel]))
+            st[:, sel] = _dense(sol, t[sel])
+            if drive:
+                dr[:, sel] = np.array(seg(t[sel]))
     return st, dr
 
 
@@ -457,7 +516,7 @@ class _Sim:
         except FloatingPointError:      # the trial diverged: None (the caller lowers the drive)
             return None
         t = np.arange(segs[0].t0, segs[-1].t1, 1.0 / self.fs)
-        st, _ = _evaluate(segs, sols, t)
+        st, _ = _evaluate(segs, sols, t, drive=False)
         return measure(t, st[0])
 
     def record(self, name, segs, excitation_desc, solved=None):
@@ -483,7 +542,10 @@ class _Sim:
         # read tens of thousands of m/s^2 at the first sample)
         h = 1e-4 / self.fs
         tt = np.clip(t - tau, t0 + h, t1 - h)
-        (sp, drp), (sm, drm) = (_evaluate(segs, sols, tt + hh) for hh in (h, -h))
+        # (the drive is not needed there: states only, both sides in one pass; the dense output is
+        # evaluated point by point, so the values are those of two passes)
+        spm, _ = _evaluate(segs, sols, np.concatenate([tt + h, tt - h]), drive=False)
+        sp, sm = spm[:, :t.size], spm[:, t.size:]
         acc = ((sp[1] + phi2 * sp[4]) - (sm[1] + phi2 * sm[4])) / (2 * h)
         if self.exc == "base":
             ch = {"x_base": dr[0], "x_tip": (1 + e) * (dr_tip[0] + disp)}
