@@ -49,7 +49,7 @@ def reconstruct_pointwise(run: Run, s: ReconSettings, validate_model: bool = Tru
     h = cluster(y - float(np.mean(y)) if b_in is not None else y, dy)
     lib = AgentLibrary(s.library_order, s.form, linear_correction=bool(s.linear_correction) and s.form == "joint",
                        offset=b_in is not None)
-    theta, target = lib.build(y, dy, ddy, Fn, dFn, h)
+    theta, target = lib.matrix(y, dy, ddy, Fn, dFn, h)     # built a fold of rows at a time by the selector
     if theta.shape[0] < 4 * theta.shape[1]:
         raise UserFacingError(f"stage {s.nonlinear_stage!r}: only {theta.shape[0]} samples in the AB/CD clusters for "
                               f"{theta.shape[1]} library columns; record longer or lower --library-order")
