@@ -27,3 +27,38 @@ def test_folds_hold_only_the_callers_matrix_and_select_as_before():
     fit = GroupedSparseSelector([[j] for j in range(1, p)], [0]).fit(A, b)
     assert set(np.flatnonzero(fit.support)) == {0, 3, 5}
     assert np.allclose(fit.coef[[0, 3, 5]], x[[0, 3, 5]], rtol=1e-2)
+
+
+@pytest.mark.parametrize("form, correction, order", [("joint", True, 5), ("joint", False, 4), ("ab", False, 5)])
+def test_library_matrix_built_on_demand_is_the_whole_matrix_to_the_bit(form, correction, order):
+    """The agent library read a block of rows or a set of columns at a time (LibraryMatrix) equals
+    the whole matrix, and the selection on it (folds built one at a time) is the same to the bit."""
+    from recon.library.agent import AgentLibrary, dphi, phi
+    rng = np.random.default_rng(3)
+    n = 40000
+    y, dy, ddy, Fn, dFn = (rng.normal(size=n) * s for s in (1e-3, 0.2, 30.0, 5.0, 800.0))
+    h = rng.choice([-1, 0, 1], size=n)
+    lib = AgentLibrary(order, form, linear_correction=correction, offset=correction)
+    theta = np.empty((int(lib.rows(h).sum()), len(lib.columns)))      # the columns by phi and dphi
+    yy, dd, d2, F, s = (a[lib.rows(h)] for a in (y, dy, ddy, Fn, h.astype(float)))
+    for k, c in enumerate(lib.columns):
+        theta[:, k] = {"a": lambda: s * dphi(yy, dd, d2, c.p, c.r), "psi": lambda: dphi(yy, dd, d2, c.p, c.r),
+                       "lam_a": lambda: dd * phi(yy, dd, c.p, c.r), "xi": lambda: dd * phi(yy, dd, c.p, c.r),
+                       "lam_alpha": lambda: yy * dd, "yy": lambda: yy * dd, "const": lambda: dd,
+                       "lin": lambda: s * d2 if c.r == 0 else (s * dd if c.r == 1 else dd * dd)}.get(c.role,
+                                                                                               lambda: dd * F)()
+    built, target = lib.build(y, dy, ddy, Fn, dFn, h)
+    assert np.array_equal(built, theta) and built.flags["C_CONTIGUOUS"]
+    matrix, target2 = lib.matrix(y, dy, ddy, Fn, dFn, h)
+    assert matrix.shape == theta.shape and np.array_equal(target, target2)
+    sl = (np.arange(theta.shape[0]) // 997) % 5 == 2
+    assert np.array_equal(matrix.rows(sl), theta[sl]) and matrix.rows(sl).flags["C_CONTIGUOUS"]
+    idx = np.array([0, 4, 17, theta.shape[1] - 1])
+    cols = matrix.columns(idx)
+    assert np.array_equal(cols, theta[:, idx]) and cols.strides == theta[:, idx].strides
+    assert np.array_equal(column_sum_squares(matrix, rows=4096), np.sum(theta * theta, axis=0))
+    groups, core = lib.groups()
+    whole = GroupedSparseSelector(groups, core).fit(theta, target)
+    built = GroupedSparseSelector(groups, core).fit(matrix, target)
+    assert np.array_equal(whole.coef, built.coef) and np.array_equal(whole.stderr, built.stderr)
+    assert np.array_equal(whole.cv_error, built.cv_error) and whole.threshold == built.threshold

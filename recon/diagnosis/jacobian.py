@@ -55,7 +55,14 @@ def shift_columns(S: np.ndarray, delay: float, dt: float) -> np.ndarray:
     idx = np.clip(np.arange(n) - delay / dt, 0.0, n - 1.0)
     i0 = np.minimum(np.floor(idx).astype(np.int64), n - 2)
     frac = (idx - i0)[:, None]
-    return S[i0] * (1.0 - frac) + S[i0 + 1] * frac
+    # S[i0] * (1 - frac) + S[i0 + 1] * frac, each product in its own gathered copy (a rows x
+    # columns array fewer at once)
+    out = S[i0]
+    out *= 1.0 - frac
+    right = S[i0 + 1]
+    right *= frac
+    out += right
+    return out
 
 
 def delay_derivative(x: np.ndarray, delay: float, dt: float) -> np.ndarray:
@@ -110,6 +117,8 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
             if _balanced(m, d):
                 for col, name in enumerate(names):
                     S0[2, col] = _balance_partial(base, name, float(d.u[0]), y0, v0, pe, re)
+            # the columns the reading sees, sy + phi2 sq, formed in place in the kernel's own arrays:
+            # at a 10 kHz stage each rows x columns array is ~10 MiB and the stages run side by side
             if plain:
                 st3, sy = simulate_plain_sensitivities(np.ascontiguousarray(u), dt, int(m.substeps(dt)), P[I_G],
                                                        base.c_m, base.k_m, base.alpha_m, base.gamma, base.delta,
@@ -117,15 +126,22 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
                                                        int(d.order))
                 st = np.zeros((5, st3.shape[1]))
                 st[:3] = st3
-                sq = np.zeros_like(sy)
+                sy += phi2 * 0.0        # the plain kernel's sq is 0
+                read_cols = sy
             else:
-                st, sy, sq = simulate_extended_sensitivities(np.ascontiguousarray(u), float(d.t[0]), dt,
-                                                             int(m.substeps(dt)), P, coef, pe, re, y0, v0, z0,
-                                                             codes, S0, int(d.order), force)
+                st, sy, read_cols = simulate_extended_sensitivities(np.ascontiguousarray(u), float(d.t[0]), dt,
+                                                                    int(m.substeps(dt)), P, coef, pe, re, y0, v0,
+                                                                    z0, codes, S0, int(d.order), force)
+                read_cols *= phi2
+                read_cols += sy
+            del sy
             if not np.all(np.isfinite(st[d.order])):
                 return None
             J = np.zeros((d.t.size, len(keys)))
-            J[:, sim_cols] = scale * shift_columns(sy + phi2 * sq, delay, dt)
+            read_cols = shift_columns(read_cols, delay, dt)
+            read_cols *= scale
+            J[:, sim_cols] = read_cols
+            del read_cols
             read = st[d.order] + phi2 * st[3 + d.order]
             motion = read + d.x_in if (d.x_in is not None and not force) else read
             for c, k in enumerate(keys):
@@ -137,9 +153,10 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
                     J[:, c] = scale * delay_derivative(motion, delay, dt)
             J = J[d.fit]
             if d.order:
-                J = J - J.mean(axis=0)     # the velocity's constant, fitted over the fitting samples
+                J -= J.mean(axis=0)        # the velocity's constant, fitted over the fitting samples
             w = 1.0 / (fit_scale(d) * math.sqrt(max(int(d.fit.sum()), 1)))
-            return J * (w * scales)
+            J *= w * scales
+            return J
 
         # the stages side by side on the fits' threads (the kernels run without the GIL; each
         # stage's columns are what they would be alone)

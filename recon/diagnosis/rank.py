@@ -583,11 +583,18 @@ def own_starts(am: AugmentedModel, data: list[StageData]) -> list[StageData]:
 
 
 def simulate_all(am: AugmentedModel, data: list[StageData]) -> list[np.ndarray]:
-    out = []
+    return simulate_stages(am, data)[0]
+
+
+def simulate_stages(am: AugmentedModel, data: list[StageData]) -> tuple[list[np.ndarray], list]:
+    """(``am``'s output per stage, the start each stage was simulated from): each output is
+    ``stage_output(am, d, start)``, so the starts simulate it again to the bit (FitResult.sims)."""
+    out, starts = [], []
     for d in data:
         start, ys = _held_start(am, d)
         out.append(ys if ys is not None else stage_output(am, d, start))
-    return out
+        starts.append(start)
+    return out, starts
 
 
 def nrmse_per_stage(am: AugmentedModel, data: list[StageData], sims=None) -> dict:
@@ -651,7 +658,19 @@ class FitResult:
     resid_held: np.ndarray = field(repr=False, default=None)
     stderr: dict = field(default_factory=dict)
     seconds: float = 0.0
-    sims: list = field(repr=False, default=None)   # the model's simulated output per stage
+    # the stages the fit was scored on and the start each was simulated from: :attr:`sims` again
+    sim_stages: list = field(repr=False, default=None)
+    sim_starts: list = field(repr=False, default=None)
+    _sims: list = field(init=False, repr=False, compare=False, default=None)
+
+    @property
+    def sims(self) -> list | None:
+        """The model's simulated output per stage (None for a fit not scored). Simulated again when
+        first read, from the starts the fit's own simulation took (the same numbers), and kept: a
+        diagnosis makes dozens of fits and reads the output of a few, each several MiB at 10 kHz."""
+        if self._sims is None and self.sim_stages is not None:
+            self._sims = [stage_output(self.model, d, s) for d, s in zip(self.sim_stages, self.sim_starts)]
+        return self._sims
 
 
 def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict | None = None,
@@ -714,7 +733,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
         return FitResult(model=m, cost_fit=cost / max(len([d for d in data if d.fit.any()]), 1),
                          mse_held=float("nan"), nrmse={}, nrmse_held=float("nan"), n_held=0,
                          seconds=time.perf_counter() - t0)
-    sims = simulate_all(m, data)
+    sims, starts = simulate_stages(m, data)
     held = [(ys - d.y)[d.held] for d, ys in zip(data, sims)]
     rh = np.concatenate(held) if held else np.zeros(0)
     yh = np.concatenate([d.y[d.held] - d.y[d.held].mean() for d in data if d.held.any()]) if rh.size else np.zeros(0)
@@ -722,7 +741,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
     nh = float(math.sqrt(mse / np.mean(yh ** 2))) if rh.size and np.mean(yh ** 2) > 0 else float("nan")
     return FitResult(model=m, cost_fit=cost / max(len([d for d in data if d.fit.any()]), 1), mse_held=mse,
                      nrmse=nrmse_per_stage(m, data, sims), nrmse_held=nh, n_held=int(rh.size), resid_held=rh,
-                     stderr=stderr, seconds=time.perf_counter() - t0, sims=sims)
+                     stderr=stderr, seconds=time.perf_counter() - t0, sim_stages=data, sim_starts=starts)
 
 
 def _standard_errors(sol, keys: list[str], sc: np.ndarray, cost: float, resid, p: np.ndarray,

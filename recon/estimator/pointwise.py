@@ -49,7 +49,7 @@ def reconstruct_pointwise(run: Run, s: ReconSettings, validate_model: bool = Tru
     h = cluster(y - float(np.mean(y)) if b_in is not None else y, dy)
     lib = AgentLibrary(s.library_order, s.form, linear_correction=bool(s.linear_correction) and s.form == "joint",
                        offset=b_in is not None)
-    theta, target = lib.build(y, dy, ddy, Fn, dFn, h)
+    theta, target = lib.matrix(y, dy, ddy, Fn, dFn, h)     # built a fold of rows at a time by the selector
     if theta.shape[0] < 4 * theta.shape[1]:
         raise UserFacingError(f"stage {s.nonlinear_stage!r}: only {theta.shape[0]} samples in the AB/CD clusters for "
                               f"{theta.shape[1]} library columns; record longer or lower --library-order")
@@ -75,6 +75,10 @@ def reconstruct_pointwise(run: Run, s: ReconSettings, validate_model: bool = Tru
         Fn = g * u0 - ddy - c_m * dy - K_m * y
         dFn = g * nl.u[1] - dddy - c_m * ddy - K_m * dy
     hp = estimate_delta(hp, y, dy, ddy, Fn, dFn, h)
+    # the polish below runs at the reconstruction's peak memory: the refit's Fn, Fn' and the stage's
+    # third derivative and u', which nothing after this reads, are let go before it
+    t_nl, u_nl, choice_nl = nl.t, nl.u[0], nl.choice
+    del Fn, dFn, dddy, nl
     timings["nonlinear"] = time.perf_counter() - t1
 
     model = HystereticModel(
@@ -82,17 +86,17 @@ def reconstruct_pointwise(run: Run, s: ReconSettings, validate_model: bool = Tru
         fn_m=hp.fn, inv_m=None if exc == BASE else g, input_offset=b_in,
         provenance={"method": "agent-model sparse regression (shakerlab recon)", "software": f"shakerlab {__version__}",
                     "settings": s.to_dict(), "threshold": sp.threshold, "source": run.source,
-                    "differentiation": {"linear": lin.choice, "nonlinear": nl.choice}},
+                    "differentiation": {"linear": lin.choice, "nonlinear": choice_nl}},
     )
     model, val = polish_and_validate(model, run, s, hp.info, timings, validate_model)
     return ReconResult(
         model=model, linear=lf, sparse=sp.summary(), library_names=lib.names,
         library_coef=[float(c) for c in sp.coef], hysteresis_info=hp.info,
-        differentiation={"linear": lin.choice, "nonlinear": nl.choice,
-                         "window": nl.choice["window"], "order": nl.choice["order"],
-                         "noise_level": nl.choice["noise_level"]},
+        differentiation={"linear": lin.choice, "nonlinear": choice_nl,
+                         "window": choice_nl["window"], "order": choice_nl["order"],
+                         "noise_level": choice_nl["noise_level"]},
         validation=val, settings=s, timings=timings, selection_problem=problem,
         # the smoothed measured motion of the fitted stage; quantities implied by a model
         # (e.g. the hysteretic force) are derived from the final model, see recon.validation
-        signals={"t": nl.t, "y": y, "dy": dy, "ddy": ddy, "u": nl.u[0]},
+        signals={"t": t_nl, "y": y, "dy": dy, "ddy": ddy, "u": u_nl},
     )

@@ -133,28 +133,41 @@ class AgentLibrary:
         return (h != 0) if self.form == "joint" else (h == 1)
 
     def build(self, y, dy, ddy, Fn, dFn, h):
-        """(Theta, target) over the rows this form uses."""
+        """(Theta, target) over the rows this form uses (Theta: the whole rows x columns matrix)."""
+        matrix, target = self.matrix(y, dy, ddy, Fn, dFn, h)
+        return matrix.rows(slice(None)), target
+
+    def matrix(self, y, dy, ddy, Fn, dFn, h):
+        """(LibraryMatrix, target) over the rows this form uses: Theta as :meth:`build` gives it,
+        made a block of rows or a set of columns at a time when read (the sparse regression's folds
+        never hold the whole matrix)."""
         mask = self.rows(h)
         y, dy, ddy, Fn, dFn = (a[mask] for a in (y, dy, ddy, Fn, dFn))
         s = h[mask].astype(float)
-        theta = np.empty((y.size, len(self.columns)))
-        for k, c in enumerate(self.columns):
-            if c.role == "a":
-                theta[:, k] = s * dphi(y, dy, ddy, c.p, c.r)
-            elif c.role in ("lam_a", "xi"):
-                theta[:, k] = dy * phi(y, dy, c.p, c.r)
-            elif c.role == "psi":
-                theta[:, k] = dphi(y, dy, ddy, c.p, c.r)
-            elif c.role in ("lam_alpha", "yy"):
-                theta[:, k] = y * dy
-            elif c.role == "lin":
-                theta[:, k] = s * ddy if c.r == 0 else (s * dy if c.r == 1 else dy * dy)
-            elif c.role == "const":
-                theta[:, k] = dy
-            else:
-                theta[:, k] = dy * Fn
         target = s * dFn if self.form == "joint" else dFn
-        return theta, target
+        return LibraryMatrix(self, y, dy, ddy, Fn, s), target
+
+    def column(self, c: Column, pw: "Powers", ddy, Fn, s) -> np.ndarray:
+        """The values of column ``c`` on samples (y, y' in ``pw``, y'', Fn) with cluster sign ``s``:
+        the arithmetic of :func:`phi` and :func:`dphi`, with each power of y and y' taken once."""
+        y, dy = pw.y, pw.dy
+        p, r = c.p, c.r
+        if c.role in ("a", "psi"):       # dphi(y, dy, ddy, p, r)
+            out = np.zeros_like(y)
+            if p:
+                out = out + p * pw.of_y(p - 1) * pw.of_dy(r + 1)
+            if r:
+                out = out + r * pw.of_y(p) * pw.of_dy(r - 1) * ddy
+            return s * out if c.role == "a" else out
+        if c.role in ("lam_a", "xi"):
+            return dy * (pw.of_y(p) * pw.of_dy(r))      # dy * phi(y, dy, p, r)
+        if c.role in ("lam_alpha", "yy"):
+            return y * dy
+        if c.role == "lin":
+            return s * ddy if r == 0 else (s * dy if r == 1 else dy * dy)
+        if c.role == "const":
+            return dy
+        return dy * Fn
 
     def true_coefficients(self, fn_m: dict, lam: float, alpha: float) -> np.ndarray:
         """The coefficient vector a model implies (used to check the algebra)."""
@@ -178,3 +191,53 @@ class AgentLibrary:
                     v += (c.p + 1) * a.get((c.p + 1, 0), 0.0)
                 out[k] = v
         return out
+
+
+class LibraryMatrix:
+    """The library matrix Theta (rows: the samples the form uses, one column per library column)
+    without holding it: :meth:`rows` builds the rows asked for, :meth:`columns` the columns asked
+    for, each entry by the same arithmetic on the same samples, so equal to the whole matrix's to the
+    bit. What recon.regression.sparse.CompressedFolds reads in place of an array."""
+
+    def __init__(self, lib: AgentLibrary, y, dy, ddy, Fn, s):
+        self.lib = lib
+        self.samples = (y, dy, ddy, Fn, s)
+        self.shape = (y.size, len(lib.columns))
+
+    def rows(self, index) -> np.ndarray:
+        """Theta[index] (a slice or a boolean mask of the rows), a new C-ordered array."""
+        y, dy, ddy, Fn, s = (a[index] for a in self.samples)
+        pw = Powers(y, dy)
+        out = np.empty((y.size, self.shape[1]))
+        for k, c in enumerate(self.lib.columns):
+            out[:, k] = self.lib.column(c, pw, ddy, Fn, s)
+        return out
+
+    def columns(self, idx) -> np.ndarray:
+        """Theta[:, idx] (column indices), laid out as numpy lays out that indexing (Fortran order)."""
+        y, dy, ddy, Fn, s = self.samples
+        pw = Powers(y, dy)
+        out = np.empty((self.shape[0], len(idx)), order="F")
+        for j, k in enumerate(idx):
+            out[:, j] = self.lib.column(self.lib.columns[k], pw, ddy, Fn, s)
+        return out
+
+
+class Powers:
+    """The powers y^k and y'^k of a set of samples, each taken once (``y ** k``, the numbers
+    :func:`phi` and :func:`dphi` take) and kept for the columns that share it."""
+
+    def __init__(self, y: np.ndarray, dy: np.ndarray):
+        self.y, self.dy = y, dy
+        self._y: dict[int, np.ndarray] = {}
+        self._dy: dict[int, np.ndarray] = {}
+
+    def of_y(self, k: int) -> np.ndarray:
+        if k not in self._y:
+            self._y[k] = self.y ** k
+        return self._y[k]
+
+    def of_dy(self, k: int) -> np.ndarray:
+        if k not in self._dy:
+            self._dy[k] = self.dy ** k
+        return self._dy[k]

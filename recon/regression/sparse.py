@@ -153,13 +153,25 @@ class AutoSTLSQ:
 
 
 
-def column_sum_squares(A: np.ndarray, rows: int = 16384) -> np.ndarray:
+def matrix_rows(A, index) -> np.ndarray:
+    """``A[index]`` of an array, or the rows a matrix built on demand (an object with ``shape``,
+    ``rows(index)`` and ``columns(idx)``, e.g. recon.library.agent.LibraryMatrix) builds."""
+    return A[index] if isinstance(A, np.ndarray) else A.rows(index)
+
+
+def matrix_columns(A, idx) -> np.ndarray:
+    """``A[:, idx]`` of an array or of a matrix built on demand (:func:`matrix_rows`)."""
+    return A[:, idx] if isinstance(A, np.ndarray) else A.columns(idx)
+
+
+def column_sum_squares(A, rows: int = 16384) -> np.ndarray:
     """np.sum(A * A, axis=0), to the bit, without the n x p temporary: numpy adds the rows of a
     C-ordered array one after another along axis 0, and so does this, a block of rows at a time
-    (each block's sum starting from the running total)."""
+    (each block's sum starting from the running total). ``A``: an array or a matrix built on
+    demand (:func:`matrix_rows`), read a block at a time."""
     acc = None
     for start in range(0, A.shape[0], rows):
-        block = A[start:start + rows]
+        block = matrix_rows(A, slice(start, start + rows))
         sq = block * block
         acc = np.add.reduce(sq, axis=0) if acc is None else np.add.reduce(np.vstack([acc[None], sq]), axis=0)
     return acc if acc is not None else np.zeros(A.shape[1])
@@ -168,10 +180,12 @@ def column_sum_squares(A: np.ndarray, rows: int = 16384) -> np.ndarray:
 class CompressedFolds:
     """Interleaved K-fold split of a normalised regression, each fold QR-compressed."""
 
-    def __init__(self, A: np.ndarray, b: np.ndarray, n_folds: int = 5):
+    def __init__(self, A, b: np.ndarray, n_folds: int = 5):
         n, p = A.shape
         self.p = p
-        self.A = A          # the caller's matrix: normalised a fold (or a support's columns) at a time
+        # the caller's matrix (an array, or one built on demand: matrix_rows), normalised a fold (or a
+        # support's columns) at a time: only one fold's rows are held at once
+        self.A = A
         self.norms = np.sqrt(column_sum_squares(A))
         self.norms[self.norms == 0] = 1.0
         self.bn = float(np.sqrt(b @ b)) or 1.0
@@ -182,7 +196,10 @@ class CompressedFolds:
         self.Rf, self.df, self.ef, self.bbf = [], [], [], []
         for i in range(n_folds):
             sl = fold_of == i
-            Q, R = np.linalg.qr(A[sl] / self.norms)
+            fold = matrix_rows(A, sl)
+            fold /= self.norms
+            Q, R = np.linalg.qr(fold)
+            del fold
             d = Q.T @ bs[sl]
             self.Rf.append(R)
             self.df.append(d)
@@ -196,7 +213,7 @@ class CompressedFolds:
 
     def normalised(self, idx: np.ndarray) -> np.ndarray:
         """The normalised columns ``idx`` of the matrix (what the folds were made of)."""
-        return self.A[:, idx] / self.norms[idx]
+        return matrix_columns(self.A, idx) / self.norms[idx]
 
     def cv(self, support: np.ndarray) -> np.ndarray:
         """Held-out relative squared residual of LS on ``support``, one value per fold."""
@@ -240,7 +257,8 @@ class GroupedSparseSelector:
         self.max_groups = max_groups
         self.corr_len = max(1.0, float(corr_len))
 
-    def fit(self, A: np.ndarray, b: np.ndarray) -> SparseFit:
+    def fit(self, A, b: np.ndarray) -> SparseFit:
+        """Select on ``A`` (an array, or a matrix built on demand: :func:`matrix_rows`) x = ``b``."""
         n, p = A.shape
         cf = CompressedFolds(A, b, self.n_folds)
         cands = {}   # support bytes -> (support, origin, threshold)
