@@ -215,6 +215,10 @@ class LineServer:
             self.alive = False
             clients = list(self._clients)
             self._clients.clear()
+        # the instrument is off before its connections drop (as the amplifier's kill mutes first): a
+        # client that sees the link die never sees the dead instrument's output still on
+        if self.on_kill is not None:
+            self.on_kill()
         for s in [self._sock, *clients]:
             try:
                 s.shutdown(socket.SHUT_RDWR)
@@ -231,8 +235,6 @@ class LineServer:
                 except OSError:
                     pass
         self._pty_master = self._pty_slave = None
-        if self.on_kill is not None:
-            self.on_kill()
 
     def stop(self) -> None:
         self.kill()

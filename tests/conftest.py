@@ -1,4 +1,7 @@
 import os
+import time as _time
+
+import pytest
 
 # Every test runs headless.
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
@@ -32,3 +35,27 @@ HEAVY_FIRST = (
 def pytest_collection_modifyitems(session, config, items):
     rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))     # stable: a file's own order is kept
+
+
+# pyserial's socket:// transport (serial.urlhandler.protocol_socket, 3.5) sleeps 0.3 s in every
+# close(), "in case of quick reconnects, give the server some time": a test that opens the three
+# line instruments of a simulated rig spends 0.9 s of wall time closing them, idle (about 100
+# tests did; issue 70). The simulated instruments (sim_backend.line_server) accept any number of
+# connections at once, so the tests leave that pause out; the drivers and the rig are unchanged and
+# still pause on a real rig. Only that module's time.sleep is replaced (its only sleep); a CLI
+# run in a subprocess keeps the pause.
+class _TimeWithoutSleep:
+    def __getattr__(self, name):
+        return getattr(_time, name)
+
+    @staticmethod
+    def sleep(seconds):
+        pass
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _no_pause_in_pyserial_socket_close():
+    from serial.urlhandler import protocol_socket
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(protocol_socket, "time", _TimeWithoutSleep())
+        yield

@@ -123,7 +123,7 @@ def test_reprocess_cli_serial_and_errors(batch_dir, tmp_path, capsys):
     assert main(["reprocess", str(d / "run_a.h5"), "--workers", "0"]) == 2
     assert "--workers must be at least 1" in capsys.readouterr().err
     with pytest.raises(UserFacingError, match="--scheduler tcp://127.0.0.1:9: cannot connect"):
-        run_batch([str(d / "run_a.h5")], BatchSettings(scheduler="tcp://127.0.0.1:9", connect_timeout=1.0))
+        run_batch([str(d / "run_a.h5")], BatchSettings(scheduler="tcp://127.0.0.1:9", connect_timeout=0.2))
 
 
 def test_diagnose_unavailable_is_said(batch_dir, monkeypatch):

@@ -82,12 +82,19 @@ class ScriptedPeer:
     def sent_by_driver(self) -> bytes:
         return bytes(self.received)
 
+    def release_pty(self):
+        """After the driver has closed the pty: close this end's copy of the slave too, so the peer
+        reads what the driver sent and then gets EIO (the end) instead of blocking until close."""
+        if self._listener is None and self._slave is not None:
+            os.close(self._slave)
+            self._slave = None
+
     def close(self):
         if self._listener is not None:
             self._listener.close()
         else:
+            self.release_pty()
             os.close(self._fd)
-            os.close(self._slave)
 
 
 def expect(driver_cls, script, terminator, use_pty=False, **options):
@@ -97,6 +104,7 @@ def expect(driver_cls, script, terminator, use_pty=False, **options):
 
 def finish(peer, driver, script):
     driver.close()
+    peer.release_pty()
     peer._thread.join(2)
     peer.close()
     assert peer.mismatch is None, peer.mismatch
