@@ -337,16 +337,19 @@ class HystereticModel:
         judged in that quantity (recon.signals.response_target), never on the integrated
         displacement, whose drift (the integrated sensor noise) is no motion of the structure.
 
-        The edge of the target says whether the stage starts at rest. A velocity as recorded: its
-        value within 5 times its edge noise and its derivative small, as the displacement rule judges
-        y0 and y'0 (recon.signals.at_rest); the start is then fitted with a constant velocity offset
-        as a nuisance, as every fit in velocity takes it, so a sensor's offset is no start in motion. A velocity integrated from an acceleration record: its
-        value within 5 % of its rms or 4 times its edge noise, since its edge value carries the
-        integration's constant (the line removed), an error the white floor does not measure: held
-        to the noise alone, a rest is taken for motion and the start is fitted to that error. At rest the start is the
-        model's rest (0, 0, 0): a record in velocity cannot see a static offset, and the rest is the
-        state a stage recorded from rest is in. Otherwise the start is fitted to the stage's first
-        seconds in the target's quantity (recon.simulation.start_state), from the edge estimate."""
+        The edge of the target says whether the stage starts at rest.
+        - A velocity as recorded: its value within 5 times its edge noise and its derivative small,
+          as the displacement rule judges y0 and y'0 (recon.signals.at_rest). The start is then
+          fitted with a constant velocity offset as a nuisance, as every fit in velocity takes it,
+          so a sensor's offset is no start in motion.
+        - A velocity integrated from an acceleration record: its value within 5 % of its rms or 4
+          times its edge noise, since its edge value carries the integration's constant (the line
+          removed), an error the white floor does not measure: held to the noise alone, a rest is
+          taken for motion and the start is fitted to that error.
+        At rest the start is the model's rest (0, 0, 0): a record in velocity cannot see a static
+        offset, and the rest is the state a stage recorded from rest is in. Otherwise the start is
+        fitted to the stage's first seconds in the target's quantity (recon.simulation.start_state),
+        from the edge estimate."""
         order, x = response_target(stage)
         x0, x1, sig, x_rms, sig1, x1_rms = target_edge(stage)
         y0 = start_derivatives(stage)[0]

@@ -126,8 +126,7 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
                                                        int(d.order))
                 st = np.zeros((5, st3.shape[1]))
                 st[:3] = st3
-                sy += phi2 * 0.0        # the plain kernel's sq is 0
-                read_cols = sy
+                read_cols = sy          # the plain kernel has no sq: sy + phi2 sq is sy
             else:
                 st, sy, read_cols = simulate_extended_sensitivities(np.ascontiguousarray(u), float(d.t[0]), dt,
                                                                     int(m.substeps(dt)), P, coef, pe, re, y0, v0,

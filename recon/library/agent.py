@@ -44,16 +44,27 @@ FORMS = ("joint", "ab")
 
 
 def phi(y, dy, p, r):
-    return y ** p * dy ** r
+    """y^p y'^r."""
+    return phi_of(Powers(y, dy), p, r)
 
 
 def dphi(y, dy, ddy, p, r):
     """d/dt (y^p y'^r) = p y^(p-1) y'^(r+1) + r y^p y'^(r-1) y''."""
-    out = np.zeros_like(y)
+    return dphi_of(Powers(y, dy), ddy, p, r)
+
+
+def phi_of(pw: "Powers", p: int, r: int) -> np.ndarray:
+    """:func:`phi` from the samples' powers ``pw`` (each taken once, shared by the columns)."""
+    return pw.of_y(p) * pw.of_dy(r)
+
+
+def dphi_of(pw: "Powers", ddy, p: int, r: int) -> np.ndarray:
+    """:func:`dphi` from the samples' powers ``pw``."""
+    out = np.zeros_like(pw.y)
     if p:
-        out = out + p * y ** (p - 1) * dy ** (r + 1)
+        out = out + p * pw.of_y(p - 1) * pw.of_dy(r + 1)
     if r:
-        out = out + r * y ** p * dy ** (r - 1) * ddy
+        out = out + r * pw.of_y(p) * pw.of_dy(r - 1) * ddy
     return out
 
 
@@ -149,18 +160,14 @@ class AgentLibrary:
 
     def column(self, c: Column, pw: "Powers", ddy, Fn, s) -> np.ndarray:
         """The values of column ``c`` on samples (y, y' in ``pw``, y'', Fn) with cluster sign ``s``:
-        the arithmetic of :func:`phi` and :func:`dphi`, with each power of y and y' taken once."""
+        :func:`phi` and :func:`dphi` on the powers of y and y' the columns share."""
         y, dy = pw.y, pw.dy
         p, r = c.p, c.r
-        if c.role in ("a", "psi"):       # dphi(y, dy, ddy, p, r)
-            out = np.zeros_like(y)
-            if p:
-                out = out + p * pw.of_y(p - 1) * pw.of_dy(r + 1)
-            if r:
-                out = out + r * pw.of_y(p) * pw.of_dy(r - 1) * ddy
+        if c.role in ("a", "psi"):
+            out = dphi_of(pw, ddy, p, r)
             return s * out if c.role == "a" else out
         if c.role in ("lam_a", "xi"):
-            return dy * (pw.of_y(p) * pw.of_dy(r))      # dy * phi(y, dy, p, r)
+            return dy * phi_of(pw, p, r)
         if c.role in ("lam_alpha", "yy"):
             return y * dy
         if c.role == "lin":
