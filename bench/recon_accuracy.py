@@ -143,6 +143,8 @@ def main(argv=None):
     ap.add_argument("--jsonl", default=None, help="--stress: write one JSON row per run to this file")
     ap.add_argument("--first-seed", type=int, default=0, help="--stress: seeds first-seed .. first-seed+seeds-1")
     ap.add_argument("--protocols", default="paper,rig", help="--stress: protocols, alternated over the seeds")
+    ap.add_argument("--noise-offset", type=int, default=0,
+                    help="--stress: noise seed = system seed + this (another noise draw of the same systems)")
     ap.add_argument("--quantity", default="displacement", choices=("displacement", "velocity", "acceleration"),
                     help="--stress: the tip recorded as this quantity, at the SNR in its own rms (velocity: white "
                          "plus 1/f noise, as a vibrometer's)")

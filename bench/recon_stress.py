@@ -52,8 +52,10 @@ def identifiability(rec: dict) -> dict:
 
 
 def run_seed(task) -> list[dict]:
-    """Every SNR of one seed: simulate once, add noise (noise seed = seed), reconstruct, score."""
-    seed, snrs, protocols, quantity = task if len(task) > 3 else (*task, "displacement")
+    """Every SNR of one seed: simulate once, add noise (noise seed = seed + the task's noise offset,
+    default 0), reconstruct, score."""
+    seed, snrs, protocols, quantity, *more = task if len(task) > 3 else (*task, "displacement")
+    noise_seed = seed + (more[0] if more else 0)
     warnings.filterwarnings("ignore")
     system, protocol, fs = stress_system(seed, protocols)
     t0 = time.perf_counter()
@@ -67,11 +69,11 @@ def run_seed(task) -> list[dict]:
     n_samples = {k: int(v["t"].size) for k, v in rec["stages"].items()}
     rows = []
     for snr in snrs:
-        row = {"seed": seed, "noise_seed": seed, "snr": snr, "protocol": protocol, "fs": fs, "system": system,
+        row = {"seed": seed, "noise_seed": noise_seed, "snr": snr, "protocol": protocol, "fs": fs, "system": system,
                **({"quantity": quantity} if quantity != "displacement" else {}),
                "truth": rec["truth"], "samples": n_samples, "sim_seconds": t_sim,
                "identifiability": ident}
-        run = to_run(ind.add_noise(rec, snr, seed, quantity=quantity))
+        run = to_run(ind.add_noise(rec, snr, noise_seed, quantity=quantity))
         t1 = time.perf_counter()
         # a reconstruct that runs for minutes: dump where it is (stderr), once
         faulthandler.dump_traceback_later(STUCK_S, exit=False, file=sys.stderr)
@@ -108,7 +110,8 @@ def two_stage_summary(model) -> dict:
     rec = (model.provenance.get("output_error_polish") or {}).get("two_stage") or {}
     restart = rec.get("restart") or {}
     return {"applied": rec.get("applied"), "mean_square": restart.get("mean_square_noise_variances"),
-            "restart_applied": restart.get("applied"), "dropped": (rec.get("terms") or {}).get("dropped")}
+            "restart_applied": restart.get("applied"), "dropped": (rec.get("terms") or {}).get("dropped"),
+            "joint_gain": rec.get("joint_gain_noise_variances"), "floor": restart.get("floor_noise_variances")}
 
 
 def meets_target(row: dict) -> bool:
@@ -201,7 +204,8 @@ def main(a) -> int:
     seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else \
         list(range(a.first_seed, a.first_seed + (a.seeds or 50)))
     n = len(seeds)
-    tasks = [(s, snrs, protocols, getattr(a, "quantity", "displacement")) for s in seeds]
+    tasks = [(s, snrs, protocols, getattr(a, "quantity", "displacement"), getattr(a, "noise_offset", 0))
+             for s in seeds]
     rows = []
     t0 = time.perf_counter()
     out = open(a.jsonl, "w") if a.jsonl else None

@@ -12,8 +12,11 @@ Three steps, each kept only on the evidence of the joint fit:
 
 1. :func:`two_stage_polish`: the joint polish from the nonlinear stage's model. Kept when the two
    stages agree: the nonlinear stage's sum of squares rises by at most the chi-square(p) quantile
-   at ``joint_false_alarm`` (recon.estimator.tuning), in noise variances. A larger rise is model error, not noise, and the
-   nonlinear stage's own fit stays.
+   at ``joint_false_alarm`` (recon.estimator.tuning), in noise variances. A larger rise is model
+   error, not noise, and the nonlinear stage's own fit stays. When the joint polish lowers the joint
+   sum of squares by less than one noise variance (one chi-square unit: no parameter moves by a
+   standard error), the linear stage does not contradict the model: the joint fit is kept, and
+   steps 2 and 3, which look for what the linear stage contradicts, are not taken.
 2. :func:`drop_terms`: each fn term is dropped in turn and the joint fit repeated; the term whose
    loss costs least goes when that cost is below log(n) noise variances (the BIC price of one
    parameter), and again until every term pays for itself. The cost is the rise of the joint sum
@@ -32,7 +35,8 @@ noise (1) plus the input sensor's noise carried through the model (the input u i
 measured channel, so its noise drives the simulation; near a resonance that is a coloured residual
 well above the white level). It is measured, not assumed: the stage's own input filter applied to
 white noise at the input channel's noise level (the draws the uncertainty ensemble uses), simulated
-through the model, and compared with the same simulation without it. A fit is at its floor when
+through the model from the stage's start state as the fit holds it, and compared with the same
+simulation without it. A fit is at its floor when
 its mean square is within ``floor_ratio`` of that floor either way (:func:`at_floor`): above it the
 residual holds model error; below it the model carries the record's noise in a way the record
 does not show (its dynamics amplify the input noise more than the residual allows), which a right
@@ -42,7 +46,7 @@ Measured on the independent generator (bench/recon_accuracy.py --stress, docs/me
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import chdtri
@@ -54,7 +58,7 @@ from recon.estimator.result import ReconSettings
 from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.model import HystereticModel
 from recon.output_error.polish import decimate, polish
-from recon.output_error.problem import OutputError, item_target, measured_error
+from recon.output_error.problem import OutputError, item_start, item_target, measured_error
 from recon.signals import base_noise_in_target, input_filter, response_target
 from recon.welch import welch
 from shakerlab.run_data import BASE, Run, Stage
@@ -80,6 +84,7 @@ class TwoStages:
     stages: list[Stage]
     noise: list[float]
     tuning: EstimatorTuning = DEFAULT_TUNING
+    _draws: list | None = field(default=None, init=False, repr=False)    # _floor_draws, made once
 
     @classmethod
     def of(cls, run: Run, s: ReconSettings) -> "TwoStages | None":
@@ -121,29 +126,54 @@ class TwoStages:
         noise leaves under ``model`` if ``model`` is right (module doc): 1 for the output's white
         noise plus the input noise carried through the model, over the items as the polish fits
         them. Under base excitation the base sensor's noise enters y = x_tip - x_base as well as
-        u; its own share of the output noise is replaced by the pair's joint effect."""
-        rng = np.random.default_rng(FLOOR_SEED)
+        u; its own share of the output noise is replaced by the pair's joint effect.
+
+        The noise enters the input, not the start: each draw keeps the item's start state
+        (y0, y0', z0) as the fit holds it, so the draw's y'' at the start moves with its input
+        (balance: z0 = g u0 - y0'' - ...). Left to move z0 instead, a draw's first input sample
+        (a Savitzky-Golay second derivative's edge, the noisiest sample it has) set a hysteretic
+        offset that decays only as |y'| z does, and the floor came out several times too high
+        at random."""
         total, count = 0.0, 0
-        for st, item, sd in zip(self.stages, items, self.noise):
+        for item, sd, draws in zip(items, self.noise, self._floor_draws()):
             d, q = decimate(item, self.tuning.polish_fs)
-            f = input_filter(st, tuning=self.tuning)
             base = OutputError.item_response(model, d)
+            start = item_start(d)
             share = []
-            for _ in range(self.tuning.floor_draws):
-                nb = rng.normal(0.0, f.noise_std, st.t.size)
-                un = f(nb)
-                ys = OutputError.item_response(model, d, (item[1] + un)[::q])
+            for un, carried, own in draws:
+                noisy = d if start is None else (
+                    (*d[:3], (start[0], start[1], start[2] + model.input_gain * un[0]), *d[4:]))
+                ys = OutputError.item_response(model, noisy, d[1] + un)
                 if not np.all(np.isfinite(ys)):
                     return float("inf")
-                if st.excitation == BASE:     # y_meas carries -n_base: the residual gets +n_base
-                    carried, own = base_noise_in_target(st, nb)
-                    e = ys - base - carried[::q]
-                    share.append((float(np.mean(e ** 2)) - (f.noise_std ** 2 if own else 0.0)) / sd ** 2)
-                else:
-                    share.append(float(np.mean((ys - base) ** 2)) / sd ** 2)
+                share.append((float(np.mean((ys - base - carried) ** 2)) - own) / sd ** 2)
             total += d[2].size * (1.0 + max(float(np.mean(share)), 0.0))
             count += d[2].size
         return total / max(count, 1)
+
+    def _floor_draws(self) -> list[list[tuple[np.ndarray, np.ndarray, float]]]:
+        """Per stage, the floor's noise draws as the decimated items take them: (the input's noise,
+        the noise the base channel puts into the target (0 for a force input), the variance of
+        the part that is the target's own white noise). They depend on the stage and the fixed
+        seed only, not on the model: made once per TwoStages."""
+        if self._draws is None:
+            rng = np.random.default_rng(FLOOR_SEED)
+            out = []
+            for st in self.stages:
+                f = input_filter(st, tuning=self.tuning)
+                q = decimate((st.t, st.t, st.t), self.tuning.polish_fs)[1]   # as the items' own
+                draws = []
+                for _ in range(self.tuning.floor_draws):
+                    nb = rng.normal(0.0, f.noise_std, st.t.size)
+                    un = f(nb)[::q]
+                    if st.excitation == BASE:     # y_meas carries -n_base: the residual gets +n_base
+                        carried, own = base_noise_in_target(st, nb)
+                        draws.append((un, carried[::q], f.noise_std ** 2 if own else 0.0))
+                    else:
+                        draws.append((un, np.zeros_like(un), 0.0))
+                out.append(draws)
+            self._draws = out
+        return self._draws
 
     def sse(self, model: HystereticModel, items: list) -> tuple[float, int]:
         """The joint sum of squares in noise variances over the items as the polish fits them
@@ -198,6 +228,7 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
     try:
         new, info, items = two.fit(model)
         before, n = stage_cost(model, items[1], s.tuning)
+        gain = two.sse(model, items)[0] - two.sse(new, items)[0] if info["applied"] else 0.0
     except NUMERICAL_ERRORS as exc:
         record.update(applied=False, reason=f"{type(exc).__name__}: {exc}")
         return with_record(model)
@@ -222,15 +253,23 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
         record.update(applied=False, reason=f"{type(exc).__name__}: {exc}")
         return with_record(model)
     record.update(nonlinear_cost_before=before, rise_noise_variances=float(r), rise_limit=limit,
-                  nfev=info.get("nfev"))
+                  nfev=info.get("nfev"), joint_gain_noise_variances=float(gain))
     if not info["applied"]:
         # the joint polish found nothing better than the nonlinear stage's model: the stages do not
-        # disagree under it, and there is nothing to decide (the demo run: 50 s of restarts saved)
+        # disagree under it, and there is nothing to decide
         record.update(applied=False, reason="the joint polish did not lower the joint cost")
         return with_record(model)
     if admissible(new, s.tuning) and r <= limit:
-        new, record["terms"] = drop_terms(new, two)
-        new, record["restart"] = restart(new, two, known=record["terms"])
+        if gain >= 1.0:
+            new, record["terms"] = drop_terms(new, two)
+            new, record["restart"] = restart(new, two, known=record["terms"])
+        else:
+            # the joint polish lowered the joint sum of squares by less than one noise variance (one
+            # chi-square unit: no parameter moved by a standard error): the linear stage does not
+            # contradict the nonlinear stage's model, and there is nothing for a term drop or a
+            # restart to decide. The joint fit, the likelihood of both stages, is kept
+            record["decided"] = ("the joint polish lowered the joint sum of squares by less than one noise "
+                                 "variance: no term drop or restart")
     else:
         # the stages disagree under this model: its basin may be the nonlinear stage's alone (terms
         # that fit one loop and not the other stage); restarted from the stiffness terms, the joint fit
