@@ -130,8 +130,10 @@ def fitted(named: dict, key: str):
 
 
 def run_case(effect: str, size: float | None, workdir: Path, protocol: Path, rig: Path, seed: int,
-             max_rounds: int) -> dict:
+             max_rounds: int, noise_std: float | None = None) -> dict:
     sim = {} if effect == "clean" else EFFECTS[effect][2](size)
+    if noise_std is not None:                   # a noisier (or quieter) laser than the simulator's default
+        sim = merge(sim, {"sensors": {"noise_std": noise_std}})
     if effect == "cubic_stiffness" or effect == "amplitude_damping":      # keep the specimen's other terms
         sim = merge({"specimen": {"fn_m": dict(default_config()["specimen"]["fn_m"])}}, sim)
     sim_path = workdir / f"{effect}.sim.toml"
@@ -143,7 +145,8 @@ def run_case(effect: str, size: float | None, workdir: Path, protocol: Path, rig
     t0 = time.monotonic()
     p = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
     wall = time.monotonic() - t0
-    row = {"effect": effect, "setting": size, "wall_s": wall, "exit": p.returncode}
+    row = {"effect": effect, "setting": size, "wall_s": wall, "exit": p.returncode,
+           **({"noise_std": noise_std} if noise_std is not None else {})}
     try:
         doc = json.loads(p.stdout)
     except json.JSONDecodeError:
@@ -157,6 +160,7 @@ def run_case(effect: str, size: float | None, workdir: Path, protocol: Path, rig
     row.update(named=[m["id"] for m in named], stop=doc["stop"], rounds=len(doc["rounds"]),
                stages_added=[s for r in doc["rounds"] for s in r["stages_added"]],
                first_round=(doc["rounds"][0]["before"]["result"] if doc["rounds"] else d["result"]),
+               first_decision=(doc["rounds"][0].get("why") if doc["rounds"] else None),
                held_out_before=(d.get("fit_before") or {}).get("held_out_nrmse"),
                held_out_after=(d.get("fit_after") or {}).get("held_out_nrmse"))
     if effect != "clean":
@@ -194,6 +198,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default="", metavar="EFFECT=SIZE,...",
                     help="sizes instead of the drawn ones (e.g. near a detection limit: coulomb_friction=0.008)")
     ap.add_argument("--jsonl", type=Path, help="append one JSON row per case")
+    ap.add_argument("--noise-std", type=float, help="the lasers' white noise, m per sample (the simulator's "
+                                                    "default: 2e-7)")
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     sizes = {e: float(np.exp(rng.uniform(np.log(lo), np.log(hi)))) for e, (_, _, _, (lo, hi), _) in EFFECTS.items()}
@@ -217,7 +223,8 @@ def main(argv=None) -> int:
         print(f"{'effect':18s} {'setting':>9s} {'named':28s} {'fitted':>9s} {'err %':>7s} {'NRMSE before':>12s} "
               f"{'after':>9s} {'rounds':>6s} {'stop':10s} {'wall s':>7s}  stages added", flush=True)
         for e in effects:
-            row = run_case(e, None if e == "clean" else sizes[e], work, protocol, rig, args.seed, args.max_rounds)
+            row = run_case(e, None if e == "clean" else sizes[e], work, protocol, rig, args.seed, args.max_rounds,
+                           args.noise_std)
             rows.append(row)
             if args.jsonl:
                 with open(args.jsonl, "a") as fh:
