@@ -410,11 +410,13 @@ def hold_to_every_stage(scores: Scores, given: rank.FitResult, dctx: DiagnosisCo
     return partly
 
 
-def add_detection_limits(scores: Scores, ref: rank.FitResult, dctx: DiagnosisContext) -> None:
+def add_detection_limits(scores: Scores, refs: References, dctx: DiagnosisContext) -> None:
     """Each fitted candidate's entry gains the size at which its effect, added to the record, would
-    be named (an estimate; sensitivity.py)."""
+    be named (an estimate; sensitivity.py), beside what the reference's own refit would take up of it
+    when the reference is the refitted baseline."""
     progress.step("detection limits", share=0.1)
-    limits = detection_limits(ref, scores.fits, dctx.data, dctx.noise_mse, CANDIDATE_FAILURES, dctx.rule)
+    limits = detection_limits(refs.ref, scores.fits, dctx.data, dctx.noise_mse, CANDIDATE_FAILURES, dctx.rule,
+                              refitted=refs.full_free if refs.refit_better else ())
     for t in scores.tested:
         if t["id"] in limits:
             t["detection_limit"] = limits[t["id"]]
@@ -542,7 +544,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
     scores = score_candidates(ids, refs, origins, dctx)
     rescore_against_best_null(scores, origins.nulls, dctx)
     partly = hold_to_every_stage(scores, refs.given, dctx)
-    add_detection_limits(scores, refs.ref, dctx)
+    add_detection_limits(scores, refs, dctx)
     sig = sorted((t for t in scores.tested if t["significant"]), key=lambda t: -t["explained"])
     combined = None
     if not sig:

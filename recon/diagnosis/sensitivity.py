@@ -14,15 +14,20 @@ higher mode's frequency and damping, the Bouc-Wen exponents) where the candidate
 A small effect changes the prediction in proportion to its size, so the limit in the parameter's
 own unit is nominal x sqrt(D / D_nominal), for that shape.
 
+When the reference is the refitted baseline (the null model), that refit would take up part of an
+effect present in the record (a drift the stiffness follows, a quadratic damping that the
+baseline's own y^2 y' term mimics at one amplitude): D is then the part of the signature it cannot
+take up, the held-out difference left after the reference, with the null model's free parameters,
+is refitted to the record the term makes (``absorbed_share`` reports the rest). On a one-tone rig
+record with a noisy laser, quadratic damping's limit was 0.32 for the term alone and 11.7 with the
+refit's share taken out; c2 = 6 was there and went unnamed.
+
 An estimate of the scale at which an effect starts to show on this record, not a guarantee either
-way. Two things move the true threshold: the baseline's own parameters can take part of a term's
-signature (a drift the stiffness refit follows, quadratic damping a viscous c mimics over one
-sweep), which raises it; and an effect already in the record is already in the reference's
-residual, where it needs less than an effect added on top of it, which lowers it. The limit is
-therefore a guide, not a guarantee: measured on the independent generator's stress recordings
-(docs/diagnosis.md), effects below their limit are mostly not named, and effects above it can
-still be missed where the baseline's refit absorbs them (the truth itself does not pass the rule
-there either).
+way. An effect already in the record is already in the reference's residual, where it needs less
+than an effect added on top of it, which lowers the threshold; a candidate fit that captures only
+part of the signature (its own parameters trading with the baseline's) raises it. Measured on the
+independent generator's stress recordings (docs/diagnosis.md), effects below their limit are
+mostly not named, and effects above it can still be missed.
 """
 from __future__ import annotations
 
@@ -93,7 +98,7 @@ def nominal_model(ref: AugmentedModel, fitted: AugmentedModel, keys: list[str], 
 
 
 def detection_limits(ref: rank.FitResult, fits: dict, data: list, noise_mse: float, failures: tuple,
-                     rule: SignificanceRule = DEFAULT_RULE) -> dict:
+                     rule: SignificanceRule = DEFAULT_RULE, refitted: list | tuple = ()) -> dict:
     """:func:`detection_limit` of every fitted candidate, ``fits`` {id: CandidateFit} (its fit, keys
     and scales are read); the parts every candidate shares (the rule's smallest D per number of added parameters,
     the held-out mean square) computed once. A candidate whose simulation raises one of ``failures``
@@ -107,7 +112,7 @@ def detection_limits(ref: rank.FitResult, fits: dict, data: list, noise_mse: flo
         if len(keys) not in d_min:
             d_min[len(keys)] = smallest_detectable_mse(ref, len(keys), noise_mse, rule)
         try:
-            out[cid] = detection_limit(ref, fr.model, keys, scales, data, d_min[len(keys)], ms_y)
+            out[cid] = detection_limit(ref, fr.model, keys, scales, data, d_min[len(keys)], ms_y, refitted)
         except failures as exc:
             out[cid] = {"parameter": keys[0].split(":", 1)[-1], "value": None,
                         "note": f"{type(exc).__name__}: {exc}"}
@@ -115,7 +120,7 @@ def detection_limits(ref: rank.FitResult, fits: dict, data: list, noise_mse: flo
 
 
 def detection_limit(ref: rank.FitResult, fitted: AugmentedModel, keys: list[str], scales: dict,
-                    data: list, d_min: float, ms_y: float) -> dict:
+                    data: list, d_min: float, ms_y: float, refitted: list | tuple = ()) -> dict:
     """The size of a candidate's first parameter at which its effect would be named (module
     docstring), given the rule's smallest held-out mean square ``d_min`` for its number of
     parameters and the held-out samples' mean square ``ms_y``: {parameter, value,
@@ -132,8 +137,21 @@ def detection_limit(ref: rank.FitResult, fitted: AugmentedModel, keys: list[str]
     fr = rank.fit(nominal_model(ref.model, fitted, keys, nominal), [], data)
     if not (fr.resid_held is not None and fr.resid_held.size == ref.resid_held.size and math.isfinite(fr.mse_held)):
         return {**out, "value": None, "note": "the reference with the term did not simulate"}
-    d0 = float(np.mean((fr.resid_held - ref.resid_held) ** 2))
+    d_alone = float(np.mean((fr.resid_held - ref.resid_held) ** 2))
+    d0 = d_alone
+    if refitted and d_alone > 0:
+        # the reference is the baseline refitted (the null model): were the effect in the record, that
+        # refit would take up part of its signature. The part it cannot: the reference refitted, with
+        # the keys the null model frees, to the record the term makes (its simulated output), and
+        # compared with that record on the held-out samples
+        made = [dataclasses.replace(d, y=ys) for d, ys in zip(fr.sim_stages, fr.sims)]
+        absorbed = rank.fit(ref.model, refitted, made)
+        if not (absorbed.resid_held is not None and absorbed.resid_held.size == ref.resid_held.size
+                and math.isfinite(absorbed.mse_held)):
+            return {**out, "value": None, "note": "the reference refitted to the term's record did not simulate"}
+        d0 = min(float(np.mean(absorbed.resid_held ** 2)), d_alone)
     if not d0 > 0:
         return {**out, "value": None, "note": "the term does not change the held-out prediction at this shape"}
     return {**out, "value": nominal * math.sqrt(d_min / d0),
-            "held_out_signature_nrmse": math.sqrt(d_min / ms_y)}
+            "held_out_signature_nrmse": math.sqrt(d_min / ms_y),
+            "absorbed_share": 1.0 - d0 / d_alone}
