@@ -21,7 +21,8 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 # The order changes when a test runs, never what it checks; a file not listed keeps its place after
 # these.
 HEAVY_FIRST = (
-    "test_diagnosis_honest.py", "test_recon_fallback.py", "test_recon_mdof.py", "test_recon_weak_path.py",
+    "test_diagnosis_velocity.py", "test_diagnosis_honest.py", "test_diagnosis_corner.py",
+    "test_diagnosis_friction_words.py", "test_fuzz.py", "test_recon_fallback.py", "test_recon_mdof.py", "test_recon_weak_path.py",
     "test_recon_simpler_fit_slack.py", "test_constitutive.py", "test_recon_core.py", "test_diagnosis.py",
     "test_diagnosis_harmonic.py", "test_recon_exciter.py", "test_recon_two_stage.py", "test_report.py",
     "test_recon_cli.py", "test_recon_sensitivities.py", "test_recon_mr.py", "test_operator_output.py",
