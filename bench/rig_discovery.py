@@ -193,6 +193,9 @@ def main(argv=None) -> int:
                     help="comma-separated: clean and/or " + ", ".join(EFFECTS))
     ap.add_argument("--seed", type=int, default=0, help="draws the sizes (and the rig's noise)")
     ap.add_argument("--protocol", type=Path, help="protocol TOML (default: a short one)")
+    ap.add_argument("--single-level", action="store_true",
+                    help="the short protocol with its nonlinear stage at one level (4 Vpp): fewer amplitudes to "
+                         "tell amplitude-dependent effects apart")
     ap.add_argument("--rate", type=float, default=1000.0, help="acquisition sample rate, Hz (default 1000)")
     ap.add_argument("--max-rounds", type=int, default=2)
     ap.add_argument("--sizes", default="", metavar="EFFECT=SIZE,...",
@@ -216,7 +219,8 @@ def main(argv=None) -> int:
         work = Path(tmp)
         protocol = args.protocol or work / "protocol.toml"
         if args.protocol is None:
-            protocol.write_text(SHORT_PROTOCOL)
+            protocol.write_text(SHORT_PROTOCOL.replace("start_vpp = 0.5", "start_vpp = 4.0") if args.single_level
+                                else SHORT_PROTOCOL)
         rig = work / "rig.toml"
         rig.write_text(DEFAULT_RIG_PATH.read_text().replace("sample_rate_hz = 10000.0",
                                                               f"sample_rate_hz = {args.rate!r}"))
@@ -243,6 +247,16 @@ def main(argv=None) -> int:
     print(f"\n{len(ok)}/{len(rows)} named first (clean: nothing named; a term the model holds: found in it); {len(within)} within 10 % of the setting; "
           f"{sum(1 for r in rows if r.get('rounds'))} needed an added round; total wall time "
           f"{time.monotonic() - t_all:.0f} s")
+    # the cases the loop exists for: a first round that could not decide (ambiguous, or an effect
+    # undecided), and whether the stage it added named the concealed effect
+    open_first = [r for r in rows if r.get("rounds") and r.get("effect") != "clean"]
+    settled = [r for r in open_first if r.get("named_first")]
+    for r in open_first:
+        print(f"  {r['effect']} {fmt(r['setting'])}: first round undecided or ambiguous "
+              f"({(r.get('first_decision') or '')[:90]}...); after {r['rounds']} round(s): "
+              f"{','.join(r['named']) or 'nothing named'}", flush=True)
+    print(f"{len(open_first)} first round(s) that could not decide; the added stage named the concealed "
+          f"effect on {len(settled)}")
     return 0
 
 
