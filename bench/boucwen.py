@@ -199,7 +199,7 @@ def print_report(r: dict) -> None:
     ao = r["agent_model_then_output_error"]
     if ao:
         print("agent step + output error: " + ", ".join(f"{k} {v:+.3f} %" for k, v in ao["errors_pct"].items())
-              + f"; fn/m after refinement: " + ", ".join(f"{n} {v:.3g}" for n, v in ao["fn_m"].items())
+              + "; fn/m after refinement: " + ", ".join(f"{n} {v:.3g}" for n, v in ao["fn_m"].items())
               + f"; training residual {ao['training_rms']:.4e} m")
     print("(gamma, delta are the benchmark's beta*gamma, beta*delta)\n")
     lin = r["linear_step"]

@@ -117,10 +117,6 @@ def main() -> None:
     t_sindy_fit = (time.perf_counter() - t0) / 9
     r2, thr, mdl = best
     vst = run.stage("validation")
-    vsig = stage_signals(vst, 2)
-    tv = vst.t - vst.t[0]
-    from recon.model import HystereticModel  # noqa: F401  (same input as shakerlab's validation)
-
     uv = res.model.stage_input(vst)
     # PySINDy's own simulate (LSODA through Python callbacks) takes minutes on 20 000
     # samples; the identified polynomial ODE is integrated here with the same RK4 scheme

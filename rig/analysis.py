@@ -60,7 +60,6 @@ def loop_energy(y_h: np.ndarray, r_h: np.ndarray, n_grid: int = 720) -> float:
     phi = np.linspace(0.0, 2 * math.pi, n_grid, endpoint=False)
     k = np.arange(1, len(y_h) + 1)[:, None]
     e = np.exp(1j * k * phi[None, :])
-    y = np.real(y_h[:, None] * e).sum(axis=0)
     dy = np.real(1j * k * y_h[:, None] * e).sum(axis=0)  # dy/dphi
     r = np.real(r_h[:, None] * e).sum(axis=0)
     return float(np.sum(r * dy) * (2 * math.pi / n_grid))

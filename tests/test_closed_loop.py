@@ -5,7 +5,6 @@ the cancel. The fast tests give the loop a scripted diagnosis and record on the 
 import copy
 import json
 import shutil
-import threading
 
 import h5py
 import pytest
