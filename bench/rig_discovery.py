@@ -62,6 +62,10 @@ amplitude_fraction = 1.0
 duration_s = 2.0
 """
 
+# the same with its nonlinear stage at one level (--single-level)
+SINGLE_LEVEL_PROTOCOL = SHORT_PROTOCOL.replace("start_vpp = 0.5", "start_vpp = 4.0")
+assert SINGLE_LEVEL_PROTOCOL != SHORT_PROTOCOL and "max_vpp = 4.0" in SHORT_PROTOCOL
+
 # effect: (catalog id, the id's size parameter, the simulator settings for a size s, size range,
 #          the expected fitted value for a size s)
 EFFECTS = {
@@ -204,6 +208,8 @@ def main(argv=None) -> int:
     ap.add_argument("--noise-std", type=float, help="the lasers' white noise, m per sample (the simulator's "
                                                     "default: 2e-7)")
     args = ap.parse_args(argv)
+    if args.single_level and args.protocol is not None:
+        ap.error("--single-level changes the short protocol; it does not apply to --protocol")
     rng = np.random.default_rng(args.seed)
     sizes = {e: float(np.exp(rng.uniform(np.log(lo), np.log(hi)))) for e, (_, _, _, (lo, hi), _) in EFFECTS.items()}
     for item in filter(None, args.sizes.split(",")):
@@ -219,8 +225,7 @@ def main(argv=None) -> int:
         work = Path(tmp)
         protocol = args.protocol or work / "protocol.toml"
         if args.protocol is None:
-            protocol.write_text(SHORT_PROTOCOL.replace("start_vpp = 0.5", "start_vpp = 4.0") if args.single_level
-                                else SHORT_PROTOCOL)
+            protocol.write_text(SINGLE_LEVEL_PROTOCOL if args.single_level else SHORT_PROTOCOL)
         rig = work / "rig.toml"
         rig.write_text(DEFAULT_RIG_PATH.read_text().replace("sample_rate_hz = 10000.0",
                                                               f"sample_rate_hz = {args.rate!r}"))

@@ -291,6 +291,21 @@ duration_s = 2.0
 """
 
 
+def short_run_args(tmp_path, sim_toml: str, seed: int) -> list[str]:
+    """`shakerlab acquire`'s arguments for the short protocol on the in-process simulated rig at 1 kHz,
+    with the simulator settings ``sim_toml`` (an effect concealed), into tmp_path/run.h5."""
+    from rig.config import DEFAULT_RIG_PATH
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text(DEFAULT_RIG_PATH.read_text().replace("sample_rate_hz = 10000.0", "sample_rate_hz = 1000.0"))
+    proto = tmp_path / "p.toml"
+    proto.write_text(SHORT_PROTOCOL)
+    sim = tmp_path / "sim.toml"
+    sim.write_text(sim_toml)
+    return ["acquire", "--config", str(rig), "--simulated", "--protocol", str(proto), "-o", str(tmp_path / "run.h5"),
+            "--sim-speed", "0", "--quiet", "--seed", str(seed), "--sim-config", str(sim)]
+
+
 @pytest.mark.slow
 def test_acquire_diagnose_auto_json_end_to_end(tmp_path, capsys):
     """A friction concealed on the simulated rig (--sim-config) at about twice the clean record's
@@ -299,18 +314,9 @@ def test_acquire_diagnose_auto_json_end_to_end(tmp_path, capsys):
     10 %. One JSON object on stdout (the final diagnosis with diagnose --json's keys, the rounds); the
     history in the run file, which the readers open. 1 kHz sampling keeps each diagnosis to about a
     minute on two cores (bench/rig_discovery.py --sizes coulomb_friction=0.008 --seed 1: the same case)."""
-    from rig.config import DEFAULT_RIG_PATH
-
-    rig = tmp_path / "rig.toml"
-    rig.write_text(DEFAULT_RIG_PATH.read_text().replace("sample_rate_hz = 10000.0", "sample_rate_hz = 1000.0"))
-    proto = tmp_path / "p.toml"
-    proto.write_text(SHORT_PROTOCOL)
-    sim = tmp_path / "sim.toml"
-    sim.write_text("[effects]\ncoulomb_friction = 0.008\n")
     out = tmp_path / "run.h5"
-    code = main(["acquire", "--config", str(rig), "--simulated", "--protocol", str(proto), "-o", str(out),
-                 "--sim-speed", "0", "--quiet", "--seed", "1", "--sim-config", str(sim), "--diagnose", "--auto",
-                 "--json", "--max-rounds", "1"])
+    code = main(short_run_args(tmp_path, "[effects]\ncoulomb_friction = 0.008\n", seed=1)
+                + ["--diagnose", "--auto", "--json", "--max-rounds", "1"])
     captured = capsys.readouterr()
     assert code == 0, captured.err
     doc = json.loads(captured.out)

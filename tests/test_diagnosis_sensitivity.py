@@ -92,19 +92,12 @@ def test_a_limit_counts_what_the_refitted_baseline_takes_up(tmp_path, capsys):
     0.32, and c2 = 6 went unnamed)."""
     import json
 
-    from rig.config import DEFAULT_RIG_PATH
     from shakerlab.cli import main
-    from tests.test_closed_loop import SHORT_PROTOCOL
+    from tests.test_closed_loop import short_run_args
 
-    rig = tmp_path / "rig.toml"
-    rig.write_text(DEFAULT_RIG_PATH.read_text().replace("sample_rate_hz = 10000.0", "sample_rate_hz = 1000.0"))
-    proto = tmp_path / "p.toml"
-    proto.write_text(SHORT_PROTOCOL)
-    sim = tmp_path / "sim.toml"
-    sim.write_text("[sensors]\nnoise_std = 2e-6\n[effects]\nquadratic_damping = 6.0\n")
     out = tmp_path / "run.h5"
-    assert main(["acquire", "--config", str(rig), "--simulated", "--protocol", str(proto), "-o", str(out),
-                 "--sim-speed", "0", "--quiet", "--seed", "17", "--sim-config", str(sim)]) == 0
+    assert main(short_run_args(tmp_path, "[sensors]\nnoise_std = 2e-6\n[effects]\nquadratic_damping = 6.0\n",
+                               seed=17)) == 0
     capsys.readouterr()
     assert main(["diagnose", str(out), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
