@@ -261,6 +261,13 @@ def _adopt(result: ReconResult | None, best, fallback: dict, run: Run, s: ReconS
     """``result`` (or a new result when there is none) answering with the simpler model ``best``."""
     best.model.provenance = {"simpler_model": best.kind, "settings": {"linear_stage": s.linear_stage,
                                                                       "nonlinear_stage": s.nonlinear_stage}}
+    if best.kind in HYSTERETIC_KINDS and s.polish and admissible(best.model, s.tuning):
+        # a Bouc-Wen law fitted by output error from a generic start is the full model's form, and
+        # its fn terms are only those the inadmissible estimate offered: the output error revises
+        # them as it revises the full model's (a weak true term the equation error missed is added)
+        holder = result if result is not None else ReconResult.of_model(best.model, {}, s)
+        holder.model = best.model
+        best.model = _revise_terms(holder, run, s, validate_model=False).model
     if best.kind in HYSTERETIC_KINDS and s.polish and s.two_stage_polish and admissible(best.model, s.tuning):
         # a Bouc-Wen law fitted on the nonlinear stage: the two stages decide its terms as for the full
         # model (at low SNR a law fitted on one stage can carry a spurious term beside the true one)
