@@ -54,3 +54,33 @@ def test_a_presliding_friction_against_a_linear_baseline_is_said_to_be_a_frictio
     assert f["sliding_force_m"] == pytest.approx(alpha / s["m"] / lam, rel=0.05)
     assert f["presliding_stiffness_m"] == pytest.approx(alpha / s["m"], rel=0.05)
     assert "friction law" in diagnosis_text(out)
+
+
+@pytest.mark.slow
+def test_a_dry_friction_held_as_a_sharp_loop_is_read_as_its_sliding_force(tmp_path, capsys):
+    """A large dry friction on the simulated rig (0.276 m/s^2 per unit mass, one level): the
+    reconstruction holds it as a sharp Bouc-Wen loop in place of the specimen's own. `reconstruct`
+    says so and gives the loop's sliding force; `diagnose` says the same of its baseline, and the
+    friction it names on top of that loop makes up the rest of the concealed size."""
+    import json
+
+    from shakerlab.cli import main
+    from test_closed_loop import SHORT_PROTOCOL, short_run_args
+
+    args = short_run_args(tmp_path, "[effects]\ncoulomb_friction = 0.276\n", seed=41)
+    (tmp_path / "p.toml").write_text(SHORT_PROTOCOL.replace("start_vpp = 0.5", "start_vpp = 4.0"))
+    assert main(args) == 0
+    capsys.readouterr()
+    run = str(tmp_path / "run.h5")
+    assert main(["reconstruct", run, "--quiet"]) == 0
+    assert "the loop acts as a friction law" in capsys.readouterr().out
+    assert main(["reconstruct", run, "--json", "--quiet"]) == 0
+    rec = json.loads(capsys.readouterr().out)
+    assert rec["loop_as_friction"]["sliding_force_m"] == pytest.approx(0.276, rel=0.3)
+    assert main(["diagnose", run, "--json", "--quiet"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    loop = out["baseline_loop_as_friction"]
+    named = {m["id"]: m for m in out["missing_physics"]}
+    assert loop is not None and "coulomb_friction" in named, out["result"]
+    mu = named["coulomb_friction"]["parameters"]["mu"]["value"]
+    assert loop["sliding_force_m"] + mu == pytest.approx(0.276, rel=0.15)

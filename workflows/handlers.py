@@ -8,7 +8,7 @@ from pathlib import Path
 
 from recon import ReconSettings, diagnose, reconstruct
 from recon import progress
-from recon.diagnosis.wording import diagnosis_text, finding_text
+from recon.diagnosis.wording import diagnosis_text, finding_text, friction_reading, friction_text
 from recon.estimator.adequacy import verdict_text
 from recon.output_error.uncertainty import UncertaintySettings, parameter_intervals
 from shakerlab.errors import UserFacingError
@@ -21,6 +21,19 @@ from workflows.batch import (BatchSettings, TextProgress, diagnosis_available, e
 from workflows.plausibility import warnings_for
 from workflows.progress_line import progress_line
 from shakerlab.words import nrmse_text
+
+
+def loop_as_friction(result, run) -> dict | None:
+    """The reconstructed Bouc-Wen loop read as a friction law (recon.diagnosis.wording.friction_reading)
+    over the nonlinear stage's travel (its displacement's peak-to-peak), None when it does not slide
+    within it. A sharp loop is how a reconstruction holds a dry friction: the reading gives its
+    sliding force."""
+    stage = getattr(result.settings, "nonlinear_stage", None)
+    if stage not in run.stages:
+        return None
+    m = result.model
+    import numpy as np
+    return friction_reading(m.alpha_m, m.gamma, m.delta, float(np.ptp(run.stage(stage).y)))
 
 
 def reconstruct_command(args) -> int:
@@ -44,6 +57,7 @@ def reconstruct_command(args) -> int:
                                                 drive=bool(getattr(args, "drive", False))))
         out = result.to_dict()
         out["warnings"] = warnings_for(run, result)
+        out["loop_as_friction"] = loop_as_friction(result, run)
         if intervals:
             progress.step("parameter intervals", share=0.25)
             out["uncertainty"] = parameter_intervals(result.model, run)
@@ -58,6 +72,8 @@ def reconstruct_command(args) -> int:
         return 0
     print(f"{run.source}: {result.model.excitation} excitation, per unit mass")
     print(result.model.equation())
+    if out["loop_as_friction"]:
+        print(f"  {friction_text(out['loop_as_friction'])}")
     for w in out["warnings"]:
         print(f"warning: {w}")
     v = result.validation
@@ -213,6 +229,8 @@ def diagnose_command(args) -> int:
         return 0
     print(f"{run.source}: baseline ({d.baseline_kind})")
     print(out["baseline"])
+    if out.get("baseline_loop_as_friction"):
+        print(f"  {friction_text(out['baseline_loop_as_friction'])}")
     for w in out["warnings"] + ([out["baseline_note"]] if out.get("baseline_note") else []):
         print(f"warning: {w}")
     fb, fa = out["fit_before"]["nrmse"], out["fit_after"]["nrmse"]

@@ -141,6 +141,9 @@ class Diagnosis:
     ambiguity: dict | None = None             # two candidates the held-out data cannot tell apart
     unexplained: dict | None = None           # the held-out mismatch the final model still leaves, if large
     partly: dict | None = None                # a candidate better as a whole but worse on a held-out stage
+    # the baseline's own Bouc-Wen loop read as a friction law when it slides within the record's travel
+    # (wording.friction_reading): a reconstruction can hold a dry friction as a sharp loop
+    baseline_as_friction: dict | None = None
 
     def to_dict(self) -> dict:
         def clean_ctx(c):
@@ -166,6 +169,7 @@ class Diagnosis:
             "separating_stage": self.ambiguity,
             "unexplained_mismatch": self.unexplained,
             "baseline_note": baseline_note(self.baseline.baseline),
+            "baseline_loop_as_friction": self.baseline_as_friction,
             # what the baseline's own fit had to say (a linear stage too noisy for c and K)
             "baseline_warnings": list(self.baseline.baseline.provenance.get("warnings", [])),
             "seconds": self.seconds,
@@ -505,6 +509,13 @@ def missing_entries(sig: list, scores: Scores, refs: References, findings: list,
     return missing
 
 
+def loop_as_friction(model, dctx: DiagnosisContext) -> dict | None:
+    """``model``'s Bouc-Wen loop read as a friction law over the record's largest travel (the
+    displacement's peak-to-peak on any stage), None when it does not slide within it."""
+    travel = max((float(np.ptp(d.displacement)) for d in dctx.data), default=0.0)
+    return friction_reading(model.alpha_m, model.gamma, model.delta, travel, dctx.settings)
+
+
 def fit_before_figures(refs: References, core: rank.FitResult | None, data: list) -> dict:
     """``Diagnosis.fit_before``: the baseline as given (nrmse, held_out_nrmse), the null model's
     figures under refit_*, the noise floors and the held-out share of each stage."""
@@ -579,4 +590,4 @@ def assemble(refs: References, dctx: DiagnosisContext, findings: list, scores: S
                      null=refs.null, mismatch=findings, candidates=scores.tested, missing=missing, best=best_fr.model,
                      best_fit=best_fr, context=dctx.located, seconds=seconds, reference=ref, ambiguity=ambiguity,
                      unexplained=unexplained_mismatch(best_fr, noise_mse, [m["id"] for m in missing]),
-                     partly=partly_explained)
+                     partly=partly_explained, baseline_as_friction=loop_as_friction(refs.base.baseline, dctx))
