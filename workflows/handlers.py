@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from recon import ReconSettings, diagnose, reconstruct
 from recon import progress
 from recon.diagnosis.wording import diagnosis_text, finding_text, friction_reading, friction_text
@@ -32,7 +34,6 @@ def loop_as_friction(result, run) -> dict | None:
     if stage not in run.stages:
         return None
     m = result.model
-    import numpy as np
     return friction_reading(m.alpha_m, m.gamma, m.delta, float(np.ptp(run.stage(stage).y)))
 
 
