@@ -172,6 +172,11 @@ def test_two_rounds_append_to_the_same_file_and_it_opens_everywhere(tmp_path, re
     add_result(path, "reconstruction", {**model.to_dict(), "validation": {}}, text=str(model))
     view = view_of_run_file(path, write_back=False)
     assert view.validation_stage == "validation" and view.overlay is not None
+    # a sharp loop (sliding after 3 / (gamma + delta) = 0.06 mm) is read as a friction law in the notes
+    sharp = HystereticModel(excitation="base", c_m=3.5, k_m=6000.0, alpha_m=2000.0, gamma=3e4, delta=2e4)
+    add_result(path, "reconstruction", {**sharp.to_dict(), "validation": {}}, text=str(sharp))
+    notes = view_of_run_file(path, write_back=False).notes
+    assert any("friction law" in n and "sliding force 0.04 m/s^2" in n for n in notes), notes
 
 
 def test_resolved_after_one_added_round(tmp_path, recorded):

@@ -17,6 +17,8 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 
 PARAM_ORDER = ("c_m", "k_m", "alpha_m", "gamma", "delta", "inv_m")
 
@@ -224,6 +226,14 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
         loop, loop_stage = (y_nl, z_nl), "nonlinear"
     if loop_stage is not None and not model.has_drive:
         measured_loop = data_loop(model, run.stage(loop_stage))
+    if "nonlinear" in run.stages and law is None:
+        # a loop that slides within the nonlinear stage's travel read as a friction law (its sliding
+        # force): how the model holds a dry friction, as `reconstruct` says under its equation
+        from recon.diagnosis.wording import friction_reading, friction_text  # heavy: recon, loaded when a result is shown
+
+        reading = friction_reading(model.alpha_m, model.gamma, model.delta, float(np.ptp(run.stage("nonlinear").y)))
+        if reading:
+            notes.append(friction_text(reading))
     adequacy = payload.get("adequacy")
     if adequacy is None and law is None:
         # a result stored without a verdict (a model given, not reconstructed): judged here by the
