@@ -10,7 +10,7 @@ import numpy as np
 
 from recon import ReconSettings, diagnose, reconstruct
 from recon import progress
-from recon.diagnosis.wording import diagnosis_text, finding_text, friction_reading, friction_text
+from recon.diagnosis.wording import diagnosis_text, finding_text, friction_text, loop_reading
 from recon.estimator.adequacy import verdict_text
 from recon.output_error.uncertainty import UncertaintySettings, parameter_intervals
 from shakerlab.errors import UserFacingError
@@ -31,10 +31,7 @@ def loop_as_friction(result, run) -> dict | None:
     within it. A sharp loop is how a reconstruction holds a dry friction: the reading gives its
     sliding force."""
     stage = getattr(result.settings, "nonlinear_stage", None)
-    if stage not in run.stages:
-        return None
-    m = result.model
-    return friction_reading(m.alpha_m, m.gamma, m.delta, float(np.ptp(run.stage(stage).y)))
+    return loop_reading(result.model, float(np.ptp(run.stage(stage).y))) if stage in run.stages else None
 
 
 def reconstruct_command(args) -> int:

@@ -56,7 +56,7 @@ from recon.diagnosis.refits import (combined_fit, drop_sets, friction_from_loop,
                                     prune_absorbed, refit_on)
 from recon.diagnosis.sensitivity import detection_limits
 from recon.diagnosis.stagewise import held_stage_figures, worse_stages
-from recon.diagnosis.wording import friction_reading
+from recon.diagnosis.wording import friction_reading, loop_reading
 from recon.estimator.tuning import DEFAULT_TUNING
 from recon.estimator.linear_start import linear_step
 from recon.estimator.pipeline import reconstruct
@@ -513,7 +513,7 @@ def loop_as_friction(model, dctx: DiagnosisContext) -> dict | None:
     """``model``'s Bouc-Wen loop read as a friction law over the record's largest travel (the
     displacement's peak-to-peak on any stage), None when it does not slide within it."""
     travel = max((float(np.ptp(d.displacement)) for d in dctx.data), default=0.0)
-    return friction_reading(model.alpha_m, model.gamma, model.delta, travel, dctx.settings)
+    return loop_reading(model, travel, dctx.settings)
 
 
 def fit_before_figures(refs: References, core: rank.FitResult | None, data: list) -> dict:

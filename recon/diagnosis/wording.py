@@ -80,6 +80,11 @@ def friction_reading(alpha_m: float, gamma: float, delta: float, travel: float,
             "sliding_after_m": float(after), "travel_m": float(travel)}
 
 
+def loop_reading(model, travel: float, settings: DiagnosisSettings = DEFAULTS) -> dict | None:
+    """:func:`friction_reading` of ``model``'s Bouc-Wen loop (a HystereticModel) over ``travel``."""
+    return friction_reading(model.alpha_m, model.gamma, model.delta, travel, settings)
+
+
 def friction_text(f: dict) -> str:
     """:func:`friction_reading` in words."""
     return (f"the loop acts as a friction law: presliding stiffness {f['presliding_stiffness_m']:.4g} 1/s^2 and "

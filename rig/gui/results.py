@@ -229,9 +229,9 @@ def view_of_run_file(path: str | Path, reconstruct: bool = False, write_back: bo
     if "nonlinear" in run.stages and law is None:
         # a loop that slides within the nonlinear stage's travel read as a friction law (its sliding
         # force): how the model holds a dry friction, as `reconstruct` says under its equation
-        from recon.diagnosis.wording import friction_reading, friction_text  # heavy: recon, loaded when a result is shown
+        from recon.diagnosis.wording import friction_text, loop_reading  # heavy: recon, loaded when a result is shown
 
-        reading = friction_reading(model.alpha_m, model.gamma, model.delta, float(np.ptp(run.stage("nonlinear").y)))
+        reading = loop_reading(model, float(np.ptp(run.stage("nonlinear").y)))
         if reading:
             notes.append(friction_text(reading))
     adequacy = payload.get("adequacy")
