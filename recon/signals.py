@@ -428,6 +428,22 @@ def _continuous_velocity_start(stage: Stage):
 MEASURED_ORDERS = (1, 2)
 
 
+def target_noise_std(stage: Stage) -> float:
+    """The rms of the noise in the response as the fits compare it (:func:`response_target`, or y):
+    its spectrum's white floor, and for an acceleration integrated once to velocity also the
+    integral of the acceleration's white noise (shakerlab.quantities.integrated_noise_rms: a random
+    walk with its line removed), which the velocity's white floor does not see."""
+    target = response_target(stage)
+    values = stage.y if target is None else target[1]
+    floor = float(estimate_spectrum(values, stage.dt).noise_std)
+    if response_order(stage) != 2:
+        return floor
+    role = "x_tip" if stage.excitation == BASE else "x"
+    acc = np.asarray(stage.measured[channel_name(role, ACCELERATION)], float)
+    sigma = float(estimate_spectrum(acc, stage.dt).noise_std)
+    return float(np.hypot(floor, integrated_noise_rms(sigma, stage.dt, acc.size, 1)))
+
+
 def target_order(stage: Stage) -> int | None:
     """The derivative order of :func:`response_target`'s values (1: velocity, for a velocity or an
     acceleration record), None for a displacement record."""

@@ -8,6 +8,8 @@ nonlinear, validation stage), almost all of it below the band; the linear step r
 stage for that noise and `reconstruct` answered with the equivalent-linear model (the hysteresis
 lost, c 126 % off). Without the drift the column is within 0.1-0.9 % and `reconstruct` gives the
 exact terms within 0.19 %, as close as the fit started at the truth."""
+import math
+
 import numpy as np
 import pytest
 
@@ -65,3 +67,39 @@ def test_reconstruct_keeps_the_hysteresis(draw):
     assert res.model.alpha_m > 0 and not res.hysteresis_info.get("simpler_model")
     assert sc["exact"], res.model.fn_m
     assert sc["worst"] < 0.01, sc
+
+
+def test_the_noise_of_an_integrated_acceleration_is_its_random_walk(draw):
+    """The velocity integrated once from an acceleration carries the integral of the accelerometer's
+    white noise (a random walk with its line removed), far above the velocity's own white floor. The
+    fits' noise unit (recon.signals.target_noise_std) counts it: over 12 noise draws of the same
+    record its mean square is within 30 % of the target's true noise (target minus the true relative
+    velocity; one draw's random walk is several times off either way: its power sits in the lowest
+    few frequencies), where the white floor alone is a tenth of it."""
+    from recon.differentiation import estimate_spectrum
+    from recon.signals import response_target, target_noise_std
+
+    rec, _ = draw
+    for stage in ("linear", "nonlinear"):
+        true_v = rec["stages"][stage]["truth_states"]["dy"]
+        unit, actual = [], []
+        for k in range(12):
+            st = to_run(ind.add_noise(rec, 60.0, 1000 + k, quantity="acceleration")).stage(stage)
+            target = response_target(st)[1]
+            unit.append(target_noise_std(st) ** 2)
+            actual.append(float(np.mean((target - true_v - np.mean(target - true_v)) ** 2)))
+            assert estimate_spectrum(target, st.dt).noise_std < 0.3 * math.sqrt(actual[-1])
+        assert 0.7 < np.mean(unit) / np.mean(actual) < 1.3, (stage, np.mean(unit), np.mean(actual))
+
+
+@pytest.mark.slow
+def test_a_weak_term_is_not_kept_for_noise_the_unit_does_not_count():
+    """Stress draw 8 recorded as acceleration (paper protocol, 2.9 kHz, 60 dB): weighed in the
+    velocity's white floor, the joint fit's residual was 6,900 'noise variances', every term paid for
+    itself, and a y^2 of 5e-5 of the elastic force stayed beside the true y^3. In the integrated
+    noise's unit the joint fit's term check drops it."""
+    system, protocol, fs = stress_system(8, ("paper", "rig"))
+    rec = ind.simulate(system, protocol, fs, seed=8)
+    res = reconstruct(to_run(ind.add_noise(rec, 60.0, 8, quantity="acceleration")), ReconSettings())
+    sc = score(res.model, rec["truth"])
+    assert sc["exact"] and sc["worst"] < 0.01, (res.model.equation(), sc)

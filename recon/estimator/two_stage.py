@@ -51,7 +51,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import chdtri
 
-from recon.differentiation import estimate_spectrum
 from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, with_term_scales
 from recon.estimator.finish import generic_starts
 from recon.estimator.result import ReconSettings
@@ -59,7 +58,7 @@ from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.model import HystereticModel
 from recon.output_error.polish import decimate, polish
 from recon.output_error.problem import OutputError, item_start, item_target, measured_error
-from recon.signals import base_noise_in_target, input_filter, response_target
+from recon.signals import base_noise_in_target, input_filter, response_target, target_noise_std
 from recon.welch import welch
 from shakerlab.run_data import BASE, Run, Stage
 
@@ -93,7 +92,7 @@ class TwoStages:
             return None
         stages = [run.stage(s.linear_stage), run.stage(s.nonlinear_stage)]
         # in the quantity each response was recorded in, as the fits compare it (problem.item_target)
-        noise = [float(estimate_spectrum(measured(st), st.dt).noise_std) for st in stages]
+        noise = [target_noise_std(st) for st in stages]
         if not all(v > 0 and np.isfinite(v) for v in noise):
             return None
         return cls(stages, noise, s.tuning)
