@@ -428,14 +428,19 @@ def _continuous_velocity_start(stage: Stage):
 MEASURED_ORDERS = (1, 2)
 
 
-def target_noise_std(stage: Stage) -> float:
-    """The rms of the noise in the response as the fits compare it (:func:`response_target`, or y):
-    its spectrum's white floor, and for an acceleration integrated once to velocity also the
-    integral of the acceleration's white noise (shakerlab.quantities.integrated_noise_rms: a random
-    walk with its line removed), which the velocity's white floor does not see."""
+def compared_response(stage: Stage) -> np.ndarray:
+    """The response as the fits and the validation compare it: :func:`response_target`'s values for a
+    record in velocity or acceleration, y for a displacement record."""
     target = response_target(stage)
-    values = stage.y if target is None else target[1]
-    floor = float(estimate_spectrum(values, stage.dt).noise_std)
+    return stage.y if target is None else target[1]
+
+
+def target_noise_std(stage: Stage) -> float:
+    """The rms of the noise in :func:`compared_response`: its spectrum's white floor, and for an
+    acceleration integrated once to velocity also the integral of the acceleration's white noise
+    (shakerlab.quantities.integrated_noise_rms: a random walk with its line removed), which the
+    velocity's white floor does not see."""
+    floor = float(estimate_spectrum(compared_response(stage), stage.dt).noise_std)
     if response_order(stage) != 2:
         return floor
     role = "x_tip" if stage.excitation == BASE else "x"

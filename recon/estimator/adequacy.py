@@ -21,7 +21,7 @@ import numpy as np
 from recon.differentiation import estimate_spectrum
 from recon.estimator.fallback import HYSTERETIC_KINDS, admissible
 from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
-from recon.signals import response_target
+from recon.signals import compared_response
 from shakerlab.run_data import Run
 from shakerlab.words import nrmse_text
 
@@ -31,8 +31,7 @@ def noise_floor(run: Run, stage: str | None) -> float | None:
     if stage is None or stage not in run.stages:
         return None
     st = run.stage(stage)
-    measured = response_target(st)      # the record in its own quantity, as validation judges it
-    x = st.y if measured is None else measured[1]
+    x = compared_response(st)      # the record in its own quantity, as validation judges it
     y = x - np.mean(x)
     rms = float(np.sqrt(np.mean(y ** 2)))
     if rms <= 0:

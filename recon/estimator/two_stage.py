@@ -58,15 +58,9 @@ from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.model import HystereticModel
 from recon.output_error.polish import decimate, polish
 from recon.output_error.problem import OutputError, item_start, item_target, measured_error
-from recon.signals import base_noise_in_target, input_filter, response_target, target_noise_std
+from recon.signals import base_noise_in_target, input_filter, target_noise_std
 from recon.welch import welch
 from shakerlab.run_data import BASE, Run, Stage
-
-
-def measured(st: Stage) -> np.ndarray:
-    """The stage's response in its recorded quantity (y of a displacement record)."""
-    target = response_target(st)
-    return st.y if target is None else target[1]
 
 
 # how far (tuning.floor_ratio, either way) the joint fit's mean square per sample may be from its
