@@ -74,14 +74,12 @@ def test_output_effects_act_on_the_velocity():
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(1500)      # two full diagnoses against reconstructed baselines
+@pytest.mark.timeout(900)      # a full diagnosis against a reconstructed baseline
 def test_velocity_record_named_as_displacement():
-    """The same draw recorded as displacement and as velocity: the concealed effect is named in
-    both. On the code that compared the integrated velocity in displacement the velocity record's
-    diagnosis did not name it."""
-    named = {}
-    for q in ("displacement", "velocity"):
-        out = diagnose(to_run(_recording(ROW, q)), baseline="paper").to_dict()
-        named[q] = [m["id"] for m in out["missing_physics"]]
-    assert named["displacement"][:1] == [draw(ROW)["effect"]]
-    assert named["velocity"][:1] == named["displacement"][:1], named
+    """The draw recorded as velocity: the concealed effect is named first, as on the same draw
+    recorded as displacement (a row of the diagnosis stress bench, named right there). On the code
+    that compared the integrated velocity in displacement the velocity record's diagnosis did not
+    name it."""
+    out = diagnose(to_run(_recording(ROW, "velocity")), baseline="paper").to_dict()
+    named = [m["id"] for m in out["missing_physics"]]
+    assert named[:1] == [draw(ROW)["effect"]], named
