@@ -92,6 +92,28 @@ def test_the_noise_of_an_integrated_acceleration_is_its_random_walk(draw):
         assert 0.7 < np.mean(unit) / np.mean(actual) < 1.3, (stage, np.mean(unit), np.mean(actual))
 
 
+def test_the_adequacy_floor_of_an_acceleration_record_is_its_random_walk(draw):
+    """The noise floor the adequacy verdict and the JSON report (a perfect model's validation NRMSE)
+    is taken in the fits' unit: for an integrated acceleration, the random walk. Over 12 noise draws
+    its rms is within 35 % of the validation target's true noise (one draw's random walk is several
+    times off either way, so 12 draws fix the mean square to about 20 %); the velocity's white floor
+    it was taken from before is under a tenth of it, and a model at the noise read as tens of times
+    the floor."""
+    from recon.estimator.adequacy import noise_floor
+    from recon.signals import compared_response
+
+    rec, _ = draw
+    true_v = rec["stages"]["validation"]["truth_states"]["dy"]
+    floor2, actual2 = [], []
+    for k in range(12):
+        run = to_run(ind.add_noise(rec, 60.0, 1000 + k, quantity="acceleration"))
+        x = compared_response(run.stage("validation"))
+        floor2.append(noise_floor(run, "validation") ** 2)
+        e = x - true_v
+        actual2.append(float(np.var(e) / np.var(x)))
+    assert 0.65 < math.sqrt(np.mean(floor2) / np.mean(actual2)) < 1.35, (np.mean(floor2), np.mean(actual2))
+
+
 @pytest.mark.slow
 def test_a_weak_term_is_not_kept_for_noise_the_unit_does_not_count():
     """Stress draw 8 recorded as acceleration (paper protocol, 2.9 kHz, 60 dB): weighed in the

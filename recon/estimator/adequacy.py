@@ -9,7 +9,9 @@ otherwise ``inadequate``, with the reasons. A fallback to a simpler model withou
 fitted by output error from a generic start, is judged by the same figures as any estimate. The noise floor is the NRMSE a perfect model
 would score: the validation record's noise (from its spectrum's flat tail) over its rms, both in
 the quantity the response was recorded in (a velocity record's velocity: validation compares the
-simulated y' with it, recon.estimator.finish.validate).
+simulated y' with it, recon.estimator.finish.validate). The noise is the fits' own unit
+(recon.signals.target_noise_std): for an acceleration record, integrated once to the velocity the
+fits compare, it counts the integral's random walk as well as the velocity's white floor.
 An inadequate model points to ``shakerlab diagnose``.
 """
 from __future__ import annotations
@@ -18,10 +20,9 @@ import math
 
 import numpy as np
 
-from recon.differentiation import estimate_spectrum
 from recon.estimator.fallback import HYSTERETIC_KINDS, admissible
 from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
-from recon.signals import compared_response
+from recon.signals import compared_response, target_noise_std
 from shakerlab.run_data import Run
 from shakerlab.words import nrmse_text
 
@@ -36,7 +37,7 @@ def noise_floor(run: Run, stage: str | None) -> float | None:
     rms = float(np.sqrt(np.mean(y ** 2)))
     if rms <= 0:
         return None
-    return float(estimate_spectrum(x, st.dt).noise_std) / rms
+    return target_noise_std(st) / rms       # the fits' noise unit, as a share of the record
 
 
 def verdict(ok: bool, v: float, floor: float | None, n_fn: int, fitted_on_validation: bool,
