@@ -67,6 +67,54 @@ def test_stop_arguments_are_checked():
     assert s.units_per_cost == pytest.approx(800.0) and s.rows == 500
 
 
+class _Step:
+    """What least_squares hands its callback after an accepted iteration."""
+    def __init__(self, x, fun, cost):
+        self.x, self.fun, self.cost = np.asarray(x, float), np.asarray(fun, float), float(cost)
+
+
+def test_a_small_gain_does_not_stop_a_fit_whose_local_model_still_promises_a_unit():
+    """A trust region that is still shrinking to where its model holds (a ridge, a sharp switch)
+    gains almost nothing per step; the Jacobian at the point says a full step would gain far more.
+    The stop waits while that promise is a chi-square unit or more, and stops as before when it
+    is not."""
+    rng = np.random.default_rng(0)
+    J = rng.standard_normal((200, 3))
+    x = np.zeros(3)
+    promising = J @ np.array([0.3, -0.2, 0.1])            # in J's range: a step removes it
+    for f, stops in ((promising, False), (np.zeros(200), True)):
+        stop = ChiSquareStop(units_per_cost=2.0, rows=200, stop_chi2=STOP)
+        jac = stop.record(lambda p: J)
+        jac(x)
+        stop(_Step(x, f, 0.5 * f @ f + 1e-6))
+        if stops:
+            with pytest.raises(StopIteration):
+                stop(_Step(x, f, 0.5 * f @ f))
+        else:
+            assert 2.0 * stop.model_gain(x, f) > 1.0
+            stop(_Step(x, f, 0.5 * f @ f))                # a gain of 1e-6: not a stop
+            assert not stop.stopped
+    # without the Jacobian at the accepted point (another point, or none recorded) it stops on the gain
+    stop = ChiSquareStop(units_per_cost=2.0, rows=200, stop_chi2=STOP)
+    stop.record(lambda p: J)(x + 1.0)
+    stop(_Step(x, promising, 1.0 + 1e-6))
+    with pytest.raises(StopIteration):
+        stop(_Step(x, promising, 1.0))
+
+
+def test_a_parameter_pushed_against_its_bound_promises_nothing():
+    """The promise counts only steps the fit can take: a parameter at a bound that the full step
+    would cross is held there."""
+    J = np.array([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]])
+    f = np.array([2.0, 0.0, 0.0])                         # the full step wants p0 -> -2
+    x = np.array([0.0, 0.0])
+    stop = ChiSquareStop(units_per_cost=2.0, rows=3, stop_chi2=STOP)
+    stop.record(lambda p: J, (np.array([0.0, -np.inf]), np.array([np.inf, np.inf])))(x)
+    assert stop.model_gain(x, f) == pytest.approx(0.0)
+    stop.record(lambda p: J, (np.array([-np.inf, -np.inf]), np.array([np.inf, np.inf])))(x)
+    assert stop.model_gain(x, f) == pytest.approx(2.0)   # unbounded: the full step's 0.5 * 2^2
+
+
 def test_output_error_fits_stop_on_their_noise_and_keep_their_answer():
     """The polish of a simulated record: the stop ends the fit where the full tolerance would have
     gone on, and the parameters are the same to far below their uncertainty."""

@@ -716,6 +716,8 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
         # forward differences
         jac = fit_jacobian(build, keys, sc, data, initial_for, fit_scale, am)
         jac = finite_or_differences(jac, resid, hi) if jac is not None else None
+        if jac is not None and stop is not None:
+            jac = stop.record(jac, (lo, hi))     # the stop asks the local model too (stopping doc)
         sol = least_squares(resid, p0, jac=jac or "2-point", method="trf", bounds=(lo, hi), x_scale=1.0,
                             diff_step=FD_STEP, max_nfev=max_nfev, xtol=1e-10, ftol=1e-10,
                             workers=None if jac else fd_map(), callback=stop)
