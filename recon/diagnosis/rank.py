@@ -74,7 +74,7 @@ from recon.library import monomials
 from recon.model import HystereticModel
 from recon.output_error.problem import (DIVERGED_RESIDUAL, FD_STEP, finite_or_differences, forward_differences,
                                         get_parameter, parameter_scales, set_parameter)
-from recon.output_error.stopping import stop_for_stages
+from recon.output_error.stopping import stop_for_stages, watched
 from recon.regression.criteria import effective_samples
 from recon.signals import base_motion, measured_velocity, response_target
 from recon.diagnosis.settings import DEFAULT_RULE, DEFAULTS, DiagnosisSettings, SignificanceRule
@@ -715,9 +715,7 @@ def fit(am: AugmentedModel, keys: list[str], data: list[StageData], scales: dict
         # the Jacobian from forward sensitivities where they reach (recon.diagnosis.jacobian), else
         # forward differences
         jac = fit_jacobian(build, keys, sc, data, initial_for, fit_scale, am)
-        jac = finite_or_differences(jac, resid, hi) if jac is not None else None
-        if jac is not None and stop is not None:
-            jac = stop.record(jac, (lo, hi))     # the stop asks the local model too (stopping doc)
+        jac = watched(finite_or_differences(jac, resid, hi), stop, (lo, hi)) if jac is not None else None
         sol = least_squares(resid, p0, jac=jac or "2-point", method="trf", bounds=(lo, hi), x_scale=1.0,
                             diff_step=FD_STEP, max_nfev=max_nfev, xtol=1e-10, ftol=1e-10,
                             workers=None if jac else fd_map(), callback=stop)

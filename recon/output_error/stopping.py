@@ -122,3 +122,10 @@ def stop_for_stages(sample_counts, stop_chi2: float, scale_ratios=None) -> ChiSq
     ratios = list(scale_ratios) if scale_ratios is not None else [1.0] * len(counts)
     per_ss = max(n * r * r for n, r in zip(counts, ratios))
     return ChiSquareStop(2.0 * per_ss, sum(counts), stop_chi2)
+
+
+def watched(jac, stop: ChiSquareStop | None, bounds=None):
+    """``jac`` as the fit passes it to least_squares, recorded for ``stop`` (ChiSquareStop.record)
+    when both are there; scipy's own differences ("2-point") and a fit without a stop unchanged."""
+    return stop.record(jac, bounds) if stop is not None and callable(jac) else jac
+
