@@ -113,6 +113,10 @@ def test_a_parameter_pushed_against_its_bound_promises_nothing():
     assert stop.model_gain(x, f) == pytest.approx(0.0)
     stop.record(lambda p: J, (np.array([-np.inf, -np.inf]), np.array([np.inf, np.inf])))(x)
     assert stop.model_gain(x, f) == pytest.approx(2.0)   # unbounded: the full step's 0.5 * 2^2
+    # the last free parameter held as well: nothing is promised
+    J1 = np.array([[1.0], [0.0]])
+    stop.record(lambda p: J1, (np.array([0.0]), np.array([np.inf])))(x[:1])
+    assert stop.model_gain(x[:1], f[:2]) == pytest.approx(0.0)
 
 
 def test_output_error_fits_stop_on_their_noise_and_keep_their_answer():

@@ -79,7 +79,7 @@ class ChiSquareStop:
         J = np.asarray(self._jacobian[1], float)
         free = np.ones(J.shape[1], bool)
         lo, hi = self._bounds if self._bounds is not None else (None, None)
-        for _ in range(J.shape[1]):
+        for _ in range(J.shape[1] + 1):      # each pass holds at least one more, or ends
             if not free.any():
                 return 0.0
             step = np.zeros(J.shape[1])
