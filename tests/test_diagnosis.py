@@ -284,3 +284,20 @@ def test_cli_default_baseline_is_the_paper_reconstruction(tmp_path, capsys):
     assert "z' =" in out["baseline"]                       # a Bouc-Wen model was identified
     assert out["missing_physics"][0]["id"] == "quadratic_damping"
     assert out["fit_after"]["nrmse"]["validation"] < out["fit_before"]["nrmse"]["validation"]
+
+
+def test_cli_candidates_option_fits_only_those_and_refuses_an_unknown_id(tmp_path, capsys):
+    run, truth, _, baseline = concealed_run("quadratic_damping", seed=21, duration=2.0)
+    path = tmp_path / "run.npz"
+    save_npz(run, path)
+    model = tmp_path / "baseline.json"
+    baseline.save(model)
+    assert main(["diagnose", str(path), "--baseline", str(model), "--json",
+                 "--candidates", "quadratic_damping, offset"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [c["id"] for c in out["candidates_tested"]] == ["quadratic_damping", "offset"]
+    assert main(["diagnose", str(path), "--baseline", str(model), "--json", "--candidates", "friction",
+                 "--save-model", str(tmp_path / "aug.json")]) == 2
+    err = json.loads(capsys.readouterr().out)
+    assert "unknown id 'friction'" in err["error"] and "coulomb_friction" in err["error"]
+    assert not (tmp_path / "aug.json").exists()

@@ -70,3 +70,20 @@ def test_corner_quadratic_damping_gets_no_false_name():
     stage above the resonance hardly shows damping): nothing else may be named in its place."""
     out = _diagnose(3)
     assert [m["id"] for m in out["missing_physics"]] in ([], ["quadratic_damping"]), out["result"]
+
+
+@pytest.mark.slow
+def test_corner_friction_over_a_baseline_with_wrong_terms_is_named_with_the_terms_chosen_again():
+    """A corner draw whose reconstructed baseline holds y y'^2, y'^3 and y^5 where the truth has y^3
+    and y^2 y': friction fitted beside those terms halved the held-out error but left the nonlinear
+    stage worse than the baseline ("partly explained"). With the baseline's terms chosen again under
+    the friction (recon.diagnosis.term_revision), the true terms come back and friction is named at
+    its size."""
+    rec = corner_recording(corner_draw(20))
+    out = diagnose(to_run(rec), candidates=["coulomb_friction"]).to_dict()
+    named = out["missing_physics"]
+    assert [m["id"] for m in named] == ["coulomb_friction"], out["result"]
+    revised = named[0]["baseline_terms_revised"]
+    assert set(revised["terms_after"]) == {"y^3", "y^2*dy"}, revised
+    true_mu = true_model(rec)[0].get("mu")
+    assert abs(named[0]["parameters"]["mu"]["value"] / true_mu - 1) < 0.05, (named[0]["parameters"], true_mu)

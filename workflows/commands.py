@@ -5,6 +5,7 @@ Only the parsers live here, so ``shakerlab --help`` stays instant; the handlers 
 imported when a command runs."""
 from __future__ import annotations
 
+import argparse
 import importlib
 from pathlib import Path
 
@@ -147,10 +148,20 @@ def register_diagnosis(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object (machine-readable)")
     output_option(p, "--report", "write PNG figures and diagnosis.json to DIR")
     p.add_argument("--save-model", metavar="PATH", help="write the augmented model as JSON to PATH")
+    p.add_argument("--candidates", type=_id_list, metavar="ID[,ID...]",
+                   help="fit only these candidates of the catalog (default: every one that applies; the ids "
+                        "are docs/diagnosis.md's catalog, e.g. coulomb_friction,channel_delay)")
     p.add_argument("--force", action="store_true",
                    help="replace an existing --save-model file or -o files (never a run file)")
     quiet_option(p)
     p.set_defaults(handler=_handler("diagnose_command", progress=True))
+
+
+def _id_list(text: str) -> list[str]:
+    ids = [x.strip() for x in text.split(",") if x.strip()]
+    if not ids:
+        raise argparse.ArgumentTypeError("give at least one candidate id, comma-separated")
+    return ids
 
 
 # --- amplitude dependence from a ring-down: `backbone` (recon/backbone.py, workflows/backbone.py) ---------

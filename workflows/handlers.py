@@ -10,6 +10,7 @@ import numpy as np
 
 from recon import ReconSettings, diagnose, reconstruct
 from recon import progress
+from recon.diagnosis.catalog import CATALOG
 from recon.diagnosis.wording import diagnosis_text, finding_text, friction_text, loop_reading
 from recon.estimator.adequacy import verdict_text
 from recon.output_error.uncertainty import UncertaintySettings, parameter_intervals
@@ -206,13 +207,22 @@ def reprocess_command(args) -> int:
 def diagnose_command(args) -> int:
 
     check_outputs(args)
+    candidates = getattr(args, "candidates", None)
+    if candidates:
+        unknown = [c for c in candidates if c not in CATALOG]
+        if unknown:
+            raise UserFacingError(f"--candidates: unknown id {', '.join(map(repr, unknown))} "
+                                  f"(the catalog: {', '.join(CATALOG)})")
     run = load_run(args.run)
     if run_mode(run) == CONSTITUTIVE:       # a component test: what its force law leaves out
+        if candidates:
+            raise UserFacingError("--candidates: a component test's diagnosis has its own catalog of force-law "
+                                  "terms (docs/constitutive.md) and always fits all of them; drop the option")
         from workflows import constitutive  # heavy: matplotlib, for component tests only
         return constitutive.diagnose_command(args, run)
     with progress_line(quiet=getattr(args, "quiet", False)):
         progress.step("diagnosing", share=0.95 if args.report else 1.0)
-        d = diagnose(run, baseline=args.baseline)
+        d = diagnose(run, baseline=args.baseline, candidates=candidates)
         out = d.to_dict()
         out["warnings"] = warnings_for(run) + out.get("baseline_warnings", [])
         out["result_text"] = diagnosis_text(out)

@@ -56,6 +56,7 @@ from recon.diagnosis.refits import (combined_fit, drop_sets, friction_from_loop,
                                     prune_absorbed, refit_on)
 from recon.diagnosis.sensitivity import detection_limits
 from recon.diagnosis.stagewise import held_stage_figures, worse_stages
+from recon.diagnosis.term_revision import revise_terms
 from recon.diagnosis.wording import friction_reading, loop_reading
 from recon.estimator.tuning import DEFAULT_TUNING
 from recon.estimator.linear_start import linear_step
@@ -426,6 +427,59 @@ def add_detection_limits(scores: Scores, refs: References, dctx: DiagnosisContex
             t["detection_limit"] = limits[t["id"]]
 
 
+def revision_step(scores: Scores, refs: References, origins: Origins, partly: list,
+                  dctx: DiagnosisContext) -> list:
+    """When no candidate is named but one explains the held-out mismatch as a whole and is worse
+    than the baseline on a held-out stage (``partly``): the baseline's fn terms were fitted to stand
+    in for the missing effect, and beside the effect they can be what fails that stage. The one of
+    those that explains most is refitted with the baseline's fn terms chosen again under it
+    (term_revision.revise_terms), and scored against the better of its reference and that reference
+    revised the same way (and the nested null of the revised fit), so that the revision itself earns
+    the candidate nothing. Named (the one-entry list returned) when it passes the rule, is plausible
+    and is no worse on any held-out stage; its entry gains ``baseline_terms_revised``. Else [] and
+    nothing changes. (A candidate that explains too little on the whole is not revised: the
+    revision would let a stand-in for an effect no candidate captured pass on the terms it adds.)"""
+    worse = {p["ids"][0] for p in partly if len(p["ids"]) == 1}      # hold_to_every_stage's, one each
+    fitted = [t for t in scores.tested if t["id"] in worse and t["id"] in scores.fits]
+    if not fitted:
+        return []
+    t = max(fitted, key=lambda t: t["explained"])
+    cid, cf = t["id"], scores.fits[t["id"]]
+    data, rule = dctx.data, dctx.rule
+    progress.step(f"the baseline's terms chosen again under {cid}", share=0.0)
+    try:
+        rev, log = revise_terms(cf.fit, list(cf.free), list(cf.keys), cf.scales, cf.bounds, data, dctx.max_nfev,
+                                dctx.settings)
+    except CANDIDATE_FAILURES:
+        return []
+    if not log["moves"] or not rev.mse_held < cf.fit.mse_held:
+        return []
+    against, k_added = scores.references[cid]
+    ref_keys = [k for k in refs.full_free if not k.startswith("fn:")]
+    try:
+        rref, _ = revise_terms(against, ref_keys, [], {}, {}, data, dctx.max_nfev, dctx.settings)
+    except CANDIDATE_FAILURES:
+        rref = against
+    rev_free = list(dict.fromkeys([k for k in cf.free if not k.startswith("fn:")]
+                                  + [f"fn:{x}" for x in rev.model.baseline.fn_m]))
+    rcf = dataclasses.replace(cf, fit=rev, free=rev_free)
+    nn = nested_null(rcf, cid, refs.ref.model, data, dctx.max_nfev)
+    best_null = min([f for f in (against, rref, nn) if f is not None], key=lambda f: f.mse_held)
+    k_terms = len(rev.model.baseline.fn_m) - len(best_null.model.baseline.fn_m)
+    score = rank.score(best_null, rev, k_added + k_terms, dctx.noise_mse, rule)
+    figs = held_stage_figures(refs.given, rev, data, rule.stage_level)
+    if not score["significant"] or implausible(cid, rev, refs.ref.model, data) or worse_stages(figs):
+        return []
+    t.update(score, held_out_nrmse=rev.nrmse_held, compared_with_held_out_nrmse=best_null.nrmse_held,
+             held_out_stages=figs, baseline_terms_revised=log)
+    t.pop("worse_on_stages", None)
+    if best_null is not against:
+        t["compared_with_nested_null"] = True
+    scores.fits[cid] = rcf
+    partly[:] = [p for p in partly if cid not in p.get("ids", ())]
+    return [t]
+
+
 def pair_search(scores: Scores, refs: References, nulls: list, partly: list,
                 dctx: DiagnosisContext) -> tuple[list, rank.FitResult | None]:
     """When no candidate is significant alone: (the pair refits.joint_pair names, their joint fit),
@@ -501,6 +555,8 @@ def missing_entries(sig: list, scores: Scores, refs: References, findings: list,
             "baseline_terms_dropped": t.get("baseline_terms_dropped", []),
             "hysteresis_dropped": bool(t.get("hysteresis_dropped", False)),
         })
+        if "baseline_terms_revised" in t:
+            missing[-1]["baseline_terms_revised"] = t["baseline_terms_revised"]
         if t["id"] == "hysteresis":
             # a named loop that slides within the record's travel is a friction law (wording.py)
             b = fr.model.baseline
@@ -558,6 +614,8 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
     add_detection_limits(scores, refs, dctx)
     sig = sorted((t for t in scores.tested if t["significant"]), key=lambda t: -t["explained"])
     combined = None
+    if not sig:
+        sig = revision_step(scores, refs, origins, partly, dctx)
     if not sig:
         sig, combined = pair_search(scores, refs, origins.nulls, partly, dctx)
     ranked = list(sig)

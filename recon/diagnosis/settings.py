@@ -120,6 +120,10 @@ class DiagnosisSettings:
                                 "absorbed it", "fraction", 0.0, 1.0)
     prune_pairs_up_to: int = _f(5, "baseline fn terms up to which a candidate is also refitted without each "
                                 "pair of them", "terms", 0, 100)
+    revision_steps: int = _f(4, "moves at most of the baseline's fn terms chosen again under a candidate "
+                             "(term_revision.py)", "moves", 0, 50)
+    revision_tries: int = _f(2, "moves a revision step tries by actual refit, best predicted first, before it "
+                             "stops", "refits", 1, 50)
     start_screen_nfev: int = _f(5, "short output-error fit of a candidate's new terms that ranks its starts",
                                 "function evaluations", 1, 1000)
     output_screen_nfev: int = _f(8, "short output-error fit that ranks starts differing in a fixed shape "
@@ -153,7 +157,7 @@ class DiagnosisSettings:
         if not isinstance(self.rule, SignificanceRule):
             raise ValueError(f"DiagnosisSettings.rule must be a SignificanceRule, not {type(self.rule).__name__}")
         _check(self)
-        for name in ("prune_pairs_up_to", "start_screen_nfev", "output_screen_nfev", "shape_screen_nfev",
+        for name in ("prune_pairs_up_to", "revision_steps", "revision_tries", "start_screen_nfev", "output_screen_nfev", "shape_screen_nfev",
                      "start_fit_nfev", "time_segments"):
             v = getattr(self, name)
             if int(v) != v:
