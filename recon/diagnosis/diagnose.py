@@ -429,18 +429,17 @@ def add_detection_limits(scores: Scores, refs: References, dctx: DiagnosisContex
 
 def revision_step(scores: Scores, refs: References, origins: Origins, partly: list,
                   dctx: DiagnosisContext) -> list:
-    """When no candidate is named but one explains the held-out mismatch as a whole and is worse
-    than the baseline on a held-out stage (``partly``): the baseline's fn terms were fitted to stand
-    in for the missing effect, and beside the effect they can be what fails that stage. The one of
-    those that explains most is refitted with the baseline's fn terms chosen again under it
-    (term_revision.revise_terms), and scored against the better of its reference and that reference
-    revised the same way (and the nested null of the revised fit), so that the revision itself earns
-    the candidate nothing. Named (the one-entry list returned) when it passes the rule, is plausible
-    and is no worse on any held-out stage; its entry gains ``baseline_terms_revised``. Else [] and
-    nothing changes. (A candidate that explains too little on the whole is not revised: the
-    revision would let a stand-in for an effect no candidate captured pass on the terms it adds.)"""
-    worse = {p["ids"][0] for p in partly if len(p["ids"]) == 1}      # hold_to_every_stage's, one each
-    fitted = [t for t in scores.tested if t["id"] in worse and t["id"] in scores.fits]
+    """When no candidate is named: the one that explains most of the held-out mismatch (plausible,
+    explaining some of it) is refitted with the baseline's fn terms chosen again under it
+    (term_revision.revise_terms). A baseline reconstructed from a record that holds an effect has
+    fitted terms to stand in for it and may have traded true ones away; beside those terms the
+    effect's candidate explains too little, or fails a held-out stage. The revised fit is scored
+    against the better of the candidate's reference and that reference revised the same way (and
+    the nested null of the revised fit), so that the revision itself earns the candidate nothing.
+    Named (the one-entry list returned) when it passes the rule, is plausible and is no worse on
+    any held-out stage; its entry gains ``baseline_terms_revised``. Else [] and nothing changes."""
+    fitted = [t for t in scores.tested if t["id"] in scores.fits and not t.get("implausible")
+              and t.get("explained", 0.0) > 0.0]
     if not fitted:
         return []
     t = max(fitted, key=lambda t: t["explained"])
