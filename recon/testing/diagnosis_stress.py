@@ -198,7 +198,7 @@ FIT_SIGNATURE_SHARE = 0.1
 CANDIDATE_KEYS = ("id", "significant", "explained", "gain_over_noise", "relative_gain", "blocks_improved", "dbic", "held_out_nrmse",
                   "compared_with_held_out_nrmse", "baseline_terms_dropped", "implausible", "failed",
                   "detection_limit", "started_from", "compared_with_nested_null", "before_nested_null", "jointly_with", "alone",
-                  "held_out_stages", "worse_on_stages", "on_top_of_best")
+                  "held_out_stages", "worse_on_stages", "on_top_of_best", "baseline_terms_revised")
 
 
 def run_one(i: int) -> dict:
