@@ -31,13 +31,15 @@ import numpy as np
 
 from recon.diagnosis import rank
 from recon.diagnosis.augmented import AugmentedModel
+from recon.diagnosis.candidate_fit import CANDIDATE_FAILURES
 from recon.diagnosis.jacobian import fit_jacobian
 from recon.diagnosis.settings import DEFAULTS, DiagnosisSettings
 from recon.output_error.problem import forward_differences, get_parameter, parameter_scales, set_parameter, term_scale
 from recon.output_error.term_selection import CANDIDATES
 from recon.regression.criteria import effective_samples
 
-def motion_scales(data: list) -> tuple[float, float]:
+
+def judged_motion(data: list) -> tuple[float, float]:
     """(rms y, rms y') of the relative displacement of the stage that moves most: the motion a
     term's size is judged at."""
     d = max(data, key=lambda d: float(np.std(d.displacement)))
@@ -62,7 +64,7 @@ def revise_terms(fr: rank.FitResult, free: list, keys: list, scales: dict, bound
     the criterion (at most ``settings.revision_steps`` moves, each step trying its
     ``settings.revision_tries`` best predicted). Numerical failures of a trial skip that move."""
     free = [k for k in free if not k.startswith("fn:")]
-    y_rms, v_rms = motion_scales(data)
+    y_rms, v_rms = judged_motion(data)
     cur, moves = fr, []
     for _ in range(settings.revision_steps):
         step = _best_moves(cur.model, free, keys, scales, data, y_rms, v_rms, settings.revision_tries)
@@ -74,7 +76,7 @@ def revise_terms(fr: rank.FitResult, free: list, keys: list, scales: dict, bound
             try:
                 trial = rank.fit(start, list(dict.fromkeys(free + fn_keys(keep) + keys)), data,
                                  {**scales, **term_sc}, max_nfev=max_nfev, bounds=bounds)
-            except (ArithmeticError, ValueError, np.linalg.LinAlgError):
+            except CANDIDATE_FAILURES:
                 continue
             if not (math.isfinite(trial.cost_fit) and math.isfinite(trial.mse_held)):
                 continue
@@ -92,8 +94,8 @@ def revise_terms(fr: rank.FitResult, free: list, keys: list, scales: dict, bound
 def _best_moves(am: AugmentedModel, free: list, keys: list, scales: dict, data: list, y_rms: float,
                 v_rms: float, tries: int):
     """(fitting cost of ``am``, its residual's effective sample count, the moves that lower the
-    predicted criterion, the ``tries`` best first, each (criterion, kind, terms, kept terms, start model, the
-    kept terms' scales)); None where no Jacobian can be taken."""
+    predicted criterion, the ``tries`` best first, each (criterion, kind, terms, kept terms, start
+    model, the kept terms' scales)); None where no finite Jacobian can be taken."""
     present = list(am.baseline.fn_m)
     offered = [t for t in CANDIDATES if t not in present]
     work = am.copy()
