@@ -429,17 +429,20 @@ def add_detection_limits(scores: Scores, refs: References, dctx: DiagnosisContex
 
 def revision_step(scores: Scores, refs: References, origins: Origins, partly: list,
                   dctx: DiagnosisContext) -> list:
-    """When no candidate is named: the one that explains most of the held-out mismatch (plausible,
-    explaining some of it) is refitted with the baseline's fn terms chosen again under it
-    (term_revision.revise_terms). A baseline reconstructed from a record that holds an effect has
-    fitted terms to stand in for it and may have traded true ones away; beside those terms the
-    effect's candidate explains too little, or fails a held-out stage. The revised fit is scored
+    """When no candidate is named: the one that explains most of the held-out mismatch is refitted
+    with the baseline's fn terms chosen again under it (term_revision.revise_terms), if it is
+    plausible and already explains the share of the reference's excess the rule asks of a named
+    effect (``rule.min_explained``) while failing its other margins or a held-out stage. A baseline
+    reconstructed from a record that holds an effect has fitted terms to stand in for it and may
+    have traded true ones away; beside those terms the effect's candidate explains a good part of
+    the mismatch and still fails. (One that explains less is held back by its own size, not by the
+    baseline's terms: revising under it costs a few fits and names nothing.) The revised fit is scored
     against the better of the candidate's reference and that reference revised the same way (and
     the nested null of the revised fit), so that the revision itself earns the candidate nothing.
     Named (the one-entry list returned) when it passes the rule, is plausible and is no worse on
     any held-out stage; its entry gains ``baseline_terms_revised``. Else [] and nothing changes."""
     fitted = [t for t in scores.tested if t["id"] in scores.fits and not t.get("implausible")
-              and t.get("explained", 0.0) > 0.0]
+              and t.get("explained", 0.0) >= dctx.rule.min_explained]
     if not fitted:
         return []
     t = max(fitted, key=lambda t: t["explained"])
