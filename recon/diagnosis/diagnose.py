@@ -20,8 +20,10 @@ The diagnosis is a sequence of named steps, each a function of this module readi
    :mod:`.refits`, :mod:`.rank`).
 5. :func:`rescore_against_best_null`, :func:`hold_to_every_stage`: every candidate must beat the best
    null model found anywhere, and be no worse on any held-out stage (:mod:`.stagewise`).
-6. :func:`pair_search`, :func:`forward_step`: two candidates together when none is significant
-   alone; a runner-up only if it adds on top of the best one.
+6. :func:`revision_step`: when none is significant, the one that explains most refitted with the
+   baseline's fn terms chosen again under it (:mod:`.term_revision`); :func:`pair_search`,
+   :func:`forward_step`: two candidates together when none is significant alone; a runner-up only
+   if it adds on top of the best one.
 7. :func:`missing_entries`, :func:`assemble`: the named physics, ranked by the share of the
    held-out mismatch each removes, and the :class:`Diagnosis`.
 """
@@ -427,8 +429,7 @@ def add_detection_limits(scores: Scores, refs: References, dctx: DiagnosisContex
             t["detection_limit"] = limits[t["id"]]
 
 
-def revision_step(scores: Scores, refs: References, origins: Origins, partly: list,
-                  dctx: DiagnosisContext) -> list:
+def revision_step(scores: Scores, refs: References, partly: list, dctx: DiagnosisContext) -> list:
     """When no candidate is named: the one that explains most of the held-out mismatch is refitted
     with the baseline's fn terms chosen again under it (term_revision.revise_terms), if it is
     plausible and already explains the share of the reference's excess the rule asks of a named
@@ -617,7 +618,7 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
     sig = sorted((t for t in scores.tested if t["significant"]), key=lambda t: -t["explained"])
     combined = None
     if not sig:
-        sig = revision_step(scores, refs, origins, partly, dctx)
+        sig = revision_step(scores, refs, partly, dctx)
     if not sig:
         sig, combined = pair_search(scores, refs, origins.nulls, partly, dctx)
     ranked = list(sig)
