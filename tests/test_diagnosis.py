@@ -112,12 +112,18 @@ def test_billings_voon_white_residual_inside_bands_correlated_outside():
 
 
 @pytest.mark.slow
-def test_cli_json_contract_and_report(tmp_path, capsys):
-    run, truth, _, baseline = concealed_run("quadratic_damping", seed=21, duration=3.0)
+def _saved_run_and_baseline(tmp_path, effect: str, seed: int, duration: float):
+    """(run file, baseline model file) of a concealed run, both written to ``tmp_path``."""
+    run, _, _, baseline = concealed_run(effect, seed=seed, duration=duration)
     path = tmp_path / "run.npz"
     save_npz(run, path)
     model = tmp_path / "baseline.json"
     baseline.save(model)
+    return path, model
+
+
+def test_cli_json_contract_and_report(tmp_path, capsys):
+    path, model = _saved_run_and_baseline(tmp_path, "quadratic_damping", seed=21, duration=3.0)
     assert main(["diagnose", str(path), "--baseline", str(model), "--json", "--report", str(tmp_path / "rep"),
                  "--save-model", str(tmp_path / "aug.json")]) == 0
     out = json.loads(capsys.readouterr().out)
@@ -287,11 +293,7 @@ def test_cli_default_baseline_is_the_paper_reconstruction(tmp_path, capsys):
 
 
 def test_cli_candidates_option_fits_only_those_and_refuses_an_unknown_id(tmp_path, capsys):
-    run, truth, _, baseline = concealed_run("quadratic_damping", seed=21, duration=2.0)
-    path = tmp_path / "run.npz"
-    save_npz(run, path)
-    model = tmp_path / "baseline.json"
-    baseline.save(model)
+    path, model = _saved_run_and_baseline(tmp_path, "quadratic_damping", seed=21, duration=2.0)
     assert main(["diagnose", str(path), "--baseline", str(model), "--json",
                  "--candidates", "quadratic_damping, offset"]) == 0
     out = json.loads(capsys.readouterr().out)
@@ -299,5 +301,5 @@ def test_cli_candidates_option_fits_only_those_and_refuses_an_unknown_id(tmp_pat
     assert main(["diagnose", str(path), "--baseline", str(model), "--json", "--candidates", "friction",
                  "--save-model", str(tmp_path / "aug.json")]) == 2
     err = json.loads(capsys.readouterr().out)
-    assert "unknown id 'friction'" in err["error"] and "coulomb_friction" in err["error"]
+    assert "unknown candidate 'friction'" in err["error"] and "coulomb_friction" in err["error"]
     assert not (tmp_path / "aug.json").exists()

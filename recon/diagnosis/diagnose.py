@@ -368,8 +368,6 @@ def score_candidates(ids: list, refs: References, origins: Origins, dctx: Diagno
     pruned_refs = {}        # the pruned references, shared between candidates
     for cid in ids:
         progress.step(f"candidate {cid} ({ids.index(cid) + 1} of {len(ids)})", share=0.65 / len(ids))
-        if cid not in CATALOG:
-            raise UserFacingError(f"unknown candidate {cid!r} (catalog: {', '.join(CATALOG)})")
         cand = CATALOG[cid]
         if cid in refs.ref.model.added or not cand.applies(refs.ref.model.baseline, dctx.located):
             continue
@@ -601,6 +599,9 @@ def diagnose(run: Run, baseline="paper", candidates=None, max_nfev: int = 30,
     numbers (recon.diagnosis.settings; None: the calibrated defaults)."""
     if settings is not None and not isinstance(settings, DiagnosisSettings):
         raise TypeError(f"settings must be a DiagnosisSettings, not {type(settings).__name__}")
+    unknown = [c for c in candidates or () if c not in CATALOG]
+    if unknown:     # refused before anything is computed
+        raise UserFacingError(f"unknown candidate {', '.join(map(repr, unknown))} (catalog: {', '.join(CATALOG)})")
     return _diagnose(run, baseline, candidates, max_nfev, settings or DEFAULTS)
 
 

@@ -157,8 +157,8 @@ class DiagnosisSettings:
         if not isinstance(self.rule, SignificanceRule):
             raise ValueError(f"DiagnosisSettings.rule must be a SignificanceRule, not {type(self.rule).__name__}")
         _check(self)
-        for name in ("prune_pairs_up_to", "revision_steps", "revision_tries", "start_screen_nfev", "output_screen_nfev", "shape_screen_nfev",
-                     "start_fit_nfev", "time_segments"):
+        for name in ("prune_pairs_up_to", "revision_steps", "revision_tries", "start_screen_nfev",
+                     "output_screen_nfev", "shape_screen_nfev", "start_fit_nfev", "time_segments"):
             v = getattr(self, name)
             if int(v) != v:
                 raise ValueError(f"DiagnosisSettings.{name} must be a whole number, not {v!r}")

@@ -70,7 +70,7 @@ def revise_terms(fr: rank.FitResult, free: list, keys: list, scales: dict, bound
         step = _best_moves(cur.model, free, keys, scales, data, y_rms, v_rms, settings.revision_tries)
         if step is None:
             break
-        _, n_eff, ranked = step
+        n_eff, ranked = step
         taken = False
         for _ic, kind, terms, keep, start, term_sc in ranked:
             try:
@@ -93,7 +93,7 @@ def revise_terms(fr: rank.FitResult, free: list, keys: list, scales: dict, bound
 
 def _best_moves(am: AugmentedModel, free: list, keys: list, scales: dict, data: list, y_rms: float,
                 v_rms: float, tries: int):
-    """(fitting cost of ``am``, its residual's effective sample count, the moves that lower the
+    """(the effective sample count of ``am``'s fitting residual, the moves that lower the
     predicted criterion, the ``tries`` best first, each (criterion, kind, terms, kept terms, start
     model, the kept terms' scales)); None where no finite Jacobian can be taken."""
     present = list(am.baseline.fn_m)
@@ -155,5 +155,5 @@ def _best_moves(am: AugmentedModel, free: list, keys: list, scales: dict, data: 
             if t not in keep:
                 del m.baseline.fn_m[t]
         return m
-    return c0, n_eff, [(ic, kind, terms, keep, start(keep, p), {f"fn:{t}": term_sc[f"fn:{t}"] for t in keep})
+    return n_eff, [(ic, kind, terms, keep, start(keep, p), {f"fn:{t}": term_sc[f"fn:{t}"] for t in keep})
                        for ic, kind, terms, keep, p in ranked[:tries]]
