@@ -77,6 +77,7 @@ from recon.output_error.problem import (DIVERGED_RESIDUAL, FD_STEP, finite_or_di
 from recon.output_error.stopping import stop_for_stages, watched
 from recon.regression.criteria import effective_samples
 from recon.signals import base_motion, measured_velocity, response_target
+from recon.simulation.resampling import thinned_input
 from recon.diagnosis.settings import DEFAULT_RULE, DEFAULTS, DiagnosisSettings, SignificanceRule
 from recon.threads import fd_map
 from shakerlab.quantities import VELOCITY, channel_name
@@ -174,9 +175,9 @@ class StageData:
 
     def thinned(self) -> "StageData":
         """The stage as a fit's iterations see it: every ``fit_step``-th sample (the whole stage when
-        1). The input is a Savitzky-Golay-smoothed derivative or a force in the response's band, so
-        taking every q-th sample at no less than settings.fit_rate does not alias the response band
-        (as reconstruct's polish decimates, recon.output_error.polish.decimate); the parameters a
+        1). The input is low-passed before it is thinned (:attr:`thinned_u`), so taking every q-th
+        sample at no less than settings.fit_rate does not fold its noise into the response band;
+        the parameters a
         fit finds on it differ from the full record's by far less than their standard errors, and
         every figure the rule reads is taken again on every sample (:func:`fit`)."""
         q = self.fit_step
@@ -184,9 +185,15 @@ class StageData:
             return self
         cut = slice(None, None, q)
         return dataclasses.replace(
-            self, t=self.t[cut], u=self.u[cut], x_in=None if self.x_in is None else self.x_in[cut],
+            self, t=self.t[cut], u=self.thinned_u, x_in=None if self.x_in is None else self.x_in[cut],
             y=self.y[cut], fit=self.fit[cut], held=self.held[cut],
             motion=None if self.motion is None else self.motion[cut], fit_step=1)
+
+    @functools.cached_property
+    def thinned_u(self) -> np.ndarray:
+        """The input at every ``fit_step``-th sample, low-passed first (recon.simulation.resampling.thinned_input:
+        the samples skipped would fold the input's noise into the response band); made once."""
+        return thinned_input(self.u, self.fit_step)
 
     @property
     def displacement(self) -> np.ndarray:

@@ -22,19 +22,21 @@ from recon.differentiation import estimate_spectrum
 from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.model import HystereticModel
 from recon.output_error.problem import FD_STEP, OutputError, item_target
+from recon.simulation.resampling import thinned_input
 from recon.threads import fd_map
 
 
 def decimate(item: tuple, fs_target: float):
     """Every q-th sample of a data item (t, u, y[, start[, target]]) so that its rate is >= ``fs_target``
-    (q = floor(fs / fs_target)); returns (item, q). The input u is a Savitzky-Golay-smoothed
-    derivative (base) or a force, so taking every q-th sample does not alias the response band."""
+    (q = floor(fs / fs_target)); returns (item, q). The input u is low-passed before it is thinned
+    (recon.simulation.resampling.thinned_input), so that its noise above the thinned Nyquist frequency does not
+    fold into the response band."""
     t = item[0]
     fs = 1.0 / float(t[1] - t[0])
     q = max(1, int(fs // fs_target))
     if q == 1:
         return item, 1
-    out = (t[::q], item[1][::q], item[2][::q], *item[3:4])
+    out = (t[::q], thinned_input(item[1], q), item[2][::q], *item[3:4])
     if len(item) > 4:           # the measured target (recon.output_error.problem.item_target)
         out += ((item[4][0], item[4][1][::q]),)
     return out, q
