@@ -50,7 +50,9 @@ def test_diagnose_twice_under_load_and_other_blas_threads_gives_identical_json(t
     run = r[0] if isinstance(r, tuple) else r
     path = tmp_path / "scale.npz"
     save_npz(run, path)
-    args = ["diagnose", str(path), "--json"]
+    # four candidates of kinds whose fits differ (a reading change, a delay, a nonsmooth force, a
+    # multimodal mode search): the whole catalog repeats the same paths at three times the cost
+    args = ["diagnose", str(path), "--json", "--candidates", "sensor_scale,channel_delay,coulomb_friction,higher_mode"]
     first = json.loads(_cli(args, {"OPENBLAS_NUM_THREADS": "1"}))
     load = _burn(120.0)
     try:
@@ -58,6 +60,8 @@ def test_diagnose_twice_under_load_and_other_blas_threads_gives_identical_json(t
     finally:
         load.kill()
         load.wait()
+    assert {c["id"] for c in first["candidates_tested"]} == {"sensor_scale", "channel_delay", "coulomb_friction",
+                                                             "higher_mode"}
     assert _strip(first) == _strip(second)
 
 
