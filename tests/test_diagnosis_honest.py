@@ -1094,3 +1094,17 @@ def test_a_fitting_stage_recorded_in_motion_leaves_its_start_transient_out_of_th
     with_cut, without = rank.fit(truth, [], data), rank.fit(truth, [], whole)
     assert with_cut.cost_fit < 0.1 * without.cost_fit, (with_cut.cost_fit, without.cost_fit)
     assert with_cut.nrmse_held == pytest.approx(without.nrmse_held, rel=1e-9)   # the truth's own start
+
+
+def test_a_fit_whose_jacobian_overflows_gets_no_standard_errors_and_does_not_hang():
+    # a candidate fit on a 6 kHz multisine record ended where its last Jacobian's J^T J overflowed:
+    # LAPACK's SVD of that matrix ran for minutes (a diagnosis of 25 s took over 10 minutes), and
+    # on this one it gives standard errors of 0 (intervals of no width). No covariance exists
+    # there: the fit gets no standard errors, at once
+    class Solution:
+        jac = np.array([[1e200, 1.0], [3.0, 2e190], [1.0, 1.0]])
+        fun = np.zeros(3)
+    assert rank._standard_errors(Solution(), ["a", "b"], np.ones(2), 1.0, None, np.zeros(2), np.ones(2)) == {}
+    Solution.jac = np.array([[1.0, 0.0], [0.0, 2.0], [1.0, 1.0]])
+    se = rank._standard_errors(Solution(), ["a", "b"], np.ones(2), 1.0, None, np.zeros(2), np.ones(2))
+    assert set(se) == {"a", "b"} and all(v > 0 for v in se.values())

@@ -761,8 +761,14 @@ def _standard_errors(sol, keys: list[str], sc: np.ndarray, cost: float, resid, p
             # after a bounded fit ended on its evaluation limit) would give that parameter a
             # zero standard error: the Jacobian is taken again at the solution
             J = forward_differences(resid, p, hi)
+        with np.errstate(all="ignore"):
+            jtj = J.T @ J
+        if not (np.all(np.isfinite(jtj)) and math.isfinite(cost)):
+            # an overflowed Jacobian has no covariance, and LAPACK's SVD of a matrix holding inf or
+            # nan can run for minutes before it gives up (seen on a 6 kHz multisine record)
+            return {}
         dof = max(sol.fun.size - len(keys), 1)
-        cov = np.linalg.pinv(J.T @ J) * (cost / dof)
+        cov = np.linalg.pinv(jtj) * (cost / dof)
         return {k: float(math.sqrt(max(cov[i, i], 0.0)) * sc[i]) for i, k in enumerate(keys)}
     except (np.linalg.LinAlgError, ValueError):
         return {}
