@@ -111,7 +111,6 @@ def test_billings_voon_white_residual_inside_bands_correlated_outside():
     assert bv["phi_u2_e"]["outside_95"] > 0
 
 
-@pytest.mark.slow
 def _saved_run_and_baseline(tmp_path, effect: str, seed: int, duration: float):
     """(run file, baseline model file) of a concealed run, both written to ``tmp_path``."""
     run, _, _, baseline = concealed_run(effect, seed=seed, duration=duration)
@@ -122,6 +121,7 @@ def _saved_run_and_baseline(tmp_path, effect: str, seed: int, duration: float):
     return path, model
 
 
+@pytest.mark.slow
 def test_cli_json_contract_and_report(tmp_path, capsys):
     path, model = _saved_run_and_baseline(tmp_path, "quadratic_damping", seed=21, duration=3.0)
     assert main(["diagnose", str(path), "--baseline", str(model), "--json", "--report", str(tmp_path / "rep"),
