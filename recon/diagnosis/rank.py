@@ -175,25 +175,19 @@ class StageData:
 
     def thinned(self) -> "StageData":
         """The stage as a fit's iterations see it: every ``fit_step``-th sample (the whole stage when
-        1). The input is low-passed before it is thinned (:attr:`thinned_u`), so taking every q-th
-        sample at no less than settings.fit_rate does not fold its noise into the response band;
-        the parameters a
-        fit finds on it differ from the full record's by far less than their standard errors, and
-        every figure the rule reads is taken again on every sample (:func:`fit`)."""
+        1). The input is low-passed before it is thinned (recon.simulation.resampling.thinned_input,
+        made once per input), so taking every q-th sample at no less than settings.fit_rate does not
+        fold its noise into the response band; the parameters a fit finds on it differ from the full
+        record's by far less than their standard errors, and every figure the rule reads is taken
+        again on every sample (:func:`fit`)."""
         q = self.fit_step
         if q <= 1:
             return self
         cut = slice(None, None, q)
         return dataclasses.replace(
-            self, t=self.t[cut], u=self.thinned_u, x_in=None if self.x_in is None else self.x_in[cut],
+            self, t=self.t[cut], u=thinned_input(self.u, q), x_in=None if self.x_in is None else self.x_in[cut],
             y=self.y[cut], fit=self.fit[cut], held=self.held[cut],
             motion=None if self.motion is None else self.motion[cut], fit_step=1)
-
-    @functools.cached_property
-    def thinned_u(self) -> np.ndarray:
-        """The input at every ``fit_step``-th sample, low-passed first (recon.simulation.resampling.thinned_input:
-        the samples skipped would fold the input's noise into the response band); made once."""
-        return thinned_input(self.u, self.fit_step)
 
     @property
     def displacement(self) -> np.ndarray:

@@ -24,6 +24,7 @@ low-passed first so that the noise the skipped samples carry does not fold into 
 """
 from __future__ import annotations
 
+import threading
 import weakref
 
 import numpy as np
@@ -34,8 +35,9 @@ from shakerlab.errors import UserFacingError
 __all__ = ["upsample", "upsample_periodic", "upsample_polyphase", "decimate_fir",
            "decimate_chain", "prime_factors", "fir1_lowpass", "thinned_input"]
 
-# thinned_input's results by the input array they were made from: id -> (weak reference, {q: result})
+# thinned_input's results by the input array they were made from, while it lives: id -> {q: result}
 _THINNED: dict = {}
+_THINNED_LOCK = threading.Lock()
 
 
 def _as_record(x, what: str) -> np.ndarray:
@@ -182,16 +184,17 @@ def thinned_input(u: np.ndarray, q: int) -> np.ndarray:
     if q <= 1:
         return u
     key = id(u)
-    hit = _THINNED.get(key)
-    if hit is not None and hit[0]() is u and q in hit[1]:
-        return hit[1][q]
+    with _THINNED_LOCK:         # the diagnosis fits stages on threads
+        hit = _THINNED.get(key)
+        if hit is not None and q in hit:
+            return hit[q]
     out = _thinned_input(u, q)
-    if len(_THINNED) > 64:      # entries of inputs no longer alive
-        for k in [k for k, v in _THINNED.items() if v[0]() is None]:
-            del _THINNED[k]
-    if hit is None or hit[0]() is not u:
-        hit = _THINNED[key] = (weakref.ref(u), {})
-    hit[1][q] = out
+    with _THINNED_LOCK:
+        if key not in _THINNED:
+            _THINNED[key] = {}
+            # the entry goes with its input (before its id can be reused)
+            weakref.finalize(u, _THINNED.pop, key, None)
+        _THINNED[key][q] = out
     return out
 
 
