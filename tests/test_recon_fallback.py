@@ -333,3 +333,27 @@ def test_a_hysteretic_simpler_model_has_its_terms_revised_by_output_error():
     for k in ("c_m", "gamma", "delta"):
         assert abs(getattr(r.model, k) / truth[k] - 1) < 0.05, (k, getattr(r.model, k), truth[k])
     assert r.adequacy["validation_nrmse"] < 2 * r.adequacy["noise_floor_nrmse"]
+
+
+def test_a_fallback_that_keeps_the_law_answers_with_the_bouc_wen_form_where_one_is_admissible():
+    """A record of issue 76's corner (negative delta, a channel delay of 0.2 ms at 5 kHz) whose full
+    estimate is inadmissible. By held-out error reconstruct answers with the equivalent-linear
+    stand-in; with ``fallback_keeps_law`` (the diagnosis's baseline) the answer is the admissible
+    Bouc-Wen fit, whose loop then does not look like missing physics to the diagnosis."""
+    import warnings
+
+    from recon.diagnosis import rank
+    from recon.diagnosis.settings import DEFAULTS
+    from recon.estimator.fallback import HYSTERETIC_KINDS
+    from recon.testing.runs import to_run
+    from recon.testing.stress import corner_draw, corner_recording
+    warnings.filterwarnings("ignore")
+    run = rank.fitting_part(to_run(corner_recording(corner_draw(24))), DEFAULTS)
+    plain = reconstruct(run)
+    kept = reconstruct(run, ReconSettings(fallback_keeps_law=True))
+    assert plain.adequacy["fallback"]["trigger"] == "inadmissible"
+    assert plain.adequacy["fallback"]["kind"] not in HYSTERETIC_KINDS      # the stand-in wins on held-out error
+    assert kept.adequacy["fallback"]["kind"] in HYSTERETIC_KINDS
+    assert admissible(kept.model) and kept.model.alpha_m > 0
+    with pytest.raises(UserFacingError, match="fallback_keeps_law"):
+        ReconSettings(fallback_keeps_law="yes")

@@ -210,7 +210,8 @@ def _prefer_simpler(result: ReconResult, run: Run, s: ReconSettings, validate_mo
     full_nl = (score(result.model, run, [s.nonlinear_stage], s.tuning) if s.nonlinear_stage in run.stages
                else float("nan"))
     good = [f for f in fits if f.model is not None and np.isfinite(f.held_out_nrmse)
-            and (not math.isfinite(full_nl) or f.nonlinear_stage_nrmse <= s.tuning.simpler_fit_slack * full_nl)]
+            and (not math.isfinite(full_nl) or f.nonlinear_stage_nrmse <= s.tuning.simpler_fit_slack * full_nl)
+            and (f.kind in HYSTERETIC_KINDS or not s.fallback_keeps_law)]    # the full model is of the law's form
     best = min(good, key=lambda f: f.held_out_nrmse) if good else None
     compared = {"full_model_held_out_nrmse": full, "gain_needed": s.tuning.simpler_gain,
                 "full_model_nonlinear_stage_nrmse": full_nl, "fit_slack": s.tuning.simpler_fit_slack,
@@ -236,6 +237,8 @@ def _simpler(run: Run, s: ReconSettings, candidates: list, failures: dict, valid
     progress.step("fitting the simpler models (no admissible estimate)", share=0.3)
     fits = simpler_models(run, s, estimate.model if estimate is not None else None, lin)
     good = [f for f in fits if f.model is not None and np.isfinite(f.held_out_nrmse)]
+    if s.fallback_keeps_law:       # the law's form when one of its fits is admissible (ReconSettings)
+        good = [f for f in good if f.kind in HYSTERETIC_KINDS] or good
     if not good:
         why = "; ".join(f"{k}: {v}" for k, v in failures.items()) or "every estimate was inadmissible"
         raise UserFacingError(f"{run.source or 'run'}: reconstruct found no admissible model. The passes gave: "
