@@ -19,7 +19,8 @@ model of the simplest kinds below that predicts the held-out stages best:
 5. ``linear``: c y' + k y.
 
 Each is fitted by output error on the linear and nonlinear stages (simulated from their
-recorded start states) and scored on the held-out stages. A hysteretic kind whose fitted Bouc-Wen
+recorded start states), a Bouc-Wen law within its admissible region (alpha >= 0, gamma + delta
+>= 0: the estimate it replaces has often left it), and scored on the held-out stages. A hysteretic kind whose fitted Bouc-Wen
 force has vanished (rms z below ``tuning.negligible`` of the elastic force) is the elastic kind
 with three idle parameters and does not compete. Held-out: the validation stages; the
 nonlinear stage when there is none, which the result says. The inadmissible estimate
@@ -142,14 +143,41 @@ def _linear_start(run: Run, linear_stage: str, excitation: str, lin=None) -> tup
     return 0.04 * math.sqrt(k), k, inv_m
 
 
+def admissible_coordinates(prob: OutputError) -> tuple[np.ndarray, np.ndarray]:
+    """(T, lower): the fit's scaled parameters p = T q, with q's lower bounds, such that a Bouc-Wen
+    law started admissible (alpha > 0, gamma + delta > 0) stays in the closure of the admissible
+    region (alpha >= 0, gamma + delta >= 0): the gamma coordinate of q moves gamma + delta (in
+    gamma's scale) with delta held, a change of variables that is linear, so the residual's Jacobian
+    is J T. Without a Bouc-Wen law, or from a start outside the region: T = I and no bounds."""
+    n = len(prob.keys)
+    T, lower = np.eye(n), np.full(n, -np.inf)
+    if not all(k in prob.keys for k in ("alpha_m", "gamma", "delta")):
+        return T, lower
+    ia, ig, idl = (prob.keys.index(k) for k in ("alpha_m", "gamma", "delta"))
+    lam0, s = prob.x0[ig] + prob.x0[idl], prob.scale
+    if not (lam0 > 0 and prob.x0[ia] > 0):
+        return T, lower
+    T[ig, idl] = -s[idl] / s[ig]            # p_gamma = q_gamma - p_delta s_delta / s_gamma
+    lower[ig] = -lam0 / s[ig]                # gamma + delta = lam0 + q_gamma s_gamma >= 0
+    lower[ia] = -prob.x0[ia] / s[ia]         # alpha = alpha0 + q_alpha s_alpha >= 0
+    return T, lower
+
+
 def _fit(model: HystereticModel, data: list, free: list, max_nfev: int, tuning: EstimatorTuning) -> HystereticModel:
+    """An output-error fit of ``free`` from ``model``; a Bouc-Wen law is held in its admissible region
+    (:func:`admissible_coordinates`), so that a simpler model of the law's form is a law wherever the
+    data allow one, rather than a fit that left the region and is set aside."""
     prob = OutputError(model, data, free=free)
+    T, lower = admissible_coordinates(prob)
+    jac = prob.jac_option()
     with np.errstate(all="ignore"):
-        sol = least_squares(prob.residual, np.zeros(len(prob.keys)), jac=prob.jac_option(), method="trf",
+        sol = least_squares(lambda q: prob.residual(T @ q), np.zeros(len(prob.keys)),
+                            jac=(lambda q: jac(T @ q) @ T) if callable(jac) else jac, method="trf",
+                            bounds=(lower, np.full(len(prob.keys), np.inf)),
                             x_scale=1.0, diff_step=FD_STEP, max_nfev=max_nfev, xtol=1e-10, ftol=1e-12,
-                            workers=None if prob.analytic else fd_map(),
+                            workers=None if callable(jac) else fd_map(),
                             callback=prob.stop([output_noise(d) for d in data], tuning.stop_chi2))
-    return prob.build(sol.x)
+    return prob.build(T @ sol.x)
 
 
 def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_fit=None,
