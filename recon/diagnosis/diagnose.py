@@ -63,7 +63,6 @@ from recon.diagnosis.wording import friction_reading, loop_reading
 from recon.estimator.tuning import DEFAULT_TUNING
 from recon.estimator.linear_start import linear_step
 from recon.estimator.pipeline import reconstruct
-from recon.estimator.result import ReconSettings
 from recon.model import HystereticModel
 from recon.output_error.problem import get_parameter
 from shakerlab.errors import UserFacingError
@@ -101,9 +100,7 @@ def resolve_baseline(run: Run, baseline, whole: bool = False,
     if baseline in (None, "paper"):
         # reconstructed from the fitting samples only (rank.fitting_part: a stage the validation
         # stages do not cover has its end held out), so the baseline's held-out score is out of sample
-        # a fallback keeps the law's form where it can (ReconSettings.fallback_keeps_law): the catalog
-        # is of what a Bouc-Wen model lacks, and a stand-in without the loop lacks the loop itself
-        res = reconstruct(run if whole else rank.fitting_part(run, settings), ReconSettings(fallback_keeps_law=True))
+        res = reconstruct(run if whole else rank.fitting_part(run, settings))
         model = res.model
         if res.linear is not None and res.linear.warnings:
             model.provenance["warnings"] = list(res.linear.warnings)

@@ -85,6 +85,9 @@ class SimplerFit:
     # which of its starts the fit came from, where a kind had several named starts (the elastic
     # kind: "estimate", y^2 and y^3 from the inadmissible estimate, or "zero"); None: one start
     start: str | None = None
+    # a Bouc-Wen kind made into the answer it would be (terms revised, two stages fitted together:
+    # recon.estimator.pipeline._finish_law) before the kinds were compared; its figures are then of that
+    finished: bool = False
 
     def to_dict(self, tuning: EstimatorTuning = DEFAULT_TUNING) -> dict:
         d = {"kind": self.kind, "held_out_nrmse": self.held_out_nrmse, "fitted_nrmse": self.fitted_nrmse,
@@ -97,6 +100,8 @@ class SimplerFit:
             d["failed"] = self.failed
         if self.start is not None:
             d["start"] = self.start
+        if self.finished:
+            d["finished"] = True
         return d
 
 

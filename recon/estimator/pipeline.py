@@ -210,8 +210,7 @@ def _prefer_simpler(result: ReconResult, run: Run, s: ReconSettings, validate_mo
     full_nl = (score(result.model, run, [s.nonlinear_stage], s.tuning) if s.nonlinear_stage in run.stages
                else float("nan"))
     good = [f for f in fits if f.model is not None and np.isfinite(f.held_out_nrmse)
-            and (not math.isfinite(full_nl) or f.nonlinear_stage_nrmse <= s.tuning.simpler_fit_slack * full_nl)
-            and (f.kind in HYSTERETIC_KINDS or not s.fallback_keeps_law)]    # the full model is of the law's form
+            and (not math.isfinite(full_nl) or f.nonlinear_stage_nrmse <= s.tuning.simpler_fit_slack * full_nl)]
     best = min(good, key=lambda f: f.held_out_nrmse) if good else None
     compared = {"full_model_held_out_nrmse": full, "gain_needed": s.tuning.simpler_gain,
                 "full_model_nonlinear_stage_nrmse": full_nl, "fit_slack": s.tuning.simpler_fit_slack,
@@ -237,16 +236,26 @@ def _simpler(run: Run, s: ReconSettings, candidates: list, failures: dict, valid
     progress.step("fitting the simpler models (no admissible estimate)", share=0.3)
     fits = simpler_models(run, s, estimate.model if estimate is not None else None, lin)
     good = [f for f in fits if f.model is not None and np.isfinite(f.held_out_nrmse)]
-    if s.fallback_keeps_law:       # the law's form when one of its fits is admissible (ReconSettings)
-        good = [f for f in good if f.kind in HYSTERETIC_KINDS] or good
     if not good:
         why = "; ".join(f"{k}: {v}" for k, v in failures.items()) or "every estimate was inadmissible"
         raise UserFacingError(f"{run.source or 'run'}: reconstruct found no admissible model. The passes gave: "
                               f"{why}. Simpler models: " + "; ".join(f"{f.kind}: {f.failed}" for f in fits)
                               + ". Check the stages (a linear stage well below resonance, a nonlinear stage "
                               "near it, the sensors' units and sign) or try --form weak.")
-    best = min(good, key=lambda f: f.held_out_nrmse)
     names, held = held_out_stages(run, (s.linear_stage, s.nonlinear_stage))
+    law = [f for f in good if f.kind in HYSTERETIC_KINDS]
+    if law and s.polish:
+        # the kinds are compared as each would answer: the best Bouc-Wen fit with its terms revised and
+        # its two stages fitted together (what _adopt does to it), not the fit of the terms the
+        # inadmissible estimate happened to offer
+        lead = min(law, key=lambda f: f.held_out_nrmse)
+        _finish_law(estimate, lead, run, s)
+        lead.held_out_nrmse = score(lead.model, run, names, s.tuning)
+        per_stage = {n: score(lead.model, run, [n], s.tuning)
+                     for n in (s.linear_stage, s.nonlinear_stage) if n in run.stages}
+        lead.fitted_nrmse = float(np.mean(list(per_stage.values()))) if per_stage else float("inf")
+        lead.nonlinear_stage_nrmse = per_stage.get(s.nonlinear_stage)
+    best = min(good, key=lambda f: f.held_out_nrmse)
     fallback = {"used": True, "kind": best.kind, "trigger": "inadmissible",
                 "chosen_by": "held-out NRMSE on " + ", ".join(names)
                 + ("" if held else " (no validation stage: the fitted nonlinear stage)"),
@@ -259,23 +268,33 @@ def _simpler(run: Run, s: ReconSettings, candidates: list, failures: dict, valid
     return _adopt(estimate, best, fallback, run, s, validate_model)
 
 
-def _adopt(result: ReconResult | None, best, fallback: dict, run: Run, s: ReconSettings,
-           validate_model: bool) -> ReconResult:
-    """``result`` (or a new result when there is none) answering with the simpler model ``best``."""
-    best.model.provenance = {"simpler_model": best.kind, "settings": {"linear_stage": s.linear_stage,
-                                                                      "nonlinear_stage": s.nonlinear_stage}}
-    if best.kind in HYSTERETIC_KINDS and s.polish and admissible(best.model, s.tuning):
+def _finish_law(result: ReconResult | None, fit, run: Run, s: ReconSettings) -> None:
+    """A simpler fit of the Bouc-Wen kinds (``fit``, a fallback.SimplerFit) made into the answer it would
+    be, in place and once (``fit.finished``): its fn terms revised by output error and its two stages
+    fitted together, as the full model's are. Other kinds are left as they are."""
+    fit.model.provenance = {"simpler_model": fit.kind, "settings": {"linear_stage": s.linear_stage,
+                                                                    "nonlinear_stage": s.nonlinear_stage}}
+    if fit.finished or fit.kind not in HYSTERETIC_KINDS:
+        return
+    fit.finished = True
+    if s.polish and admissible(fit.model, s.tuning):
         # a Bouc-Wen law fitted by output error from a generic start is the full model's form, and
         # its fn terms are only those the inadmissible estimate offered: the output error revises
         # them as it revises the full model's (a weak true term the equation error missed is added)
-        holder = result if result is not None else ReconResult.of_model(best.model, {}, s)
-        holder.model = best.model
-        best.model = _revise_terms(holder, run, s, validate_model=False).model
-    if best.kind in HYSTERETIC_KINDS and s.polish and s.two_stage_polish and admissible(best.model, s.tuning):
+        holder = result if result is not None else ReconResult.of_model(fit.model, {}, s)
+        holder.model = fit.model
+        fit.model = _revise_terms(holder, run, s, validate_model=False).model
+    if s.polish and s.two_stage_polish and admissible(fit.model, s.tuning):
         # a Bouc-Wen law fitted on the nonlinear stage: the two stages decide its terms as for the full
         # model (at low SNR a law fitted on one stage can carry a spurious term beside the true one)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            best.model = two_stage_polish(best.model, run, s)
+            fit.model = two_stage_polish(fit.model, run, s)
+
+
+def _adopt(result: ReconResult | None, best, fallback: dict, run: Run, s: ReconSettings,
+           validate_model: bool) -> ReconResult:
+    """``result`` (or a new result when there is none) answering with the simpler model ``best``."""
+    _finish_law(result, best, run, s)
     val = validate(best.model, run, tuning=s.tuning) if validate_model else {"nrmse": float("nan"), "stage": None}
     if result is None:
         result = ReconResult.of_model(best.model, val, s)

@@ -32,12 +32,6 @@ class ReconSettings:
     # when the equation-error estimate is not physically admissible (lambda, alpha or K <= 0),
     # also run this form and keep whichever simulates the nonlinear stage better (None: never)
     fallback_form: str | None = "weak"
-    # when the full model is set aside (inadmissible, or inadequate and beaten on the held-out
-    # stages), only the simpler models of the law's own form (Bouc-Wen, recon.estimator.fallback
-    # HYSTERETIC_KINDS) may answer, and the others only when none of those is admissible. The
-    # diagnosis asks what the law lacks: against a stand-in without hysteresis the law's own loop,
-    # and the error the stand-in makes for want of it, look like missing physics
-    fallback_keeps_law: bool = False
     linear_stage: str = "linear"
     nonlinear_stage: str = "nonlinear"
     n_folds: int = 5
@@ -65,8 +59,6 @@ class ReconSettings:
             raise UserFacingError(f"ReconSettings.form must be one of {self.FORMS}, got {self.form!r}")
         if self.input_offset not in (True, False, "auto"):
             raise UserFacingError(f"ReconSettings.input_offset must be True, False or 'auto', got {self.input_offset!r}")
-        if self.fallback_keeps_law not in (True, False):
-            raise UserFacingError(f"ReconSettings.fallback_keeps_law must be True or False, got {self.fallback_keeps_law!r}")
         if self.drive not in (True, False):
             raise UserFacingError(f"ReconSettings.drive must be True or False, got {self.drive!r}")
         if self.fallback_form is not None and self.fallback_form not in self.FORMS:
