@@ -428,10 +428,12 @@ def add_detection_limits(scores: Scores, refs: References, dctx: DiagnosisContex
 
 
 def revision_step(scores: Scores, refs: References, partly: list, dctx: DiagnosisContext) -> list:
-    """When no candidate is named: the one that explains most of the held-out mismatch is refitted
-    with the baseline's fn terms chosen again under it (term_revision.revise_terms), if it is
-    plausible and already explains the share of the reference's excess the rule asks of a named
-    effect (``rule.min_explained``) while failing its other margins or a held-out stage. A baseline
+    """When no candidate is named: each candidate that is plausible and already explains the share
+    of the reference's excess the rule asks of a named effect (``rule.min_explained``), while failing
+    its other margins or a held-out stage, is refitted with the baseline's fn terms chosen again under
+    it (term_revision.revise_terms), in order of what it explains, until one is named. (The first in
+    that order is not always the effect: a candidate that stands in for it on the held-out samples
+    can explain more and still fail, and then the effect's own revision is never tried.) A baseline
     reconstructed from a record that holds an effect has fitted terms to stand in for it and may
     have traded true ones away; beside those terms the effect's candidate explains a good part of
     the mismatch and still fails. (One that explains less is held back by its own size, not by the
@@ -442,9 +444,15 @@ def revision_step(scores: Scores, refs: References, partly: list, dctx: Diagnosi
     any held-out stage; its entry gains ``baseline_terms_revised``. Else [] and nothing changes."""
     fitted = [t for t in scores.tested if t["id"] in scores.fits and not t.get("implausible")
               and t.get("explained", 0.0) >= dctx.rule.min_explained]
-    if not fitted:
-        return []
-    t = max(fitted, key=lambda t: t["explained"])
+    for t in sorted(fitted, key=lambda t: -t["explained"]):
+        named = _revised(t, scores, refs, partly, dctx)
+        if named:
+            return named
+    return []
+
+
+def _revised(t: dict, scores: Scores, refs: References, partly: list, dctx: DiagnosisContext) -> list:
+    """:func:`revision_step` for the tested candidate ``t``: [t] when named, else []."""
     cid, cf = t["id"], scores.fits[t["id"]]
     data, rule = dctx.data, dctx.rule
     progress.step(f"the baseline's terms chosen again under {cid}", share=0.0)
