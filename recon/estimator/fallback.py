@@ -19,8 +19,9 @@ model of the simplest kinds below that predicts the held-out stages best:
 5. ``linear``: c y' + k y.
 
 Each is fitted by output error on the linear and nonlinear stages (simulated from their
-recorded start states), a Bouc-Wen law within its admissible region (alpha >= 0, gamma + delta
->= 0: the estimate it replaces has often left it), and scored on the held-out stages. A hysteretic kind whose fitted Bouc-Wen
+recorded start states; a Bouc-Wen law that leaves its admissible region is fitted again held
+inside it, alpha >= 0 and gamma + delta >= 0: the estimate it replaces has often left it), and
+scored on the held-out stages. A hysteretic kind whose fitted Bouc-Wen
 force has vanished (rms z below ``tuning.negligible`` of the elastic force) is the elastic kind
 with three idle parameters and does not compete. Held-out: the validation stages; the
 nonlinear stage when there is none, which the result says. The inadmissible estimate
@@ -169,19 +170,33 @@ def admissible_coordinates(prob: OutputError) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _fit(model: HystereticModel, data: list, free: list, max_nfev: int, tuning: EstimatorTuning) -> HystereticModel:
-    """An output-error fit of ``free`` from ``model``; a Bouc-Wen law is held in its admissible region
-    (:func:`admissible_coordinates`), so that a simpler model of the law's form is a law wherever the
-    data allow one, rather than a fit that left the region and is set aside."""
+    """An output-error fit of ``free`` from ``model``. A Bouc-Wen law that the free fit takes out of its
+    admissible region is fitted again from the same start held inside it (:func:`admissible_coordinates`),
+    so that a simpler model of the law's form is a law wherever the data allow one, rather than a fit
+    that left the region and is set aside. A free fit that stays admissible is the answer as it is."""
     prob = OutputError(model, data, free=free)
+    m = _solve(prob, data, max_nfev, tuning)
+    if admissible(m, tuning):
+        return m
     T, lower = admissible_coordinates(prob)
+    if not np.any(np.isfinite(lower)):
+        return m
+    return _solve(prob, data, max_nfev, tuning, T, lower)
+
+
+def _solve(prob: OutputError, data: list, max_nfev: int, tuning: EstimatorTuning, T=None, lower=None):
+    """``prob`` solved by trust-region least squares from its start; in the coordinates q (p = T q)
+    with q >= ``lower`` when they are given."""
+    n = len(prob.keys)
+    T = np.eye(n) if T is None else T
     jac = prob.jac_option()
+    bounded = {} if lower is None else {"bounds": (lower, np.full(n, np.inf))}
     with np.errstate(all="ignore"):
-        sol = least_squares(lambda q: prob.residual(T @ q), np.zeros(len(prob.keys)),
+        sol = least_squares(lambda q: prob.residual(T @ q), np.zeros(n),
                             jac=(lambda q: jac(T @ q) @ T) if callable(jac) else jac, method="trf",
-                            bounds=(lower, np.full(len(prob.keys), np.inf)),
                             x_scale=1.0, diff_step=FD_STEP, max_nfev=max_nfev, xtol=1e-10, ftol=1e-12,
                             workers=None if callable(jac) else fd_map(),
-                            callback=prob.stop([output_noise(d) for d in data], tuning.stop_chi2))
+                            callback=prob.stop([output_noise(d) for d in data], tuning.stop_chi2), **bounded)
     return prob.build(T @ sol.x)
 
 
