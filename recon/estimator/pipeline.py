@@ -272,9 +272,11 @@ def _finish_law(result: ReconResult | None, fit, run: Run, s: ReconSettings) -> 
     """A simpler fit of the Bouc-Wen kinds (``fit``, a fallback.SimplerFit) made into the answer it would
     be, in place and once (``fit.finished``): its fn terms revised by output error and its two stages
     fitted together, as the full model's are. Other kinds are left as they are."""
+    if fit.finished:
+        return
     fit.model.provenance = {"simpler_model": fit.kind, "settings": {"linear_stage": s.linear_stage,
                                                                     "nonlinear_stage": s.nonlinear_stage}}
-    if fit.finished or fit.kind not in HYSTERETIC_KINDS:
+    if fit.kind not in HYSTERETIC_KINDS:
         return
     fit.finished = True
     if s.polish and admissible(fit.model, s.tuning):
