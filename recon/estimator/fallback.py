@@ -200,6 +200,17 @@ def _solve(prob: OutputError, data: list, max_nfev: int, tuning: EstimatorTuning
     return prob.build(T @ sol.x)
 
 
+def figures(model: HystereticModel, run: Run, names: list, fitted, nonlinear_stage: str,
+            tuning: EstimatorTuning = DEFAULT_TUNING) -> tuple[float, float, float | None]:
+    """A simpler fit's figures: (held-out NRMSE over ``names``, mean NRMSE over the ``fitted`` stages,
+    the nonlinear stage's own or None). Each fitted stage is simulated once: their mean is the fit's
+    figure, the nonlinear stage's own is what an inadequate full model is compared on
+    (pipeline._prefer_simpler)."""
+    per_stage = {n: score(model, run, [n], tuning) for n in fitted}
+    fit_err = float(np.mean(list(per_stage.values()))) if per_stage else float("inf")
+    return score(model, run, names, tuning), fit_err, per_stage.get(nonlinear_stage)
+
+
 def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_fit=None,
                    max_nfev: int = 60) -> list[SimplerFit]:
     """Fit every simpler kind (module doc) and score it on the held-out stages (``settings``: the
@@ -295,14 +306,10 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
                                             "the elastic kind is this model without it",
                                             start=start_names[j] if start_names else None))
                     continue
-            # each fitted stage simulated once: their mean is the fit's figure, the nonlinear stage's
-            # own is what an inadequate full model is compared on (pipeline._prefer_simpler)
-            per_stage = {n: score(m, run, [n], t) for n in fitted}
-            fit_err = float(np.mean(list(per_stage.values()))) if per_stage else float("inf")
-            tried.append(SimplerFit(kind, m, score(m, run, names, t), fit_err,
+            held_err, fit_err, nl_err = figures(m, run, names, fitted, settings.nonlinear_stage, t)
+            tried.append(SimplerFit(kind, m, held_err, fit_err,
                                     None if math.isfinite(fit_err) else "its simulation diverges",
-                                    per_stage.get(settings.nonlinear_stage),
-                                    start_names[j] if start_names else None))
+                                    nl_err, start_names[j] if start_names else None))
         # of several starts, the one that fits the fitted stages best (the held-out stages choose the kind)
         out.append(min(tried, key=lambda f: (f.failed is not None, f.fitted_nrmse)))
     return out

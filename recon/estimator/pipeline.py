@@ -17,8 +17,8 @@ from recon import progress
 from recon.determinism import single_thread_blas
 from recon.estimator.adequacy import assess
 from recon.estimator.drive import fit_drive
-from recon.estimator.fallback import (HYSTERETIC_KINDS, NUMERICAL_ERRORS, admissible, held_out_stages, score,
-                                      simpler_models)
+from recon.estimator.fallback import (HYSTERETIC_KINDS, NUMERICAL_ERRORS, admissible, figures, held_out_stages,
+                                      score, simpler_models)
 from recon.estimator.finish import validate
 from recon.estimator.two_stage import two_stage_polish
 from recon.estimator.input_offset import resolve_input_offset
@@ -250,11 +250,9 @@ def _simpler(run: Run, s: ReconSettings, candidates: list, failures: dict, valid
         # inadmissible estimate happened to offer
         lead = min(law, key=lambda f: f.held_out_nrmse)
         _finish_law(estimate, lead, run, s)
-        lead.held_out_nrmse = score(lead.model, run, names, s.tuning)
-        per_stage = {n: score(lead.model, run, [n], s.tuning)
-                     for n in (s.linear_stage, s.nonlinear_stage) if n in run.stages}
-        lead.fitted_nrmse = float(np.mean(list(per_stage.values()))) if per_stage else float("inf")
-        lead.nonlinear_stage_nrmse = per_stage.get(s.nonlinear_stage)
+        fitted = [n for n in (s.linear_stage, s.nonlinear_stage) if n in run.stages]
+        lead.held_out_nrmse, lead.fitted_nrmse, lead.nonlinear_stage_nrmse = figures(
+            lead.model, run, names, fitted, s.nonlinear_stage, s.tuning)
     best = min(good, key=lambda f: f.held_out_nrmse)
     fallback = {"used": True, "kind": best.kind, "trigger": "inadmissible",
                 "chosen_by": "held-out NRMSE on " + ", ".join(names)
