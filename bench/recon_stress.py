@@ -96,7 +96,7 @@ def run_seed(task) -> list[dict]:
         row.update(status="inadmissible" if sc["inadmissible"] else "ok", result=res.model.to_dict()["parameters"],
                    validation_nrmse=val, form=res.settings.form,
                    passes=res.hysteresis_info.get("passes_compared"), pass_kept=res.hysteresis_info.get("pass"),
-                   two_stage=two_stage_summary(res.model),
+                   two_stage=two_stage_summary(res.model), restart=restart_summary(res.model),
                    **sc)
         if not meets_target(row):
             row["record_limit"] = record_limit(run, rec["truth"])
@@ -112,6 +112,15 @@ def two_stage_summary(model) -> dict:
     return {"applied": rec.get("applied"), "mean_square": restart.get("mean_square_noise_variances"),
             "restart_applied": restart.get("applied"), "dropped": (rec.get("terms") or {}).get("dropped"),
             "joint_gain": rec.get("joint_gain_noise_variances"), "floor": restart.get("floor_noise_variances")}
+
+
+def restart_summary(model) -> dict:
+    """The nonlinear stage's floor test and generic restart from the model's provenance: the
+    polished cost, the cost past the start's transient and the noise floor (NRMSE), whether the
+    generic restarts ran and whether one was kept."""
+    pol = model.provenance.get("output_error_polish") or {}
+    gr = pol.get("generic_restart")
+    return {**(pol.get("floor_test") or {}), "ran": gr is not None, "applied": bool(gr and gr.get("applied"))}
 
 
 def meets_target(row: dict) -> bool:

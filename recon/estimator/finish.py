@@ -11,7 +11,8 @@ from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, with_term_sca
 from recon.estimator.result import ReconSettings
 from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.model import HystereticModel
-from recon.output_error.polish import polish
+from recon.output_error.polish import decimate, polish
+from recon.output_error.problem import OutputError
 from recon.validation import nrmse
 from shakerlab.run_data import Run
 
@@ -70,6 +71,26 @@ def restart_fn_terms(model: HystereticModel, item: tuple, polish_info: dict,
 # polish restarts from generic Bouc-Wen starts (:func:`generic_restarts`), and keeps a restart only
 # where it fits better. Filter and model errors can hold even the truth's cost above the floor at a
 # high SNR: there the restarts run and change nothing, which costs time, not answers.
+
+
+def settled_cost(model: HystereticModel, item: tuple, tuning: EstimatorTuning = DEFAULT_TUNING) -> float:
+    """``model``'s output-error cost (NRMSE, as the polish takes it) on ``item`` past the transient of
+    its start: the first ``tuning.start_decays`` decay times of the model's mode (2 / c each) are
+    left out, unless less than half of the stage would remain. No fit observes a stage's start
+    state whole: a stage recorded in motion leaves the hysteresis state z unobserved, and one taken
+    as recorded from rest may still ring at a few noise stds from the stage before; the error of
+    even the true model's start decays only with the mode. What the restart's floor test compares
+    with the noise floor (:func:`polish_and_validate`): a fit in a wrong basin errs over the whole
+    stage, a start's transient only at its beginning."""
+    d, _ = decimate(item, tuning.polish_fs)
+    t = np.asarray(d[0], float)
+    mask = None
+    if model.c_m > 0 and tuning.start_decays > 0:
+        cut = t >= t[0] + tuning.start_decays * 2.0 / model.c_m
+        mask = cut if 2 * np.count_nonzero(cut) >= t.size else None
+    prob = OutputError(model, [d], [mask])
+    r = prob.residual(np.zeros(len(prob.keys)))
+    return float(np.sqrt(r @ r))
 
 
 def generic_starts(model: HystereticModel, data: list, tuning: EstimatorTuning = DEFAULT_TUNING):
@@ -213,6 +234,9 @@ def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info
             model, polish_info = restart_fn_terms(model, item, polish_info, t)
         model, item, polish_info = refine_start(model, stage, item, polish_info, t)
         floor = noise_floor(run, s.nonlinear_stage)
+        if floor and model.alpha_m > 0:
+            polish_info["floor_test"] = {"noise_floor": floor, "cost": polished_cost(polish_info),
+                                         "settled_cost": settled_cost(model, item, t)}
         if floor and model.alpha_m > 0 and polished_cost(polish_info) > t.floor_factor * floor:
             model, polish_info = generic_restarts(model, item, polish_info, floor, t)
             if polish_info["generic_restart"].get("applied"):
