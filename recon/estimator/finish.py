@@ -66,11 +66,13 @@ def restart_fn_terms(model: HystereticModel, item: tuple, polish_info: dict,
     return restarts[name]["model"], {**info, "restart": record}
 
 
-# A polished fit whose cost on the nonlinear stage is above ``tuning.floor_factor`` times the stage's
-# noise floor (recon.estimator.adequacy.noise_floor) may not have found the record's optimum: the
-# polish restarts from generic Bouc-Wen starts (:func:`generic_restarts`), and keeps a restart only
-# where it fits better. Filter and model errors can hold even the truth's cost above the floor at a
-# high SNR: there the restarts run and change nothing, which costs time, not answers.
+# A polished fit whose cost on the nonlinear stage, past its start's transient (:func:`settled_cost`),
+# is above ``tuning.floor_factor`` times the stage's noise floor (recon.estimator.adequacy.noise_floor)
+# may not have found the record's optimum: the polish restarts from generic Bouc-Wen starts
+# (:func:`generic_restarts`), and keeps a restart only where it fits better. The transient of a start
+# no fit observes whole holds even the truth's cost over the whole stage above the floor; past it the
+# truth is at the floor. Filter and model errors can still hold a fit above it at a high SNR: there
+# the restarts run and change nothing, which costs time, not answers.
 
 
 def settled_cost(model: HystereticModel, item: tuple, tuning: EstimatorTuning = DEFAULT_TUNING) -> float:
@@ -235,12 +237,15 @@ def polish_and_validate(model: HystereticModel, run: Run, s: ReconSettings, info
         model, item, polish_info = refine_start(model, stage, item, polish_info, t)
         floor = noise_floor(run, s.nonlinear_stage)
         if floor and model.alpha_m > 0:
+            # the floor test: is the fit at the noise floor where its start no longer matters?
+            settled = settled_cost(model, item, t)
             polish_info["floor_test"] = {"noise_floor": floor, "cost": polished_cost(polish_info),
-                                         "settled_cost": settled_cost(model, item, t)}
-        if floor and model.alpha_m > 0 and polished_cost(polish_info) > t.floor_factor * floor:
-            model, polish_info = generic_restarts(model, item, polish_info, floor, t)
-            if polish_info["generic_restart"].get("applied"):
-                model, item, polish_info = refine_start(model, stage, item, polish_info, t)
+                                         "settled_cost": settled, "limit": t.floor_factor * floor,
+                                         "restart": bool(settled > t.floor_factor * floor)}
+            if polish_info["floor_test"]["restart"]:
+                model, polish_info = generic_restarts(model, item, polish_info, floor, t)
+                if polish_info["generic_restart"].get("applied"):
+                    model, item, polish_info = refine_start(model, stage, item, polish_info, t)
         timings["polish"] = time.perf_counter() - tp
     elif s.polish:
         # no polish from an inadmissible start: an estimate whose Bouc-Wen split cancels (k and alpha
