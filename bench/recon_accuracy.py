@@ -152,6 +152,10 @@ def main(argv=None):
     ap.add_argument("--from-jsonl", nargs="+", default=None,
                     help="--stress: print the tables from stored rows (files of --jsonl; a later file's row for "
                          "the same seed and SNR replaces an earlier one) instead of running")
+    ap.add_argument("--against", nargs="+", default=None,
+                    help="--stress: compare the rows (run or --from-jsonl) with these stored rows, seed and SNR "
+                         "alike: how many answers are the same (every parameter within 1e-6, the same terms) and "
+                         "each one that is not")
     a = ap.parse_args(argv)
     if a.stress:
         import recon_stress  # noqa: E402  (bench/recon_stress.py: the --stress table)
@@ -176,4 +180,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -6,6 +6,7 @@ import faulthandler
 import json
 import math
 import multiprocessing as mp
+import os
 import sys
 import time
 import traceback
@@ -209,7 +210,8 @@ def main(a) -> int:
     snrs = [float(s) for s in a.snr.split(",")] if a.snr else list(SNRS)
     protocols = tuple(a.protocols.split(","))
     if a.from_jsonl:
-        return report(stored_rows(a.from_jsonl, snrs), snrs, protocols, "stored rows: " + ", ".join(a.from_jsonl))
+        return report(stored_rows(a.from_jsonl, snrs), snrs, protocols, "stored rows: " + ", ".join(a.from_jsonl),
+                      getattr(a, "against", None))
     seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else \
         list(range(a.first_seed, a.first_seed + (a.seeds or 50)))
     n = len(seeds)
@@ -217,7 +219,10 @@ def main(a) -> int:
              for s in seeds]
     rows = []
     t0 = time.perf_counter()
-    out = open(a.jsonl, "w") if a.jsonl else None
+    if a.jsonl and os.path.exists(a.jsonl):     # stored rows are never overwritten
+        print(f"{a.jsonl} exists: give a new file for the rows (--from-jsonl joins files)", file=sys.stderr)
+        return 2
+    out = open(a.jsonl, "x") if a.jsonl else None
     workers = max(1, min(a.workers, 2))
     pool = mp.get_context("fork").Pool(workers) if workers > 1 else None
     it = pool.imap_unordered(run_seed, tasks) if pool else map(run_seed, tasks)
@@ -238,7 +243,8 @@ def main(a) -> int:
     if out:
         out.close()
     wall = time.perf_counter() - t0
-    return report(rows, snrs, protocols, f"seeds {seeds[0]}..{seeds[-1]} ({n}), {workers} worker(s), wall {wall:.0f} s")
+    return report(rows, snrs, protocols, f"seeds {seeds[0]}..{seeds[-1]} ({n}), {workers} worker(s), wall {wall:.0f} s",
+                  getattr(a, "against", None))
 
 
 def stored_rows(paths, snrs) -> list[dict]:
@@ -253,7 +259,37 @@ def stored_rows(paths, snrs) -> list[dict]:
     return [rows[k] for k in sorted(rows)]
 
 
-def report(rows: list[dict], snrs, protocols, what: str) -> int:
+def parameter_change(a: dict, b: dict) -> float:
+    """The largest relative difference between two rows' fitted parameters (inf where their terms
+    differ or either row has none)."""
+    ra, rb = a.get("result"), b.get("result")
+    if not (isinstance(ra, dict) and isinstance(rb, dict)) or set(ra.get("fn_m", {})) != set(rb.get("fn_m", {})):
+        return math.inf
+    pa = {**{k: v for k, v in ra.items() if isinstance(v, (int, float))}, **ra.get("fn_m", {})}
+    pb = {**{k: v for k, v in rb.items() if isinstance(v, (int, float))}, **rb.get("fn_m", {})}
+    if set(pa) != set(pb):
+        return math.inf
+    return max((abs(pa[k] - pb[k]) / max(abs(pb[k]), 1e-300) if pa[k] != pb[k] else 0.0 for k in pa), default=0.0)
+
+
+def compare(rows: list[dict], reference: list[dict], tol: float = 1e-6) -> list[str]:
+    """Lines that say which rows answer as the stored ``reference`` rows (the same seed and SNR):
+    the same terms and every parameter within ``tol`` (relative); each other row with its worst
+    parameter error against the truth then and now."""
+    ref = {(r["seed"], r["snr"]): r for r in reference}
+    both = [(r, ref[(r["seed"], r["snr"])]) for r in rows if (r["seed"], r["snr"]) in ref]
+    changed = [(r, o, parameter_change(r, o)) for r, o in both]
+    changed = [c for c in changed if not c[2] <= tol]
+    out = [f"\nagainst the stored rows: {len(both) - len(changed)} of {len(both)} the same (terms, and every "
+           f"parameter within {tol:g}); {len(rows) - len(both)} not in them"]
+    for r, o, d in sorted(changed, key=lambda c: (c[0]["seed"], -c[0]["snr"])):
+        out.append(f"  seed {r['seed']} {r['snr']:g} dB {r.get('protocol', '')}: parameters moved {d:.3g}; worst "
+                   f"{100 * o.get('worst', math.nan):.3g} % -> {100 * r.get('worst', math.nan):.3g} %, exact "
+                   f"{o.get('exact')} -> {r.get('exact')}, status {o.get('status')} -> {r.get('status')}")
+    return out
+
+
+def report(rows: list[dict], snrs, protocols, what: str, against=None) -> int:
     print(f"\nindependent generator, protocols {', '.join(protocols)}, {what}")
     print("\n".join(table(rows, snrs)))
     ident = [r for r in rows if r.get("identifiability", {}).get("identifiable")]
@@ -264,4 +300,6 @@ def report(rows: list[dict], snrs, protocols, what: str) -> int:
     print("\n".join(table(ident, snrs)))
     print("\nworst draws (seed = system and noise seed; reproduce with --first-seed SEED --seeds 1 --snr SNR):")
     print("\n".join(worst_draws(rows)) or "none")
+    if against:
+        print("\n".join(compare(rows, stored_rows(against, snrs))))
     return 0

@@ -52,3 +52,37 @@ def test_from_jsonl_keeps_blocks_apart_by_index_and_in_the_table(tmp_path):
     assert "false alarms on clean recordings: 0/1" in random_part and "sensor_scale" not in random_part
     assert "| higher_mode + coulomb_friction | 1 |" in pair_part
     assert "one of the two concealed effects named first: 0/1" in pair_part and "both named: 0/1" in pair_part
+
+
+def _recon_row(seed, snr, c_m, fn, worst):
+    return {"seed": seed, "snr": snr, "protocol": "paper", "fs": 2000.0, "status": "ok", "exact": True,
+            "worst": worst, "worst_param": "c_m", "spurious": [], "missed": [], "seconds": 1.0,
+            "system": {"f_n": 20.0}, "result": {"c_m": c_m, "k_m": 1000.0, "fn_m": fn}}
+
+
+def test_recon_stress_against_counts_the_same_answers_and_names_each_other(tmp_path):
+    ref, new = tmp_path / "ref.jsonl", tmp_path / "new.jsonl"
+    ref.write_text("".join(json.dumps(r) + "\n" for r in (
+        _recon_row(1, 80.0, 2.0, {"y^2": 5.0}, 0.001), _recon_row(2, 80.0, 2.0, {"y^2": 5.0}, 0.001),
+        _recon_row(3, 80.0, 2.0, {"y^2": 5.0}, 0.001))))
+    new.write_text("".join(json.dumps(r) + "\n" for r in (
+        _recon_row(1, 80.0, 2.0 * (1 + 1e-8), {"y^2": 5.0}, 0.001),      # the same within 1e-6
+        _recon_row(2, 80.0, 2.2, {"y^2": 5.0}, 0.1),                     # moved 10 %
+        _recon_row(3, 80.0, 2.0, {"y^3": 5.0}, 0.001),                   # other terms
+        _recon_row(4, 80.0, 2.0, {"y^2": 5.0}, 0.001))))                 # not stored
+    p = subprocess.run([sys.executable, str(ROOT / "bench" / "recon_accuracy.py"), "--stress", "--snr", "80",
+                        "--from-jsonl", str(new), "--against", str(ref)],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert "against the stored rows: 1 of 3 the same" in p.stdout and "1 not in them" in p.stdout
+    assert "seed 2 80 dB paper: parameters moved 0.1" in p.stdout
+    assert "seed 3 80 dB paper: parameters moved inf" in p.stdout
+
+
+def test_recon_stress_jsonl_refuses_an_existing_file_and_leaves_it_as_it_was(tmp_path):
+    saved = tmp_path / "rows.jsonl"
+    saved.write_text('{"seed": 0}\n')
+    p = subprocess.run([sys.executable, str(ROOT / "bench" / "recon_accuracy.py"), "--stress", "--seeds", "1",
+                        "--jsonl", str(saved)], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert p.returncode != 0 and "exists" in p.stderr
+    assert saved.read_text() == '{"seed": 0}\n'
