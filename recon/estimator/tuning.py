@@ -52,11 +52,12 @@ class EstimatorTuning:
     start_nrmse_limit: float = _f(1.0, "an estimate that simulates the nonlinear stage worse than this NRMSE "
                                   "(1: worse than predicting zero) is polished from restarted fn terms",
                                   "NRMSE", 0.0, 1e3, lo_open=True)
-    floor_factor: float = _f(1.5, "a polish that ends above this many times the stage's noise floor is "
-                             "restarted from the generic Bouc-Wen starts", "x noise floor", 1.0, 1e3)
-    start_decays: float = _f(3.0, "decay times of the mode (2 / c each) at the start of a stage recorded in "
-                             "motion that the restart's floor test leaves out (the transient of its "
-                             "unobserved start state; the diagnosis's burn_in_decays)", "decay times", 0.0, 100.0)
+    floor_factor: float = _f(1.5, "a polish that ends above this many times the stage's noise floor, past "
+                             "the start's transient (start_decays), is restarted from the generic Bouc-Wen "
+                             "starts", "x noise floor", 1.0, 1e3)
+    start_decays: float = _f(3.0, "decay times of the mode (2 / c each) at the start of the nonlinear stage "
+                             "that the restart's floor test leaves out (the transient of a start state no fit "
+                             "observes whole; the diagnosis's burn_in_decays)", "decay times", 0.0, 100.0)
     alpha_shares: tuple = _f((0.25, 0.5, 0.75), "generic starts: shares of the small-amplitude stiffness "
                              "put into the hysteresis", "fraction", 0.0, 1.0, lo_open=True)
     knees: tuple = _f((1.0, 3.0), "generic starts: the nonlinear stage's amplitude over the loop's knee "
