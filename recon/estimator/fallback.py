@@ -106,6 +106,11 @@ class SimplerFit:
         return d
 
 
+def fitted_stages(run: Run, settings) -> tuple[str, ...]:
+    """The stages a simpler model is fitted on: the linear and nonlinear stages the run has."""
+    return tuple(n for n in (settings.linear_stage, settings.nonlinear_stage) if n in run.stages)
+
+
 def held_out_stages(run: Run, fitted: tuple) -> tuple[list[str], bool]:
     """The stages a model is scored on: the validation stages, else the fitted nonlinear one."""
     names = [n for n in run.stages if n.startswith("validation")]
@@ -217,7 +222,7 @@ def simpler_models(run: Run, settings, estimate: HystereticModel | None, linear_
     ReconSettings, whose tuning the fits and the admissibility read)."""
     t = settings.tuning
     excitation = next(iter(run.stages.values())).excitation
-    fitted = tuple(n for n in (settings.linear_stage, settings.nonlinear_stage) if n in run.stages)
+    fitted = fitted_stages(run, settings)
     names, _ = held_out_stages(run, fitted)
     c0, k0, inv0 = _linear_start(run, settings.linear_stage, excitation, linear_fit)
     extra = ["inv_m"] if excitation != BASE else []

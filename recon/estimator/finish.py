@@ -11,8 +11,7 @@ from recon.estimator.fallback import NUMERICAL_ERRORS, admissible, with_term_sca
 from recon.estimator.result import ReconSettings
 from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.model import HystereticModel
-from recon.output_error.polish import decimate, polish
-from recon.output_error.problem import OutputError
+from recon.output_error.polish import decimate, item_cost, polish
 from recon.validation import nrmse
 from shakerlab.run_data import Run
 
@@ -84,15 +83,13 @@ def settled_cost(model: HystereticModel, item: tuple, tuning: EstimatorTuning = 
     even the true model's start decays only with the mode. What the restart's floor test compares
     with the noise floor (:func:`polish_and_validate`): a fit in a wrong basin errs over the whole
     stage, a start's transient only at its beginning."""
-    d, _ = decimate(item, tuning.polish_fs)
+    d, _ = decimate(item, tuning.polish_fs)       # item_cost's own decimation then leaves it as it is
     t = np.asarray(d[0], float)
     mask = None
     if model.c_m > 0 and tuning.start_decays > 0:
         cut = t >= t[0] + tuning.start_decays * 2.0 / model.c_m
         mask = cut if 2 * np.count_nonzero(cut) >= t.size else None
-    prob = OutputError(model, [d], [mask])
-    r = prob.residual(np.zeros(len(prob.keys)))
-    return float(np.sqrt(r @ r))
+    return item_cost(model, d, tuning, mask)[0]
 
 
 def generic_starts(model: HystereticModel, data: list, tuning: EstimatorTuning = DEFAULT_TUNING):

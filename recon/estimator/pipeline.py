@@ -17,8 +17,8 @@ from recon import progress
 from recon.determinism import single_thread_blas
 from recon.estimator.adequacy import assess
 from recon.estimator.drive import fit_drive
-from recon.estimator.fallback import (HYSTERETIC_KINDS, NUMERICAL_ERRORS, admissible, figures, held_out_stages,
-                                      score, simpler_models)
+from recon.estimator.fallback import (HYSTERETIC_KINDS, NUMERICAL_ERRORS, admissible, figures,
+                                      fitted_stages, held_out_stages, score, simpler_models)
 from recon.estimator.finish import validate
 from recon.estimator.two_stage import two_stage_polish
 from recon.estimator.input_offset import resolve_input_offset
@@ -250,9 +250,8 @@ def _simpler(run: Run, s: ReconSettings, candidates: list, failures: dict, valid
         # inadmissible estimate happened to offer
         lead = min(law, key=lambda f: f.held_out_nrmse)
         _finish_law(estimate, lead, run, s)
-        fitted = [n for n in (s.linear_stage, s.nonlinear_stage) if n in run.stages]
         lead.held_out_nrmse, lead.fitted_nrmse, lead.nonlinear_stage_nrmse = figures(
-            lead.model, run, names, fitted, s.nonlinear_stage, s.tuning)
+            lead.model, run, names, fitted_stages(run, s), s.nonlinear_stage, s.tuning)
     best = min(good, key=lambda f: f.held_out_nrmse)
     fallback = {"used": True, "kind": best.kind, "trigger": "inadmissible",
                 "chosen_by": "held-out NRMSE on " + ", ".join(names)

@@ -56,7 +56,7 @@ from recon.estimator.finish import generic_starts
 from recon.estimator.result import ReconSettings
 from recon.estimator.tuning import DEFAULT_TUNING, EstimatorTuning
 from recon.model import HystereticModel
-from recon.output_error.polish import decimate, polish
+from recon.output_error.polish import decimate, item_cost, polish
 from recon.output_error.problem import OutputError, item_start, item_target, measured_error
 from recon.signals import base_noise_in_target, input_filter, target_noise_std
 from recon.welch import welch
@@ -197,14 +197,6 @@ def colour(residual: np.ndarray, change: np.ndarray, dt: float) -> float:
     return float(np.sum(weight * np.interp(np.fft.rfftfreq(change.size, dt), f, density)) / total)
 
 
-def stage_cost(model: HystereticModel, item: tuple, tuning: EstimatorTuning) -> tuple[float, int]:
-    """(NRMSE over the item as the polish fits it, decimated; the number of samples fitted)."""
-    dec, _ = decimate(item, tuning.polish_fs)
-    prob = OutputError(model, [dec])
-    r = prob.residual(np.zeros(len(prob.keys)))
-    return float(np.sqrt(r @ r)), int(dec[2].size)
-
-
 def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> HystereticModel:
     """Step 1 of the module doc. Returns the model (``model`` itself when not kept); its provenance's
     ``output_error_polish["two_stage"]`` records the figures either way."""
@@ -220,7 +212,7 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
 
     try:
         new, info, items = two.fit(model)
-        before, n = stage_cost(model, items[1], s.tuning)
+        before, n = item_cost(model, items[1], s.tuning)
         gain = two.sse(model, items)[0] - two.sse(new, items)[0] if info["applied"] else 0.0
     except NUMERICAL_ERRORS as exc:
         record.update(applied=False, reason=f"{type(exc).__name__}: {exc}")
@@ -233,7 +225,7 @@ def two_stage_polish(model: HystereticModel, run: Run, s: ReconSettings) -> Hyst
 
     def cost(m) -> float:
         if last.get("model") is not m:
-            last.update(model=m, cost=stage_cost(m, m.fit_item(two.stages[1], tuning=s.tuning), s.tuning)[0])
+            last.update(model=m, cost=item_cost(m, m.fit_item(two.stages[1], tuning=s.tuning), s.tuning)[0])
         return last["cost"]
 
     def rise(m) -> float:

@@ -42,6 +42,18 @@ def decimate(item: tuple, fs_target: float):
     return out, q
 
 
+def item_cost(model: HystereticModel, item: tuple, tuning: EstimatorTuning = DEFAULT_TUNING,
+              mask=None) -> tuple[float, int]:
+    """(``model``'s NRMSE on a data item as :func:`polish` fits it: decimated to ``tuning.polish_fs``,
+    over ``mask``'s samples when given (a boolean array on the item's own samples); the number of
+    samples it is taken over)."""
+    dec, q = decimate(item, tuning.polish_fs)
+    m = None if mask is None else np.asarray(mask, bool)[::q]
+    prob = OutputError(model, [dec], [m])
+    r = prob.residual(np.zeros(len(prob.keys)))
+    return float(np.sqrt(r @ r)), int(dec[2].size if m is None else np.count_nonzero(m))
+
+
 def output_noise(item: tuple) -> float:
     """The white-noise std of a data item's recorded output in the quantity its residual is taken
     in (item_target: displacement, or the velocity a vibrometer gave), its spectrum's upper-half
