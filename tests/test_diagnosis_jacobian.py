@@ -67,7 +67,7 @@ def test_candidate_fit_jacobian_equals_central_differences(prepared, case):
 def test_extended_kernel_states_equal_the_simulation_kernels():
     n, dt = 3000, 1e-3
     t = np.arange(n) * dt
-    u = 2 * np.sin(2 * np.pi * 9 * t)
+    u = rk4.kernel_input(2 * np.sin(2 * np.pi * 9 * t))
     coef, p, r = np.array([2e5, 3e3]), np.array([2, 2]), np.array([0, 1])
     P = rk4.kernel_parameters(g=1.0, c=1.6, k=1500.0, alpha=1100.0, gamma=900.0, delta=280.0, mu=0.05, v0=1e-2,
                               c2=2.0, kc=500.0, gap=1e-3, drift=1e-3, w2=300.0, zeta2=0.02, drive2=0.3, gu2=1.0)

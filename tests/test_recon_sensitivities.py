@@ -6,7 +6,7 @@ own truncation error. The states are the simulation kernel's, to the bit."""
 import numpy as np
 import pytest
 
-from recon.simulation.rk4 import I_C, I_SIDE, N_P, P_INDEX, P_NAMES, kernel_parameters, simulate_extended
+from recon.simulation.rk4 import I_C, I_SIDE, N_P, P_INDEX, P_NAMES, kernel_input, kernel_parameters, simulate_extended
 from recon.simulation.sensitivity import X_COLUMNS, extended_column_codes, simulate_extended_sensitivities
 
 
@@ -21,7 +21,7 @@ def simulate_sensitivities(u, t0, dt, n_sub, P, coef, p, r, y0, v0, z0, cols, S0
 def record(n=3000, dt=1e-3, seed=0):
     rng = np.random.default_rng(seed)
     t = np.arange(n) * dt
-    return 40.0 * np.sin(2 * np.pi * 7 * t) + 4.0 * rng.standard_normal(n), dt
+    return kernel_input(40.0 * np.sin(2 * np.pi * 7 * t) + 4.0 * rng.standard_normal(n)), dt
 
 
 # every extra switched on (friction, quadratic damping, a contact that the motion reaches, a stiffness

@@ -13,7 +13,7 @@ DT = 1e-3
 def _input(seed, n=3000):
     rng = np.random.default_rng(seed)
     t = np.arange(n) * DT
-    return 3.0 * np.sin(2 * np.pi * 7.0 * t) + 0.2 * rng.normal(size=n)
+    return rk4.kernel_input(3.0 * np.sin(2 * np.pi * 7.0 * t) + 0.2 * rng.normal(size=n))
 
 
 @settings(max_examples=25, deadline=None)
@@ -54,3 +54,19 @@ def test_an_acting_extra_takes_the_extended_kernel(slot, value):
     assert rk4.extras_off(off)
     row = 3 if slot == "w2" else 0          # the higher mode is its own state (q), the others act on y
     assert not np.allclose(got[row], rk4.simulate_states(u, 0.0, DT, 1, off, coef, p, r, 0.0, 0.0, 0.0)[row])
+
+
+def test_every_input_reaches_the_kernels_as_one_array_type():
+    """A writable and a read-only input reach the kernel as the same numba type (kernel_input), so
+    each kernel is compiled, cached and loaded once, not once per kind of array."""
+    u = 3.0 * np.sin(2 * np.pi * 7.0 * np.arange(500) * DT)          # writable
+    frozen = u.copy()
+    frozen.flags.writeable = False
+    coef, p, r = np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    P = rk4.kernel_parameters(g=1.0, c=5.0, k=2000.0, alpha=500.0, gamma=100.0, delta=100.0)
+    a = rk4.simulate_states(u, 0.0, DT, 1, P, coef, p, r, 0.0, 0.0, 0.0)
+    b = rk4.simulate_states(frozen, 0.0, DT, 1, P, coef, p, r, 0.0, 0.0, 0.0)
+    assert np.array_equal(a, b)
+    assert u.flags.writeable                       # the caller's array is left as it was
+    sigs = rk4.simulate_plain.signatures
+    assert sigs and all(not sig[0].mutable for sig in sigs), sigs

@@ -28,7 +28,7 @@ import math
 import numpy as np
 
 from recon.output_error import problem
-from recon.simulation.rk4 import I_C2, I_DRIFT, I_G, I_KC, I_MU, I_V0, I_W2
+from recon.simulation.rk4 import I_C2, I_DRIFT, I_G, I_KC, I_MU, I_V0, I_W2, kernel_input
 from recon.simulation.sensitivity import (FEATURES, X_COLUMNS, column_codes, extended_column_codes,
                                           simulate_extended_sensitivities, simulate_plain_sensitivities)
 from recon.threads import fd_map
@@ -120,7 +120,7 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
             # the columns the reading sees, sy + phi2 sq, formed in place in the kernel's own arrays:
             # at a 10 kHz stage each rows x columns array is ~10 MiB and the stages run side by side
             if plain:
-                st3, sy = simulate_plain_sensitivities(np.ascontiguousarray(u), dt, int(m.substeps(dt)), P[I_G],
+                st3, sy = simulate_plain_sensitivities(kernel_input(u), dt, int(m.substeps(dt)), P[I_G],
                                                        base.c_m, base.k_m, base.alpha_m, base.gamma, base.delta,
                                                        coef, pe, re, y0, v0, z0, fi, eq, S0[:3].copy(),
                                                        int(d.order))
@@ -128,7 +128,7 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
                 st[:3] = st3
                 read_cols = sy          # the plain kernel has no sq: sy + phi2 sq is sy
             else:
-                st, sy, read_cols = simulate_extended_sensitivities(np.ascontiguousarray(u), float(d.t[0]), dt,
+                st, sy, read_cols = simulate_extended_sensitivities(kernel_input(u), float(d.t[0]), dt,
                                                                     int(m.substeps(dt)), P, coef, pe, re, y0, v0,
                                                                     z0, codes, S0, int(d.order), force)
                 read_cols *= phi2

@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from recon.diagnosis.settings import DEFAULTS, DiagnosisSettings
+from recon.simulation.rk4 import kernel_input
 from recon.signals import stage_signals
 from recon.welch import welch
 from shakerlab.run_data import BASE
@@ -194,14 +195,14 @@ def _biquad(num, den, x):
 def mode_response(u, dt, w, zeta, g=1.0):
     """q of q'' + 2 zeta w q' + w^2 q = g u (bilinear discretisation, from rest)."""
     num, den = bilinear_biquad((0.0, 0.0, g), (2 * zeta * w, w * w), dt)
-    return _biquad(num, den, np.ascontiguousarray(u, dtype=float))
+    return _biquad(num, den, kernel_input(u))
 
 
 def mode_response_to_motion(y, dt, w, zeta):
     """q of q'' + 2 zeta w q' + w^2 q = -y'' from the displacement y itself (the transfer
     -s^2 / (s^2 + 2 zeta w s + w^2), bilinear, from rest): y is not differentiated."""
     num, den = bilinear_biquad((-1.0, 0.0, 0.0), (2 * zeta * w, w * w), dt)
-    return _biquad(num, den, np.ascontiguousarray(y, dtype=float))
+    return _biquad(num, den, kernel_input(y))
 
 
 def scan_modes(data, residuals, gain, f_lo, f_hi, n=40, zeta=0.02, motions=None, base=True):

@@ -24,7 +24,7 @@ import numpy as np
 from recon.library import monomials
 from recon.model import MAX_SUBSTEPS, PARAMETER_NAMES, HystereticModel, sampling_interval
 from recon.output_error.stopping import ChiSquareStop
-from recon.simulation.rk4 import substeps
+from recon.simulation.rk4 import kernel_input, substeps
 from recon.simulation.sensitivity import column_codes, simulate_plain_sensitivities
 from shakerlab.run_data import BASE
 
@@ -321,8 +321,8 @@ class OutputError:
                     for col, name in enumerate(names):
                         S0[2, col] = {"g": u[0], "offset": -g, "c": -v0, "k": -y0}.get(name, 0.0) \
                             if not isinstance(name, int) else -(y0 ** pe[name] * v0 ** re[name])
-            states, sens = simulate_plain_sensitivities(u, dt, int(n_sub), g, m.c_m, m.k_m, m.alpha_m, m.gamma,
-                                                        m.delta, coef, pe, re, y0, v0, z0, fi, eq, S0,
+            states, sens = simulate_plain_sensitivities(kernel_input(u), dt, int(n_sub), g, m.c_m, m.k_m,
+                                                        m.alpha_m, m.gamma, m.delta, coef, pe, re, y0, v0, z0, fi, eq, S0,
                                                         int(target[0]))
             if not np.all(np.isfinite(states[int(target[0])])):
                 return None
