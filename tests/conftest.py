@@ -1,7 +1,16 @@
 import os
+import sys
 import time as _time
 
 import pytest
+
+# The tests run with Python's bytecode cache, as an installed shakerlab runs: under
+# PYTHONDONTWRITEBYTECODE (set in some shells and containers) every worker and every `shakerlab`
+# subprocess compiled the project's sources and rewrote the test files' assertions again (about
+# 3 CPU-s of collection per worker, 0.3 s per subprocess). Cleared here, before pytest-xdist starts
+# its workers, so they and the subprocesses inherit it.
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+sys.dont_write_bytecode = False
 
 # Every test runs headless.
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
@@ -16,20 +25,23 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 
 # Scheduling (pyproject: --dist loadfile --no-loadscope-reorder): each file runs on one worker, so
 # its module-scoped fixtures (a reconstruction or diagnosis shared by several tests) are computed
-# once, not once per worker; the files below go first, heaviest first (from a `--durations` run of
-# both tiers on 2 cores), so the last files to start are quick ones and the workers finish together.
-# The order changes when a test runs, never what it checks; a file not listed keeps its place after
+# once, not once per worker; the files below go first, heaviest first (the seconds of both tiers
+# together, from a `--durations` run of each on 2 cores: a file heavy in the acceptance tier starts
+# first there, and the fast tier's heavy files still start before its many small ones), so the last
+# files to start are quick ones and the workers finish together. The order changes when a test runs, never what it checks; a file not listed keeps its place after
 # these.
 HEAVY_FIRST = (
-    "test_diagnosis_velocity.py", "test_diagnosis_honest.py", "test_diagnosis_corner.py",
-    "test_diagnosis_friction_words.py", "test_fuzz.py", "test_recon_fallback.py", "test_recon_mdof.py", "test_recon_weak_path.py",
-    "test_recon_simpler_fit_slack.py", "test_constitutive.py", "test_recon_core.py", "test_diagnosis.py",
-    "test_diagnosis_harmonic.py", "test_recon_exciter.py", "test_recon_two_stage.py", "test_report.py",
-    "test_recon_cli.py", "test_recon_sensitivities.py", "test_recon_mr.py", "test_operator_output.py",
-    "test_closed_loop.py", "test_recon_input_band.py", "test_recon_input_offset.py",
-    "test_independent_generator.py", "test_gui.py", "test_recon_weak.py", "test_rig_acquisition.py",
-    "test_rig_velocity.py", "test_uncertainty.py", "test_weak_linear_stage.py", "test_quantities.py",
-    "test_diagnosis_rig.py", "test_rig_end_to_end.py", "test_determinism.py",
+    "test_diagnosis_honest.py", "test_diagnosis_harmonic.py", "test_diagnosis.py", "test_diagnosis_corner.py",
+    "test_recon_fallback.py", "test_closed_loop.py", "test_determinism.py", "test_diagnosis_rig.py",
+    "test_diagnosis_friction_words.py", "test_independent_generator.py", "test_gui.py", "test_data_safety.py",
+    "test_diagnosis_velocity.py", "test_rig_end_to_end.py", "test_quantities.py", "test_rig_velocity.py",
+    "test_recon_adversarial.py", "test_recon_input_offset.py", "test_acceleration_drift.py",
+    "test_constitutive.py", "test_batch.py", "test_data_safety_faults.py", "test_recon_two_stage.py",
+    "test_boucwen_single_level.py", "test_diagnosis_sensitivity.py", "test_rig_acquisition.py",
+    "test_recon_mdof.py", "test_recon_simpler_fit_slack.py", "test_diagnosis_hardening_loop.py",
+    "test_operator_output.py", "test_rig_cli.py", "test_report.py", "test_recon_exciter.py",
+    "test_recon_elastic_start.py", "test_recon_weak_path.py", "test_recon_core.py", "test_recon_input_band.py",
+    "test_sine_control.py", "test_layers.py", "test_weak_linear_stage.py",
 )
 
 
