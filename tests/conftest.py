@@ -28,8 +28,8 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 # once, not once per worker; the files below go first, heaviest first (the seconds of both tiers
 # together, from a `--durations` run of each on 2 cores: a file heavy in the acceptance tier starts
 # first there, and the fast tier's heavy files still start before its many small ones), so the last
-# files to start are quick ones and the workers finish together. The order changes when a test runs, never what it checks; a file not listed keeps its place after
-# these.
+# files to start are quick ones and the workers finish together. The order changes when a test
+# runs, never what it checks; a file not listed keeps its place after these.
 HEAVY_FIRST = (
     "test_diagnosis_honest.py", "test_diagnosis_harmonic.py", "test_diagnosis.py", "test_diagnosis_corner.py",
     "test_recon_fallback.py", "test_closed_loop.py", "test_determinism.py", "test_diagnosis_rig.py",
