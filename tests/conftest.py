@@ -30,10 +30,14 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 # first there, and the fast tier's heavy files still start before its many small ones), so the last
 # files to start are quick ones and the workers finish together. The order changes when a test
 # runs, never what it checks; a file not listed keeps its place after these.
+# test_gui.py goes second: in a fresh clone (numba's cache empty) the first two files start together,
+# and the operator window's tests compile the simulated rig's kernels while the diagnosis's compile
+# recon's, where two diagnosis files would compile the same kernels twice at once.
 HEAVY_FIRST = (
-    "test_diagnosis_honest.py", "test_diagnosis_harmonic.py", "test_diagnosis.py", "test_diagnosis_corner.py",
-    "test_recon_fallback.py", "test_closed_loop.py", "test_determinism.py", "test_diagnosis_rig.py",
-    "test_diagnosis_friction_words.py", "test_independent_generator.py", "test_gui.py", "test_data_safety.py",
+    "test_diagnosis_honest.py", "test_gui.py", "test_diagnosis_harmonic.py", "test_diagnosis.py",
+    "test_diagnosis_corner.py", "test_recon_fallback.py", "test_closed_loop.py", "test_determinism.py",
+    "test_diagnosis_rig.py", "test_diagnosis_friction_words.py", "test_independent_generator.py",
+    "test_data_safety.py",
     "test_diagnosis_velocity.py", "test_rig_end_to_end.py", "test_quantities.py", "test_rig_velocity.py",
     "test_recon_adversarial.py", "test_recon_input_offset.py", "test_acceleration_drift.py",
     "test_constitutive.py", "test_batch.py", "test_data_safety_faults.py", "test_recon_two_stage.py",
