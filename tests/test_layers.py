@@ -3,6 +3,7 @@ no imports inside functions except the documented lazy ones (docs/architecture.m
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,6 +33,13 @@ ENTRY_POINTS = {
 LAZY_MARKERS = ("# heavy", "# lazy", "# optional")
 
 
+@functools.lru_cache(maxsize=None)
+def _tree(path: Path) -> ast.AST:
+    """The parsed source of ``path``, once per test session: the tests below walk every module's tree
+    and none changes it."""
+    return ast.parse(path.read_text(encoding="utf-8"))
+
+
 def _modules():
     for pkg in PACKAGES:
         for path in sorted((ROOT / pkg).rglob("*.py")):
@@ -47,7 +55,7 @@ MODULES = dict(_modules())
 
 def _imports(path: Path):
     """(module imported, names, node, inside a function?) for every import statement."""
-    tree = ast.parse(path.read_text(encoding="utf-8"))
+    tree = _tree(path)
     funcs = set()
     for node in ast.walk(tree):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
@@ -219,7 +227,7 @@ def test_no_test_or_bench_rewrites_a_recon_setting():
     bad = []
     for path in sorted(list((ROOT / "tests").rglob("*.py")) + list((ROOT / "bench").glob("*.py"))):
         rel = path.relative_to(ROOT)
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        for node in ast.walk(_tree(path)):
             if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "setattr"
                     and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant)
                     and isinstance(node.args[1].value, str) and node.args[1].value.isupper()):
@@ -343,7 +351,7 @@ def _recon_constants():
             continue
         parts = list(rel.parts[:-1] if rel.parts[-1] == "__init__" else rel.parts)
         mod = ".".join(parts)
-        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        for node in _tree(path).body:
             if isinstance(node, ast.Assign):
                 targets, value = node.targets, node.value
             elif isinstance(node, ast.AnnAssign) and node.value is not None:
@@ -410,7 +418,7 @@ def test_no_test_monkeypatches_a_recon_module():
     bad = []
     for path in sorted((ROOT / "tests").rglob("*.py")):
         rel = path.relative_to(ROOT)
-        tree = ast.parse(path.read_text(encoding="utf-8"))
+        tree = _tree(path)
         names = _recon_names(tree)
         for node in ast.walk(tree):
             if not (isinstance(node, ast.Call) and node.args):
@@ -455,13 +463,13 @@ def test_the_kernel_parameter_vector_is_indexed_by_name_outside_the_kernel():
     built by name (rk4.kernel_parameters) and never indexed by a position."""
     bad = [f"{mod}:{line} indexes P by a position"
            for mod, path in MODULES.items() if mod.split(".")[0] == "recon" and mod != RK4
-           for line in _p_literal_indices(ast.parse(path.read_text(encoding="utf-8")))]
+           for line in _p_literal_indices(_tree(path))]
     assert not bad, "\n".join(bad)
 
 
 def test_the_kernels_read_their_parameter_vector_by_named_indices():
     """rk4's kernels read P through its named indices (I_MU, ...: compile-time constants), no literal."""
-    tree = ast.parse(MODULES[RK4].read_text(encoding="utf-8"))
+    tree = _tree(MODULES[RK4])
     assert not _p_literal_indices(tree), f"{RK4} indexes P by a position at lines {_p_literal_indices(tree)}"
     named = [n for n in ast.walk(tree) if isinstance(n, ast.Subscript) and isinstance(n.value, ast.Name)
              and n.value.id == "P" and isinstance(n.slice, ast.Name) and n.slice.id.startswith("I_")]
