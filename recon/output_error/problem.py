@@ -322,8 +322,8 @@ class OutputError:
                         S0[2, col] = {"g": u[0], "offset": -g, "c": -v0, "k": -y0}.get(name, 0.0) \
                             if not isinstance(name, int) else -(y0 ** pe[name] * v0 ** re[name])
             states, sens = simulate_plain_sensitivities(kernel_input(u), dt, int(n_sub), g, m.c_m, m.k_m,
-                                                        m.alpha_m, m.gamma, m.delta, coef, pe, re, y0, v0, z0, fi, eq, S0,
-                                                        int(target[0]))
+                                                        m.alpha_m, m.gamma, m.delta, coef, pe, re, y0, v0, z0,
+                                                        fi, eq, S0, int(target[0]))
             if not np.all(np.isfinite(states[int(target[0])])):
                 return None
             # in place on the kernel's own array (the same arithmetic): a rows x parameters copy

@@ -257,7 +257,7 @@ def simulate_plain(u, dt, n_sub, g, c, k, alpha, gamma, delta, coef, p, r, y0, v
 def kernel_input(a) -> np.ndarray:
     """``a`` as every kernel here takes its sampled input: C-contiguous float64, read-only (a view,
     not a copy). Numba types a read-only array apart from a writable one and compiles a kernel once
-    per type; a stage's derived arrays are read-only (shakerlab.run_data.StageData.derived) and
+    per type; a stage's derived arrays are read-only (shakerlab.run_data.Stage.derived) and
     others are not, so passing them all one way keeps one compiled kernel each: half the compile
     time on a fresh install and half the machine code loaded."""
     a = np.ascontiguousarray(a, dtype=float)
