@@ -86,3 +86,20 @@ def test_recon_stress_jsonl_refuses_an_existing_file_and_leaves_it_as_it_was(tmp
                         "--jsonl", str(saved)], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert p.returncode != 0 and "exists" in p.stderr
     assert saved.read_text() == '{"seed": 0}\n'
+
+
+def test_rig_discovery_refuses_a_validation_factor_out_of_range_or_beside_a_protocol(tmp_path):
+    """bench/rig_discovery.py --validation-factor changes the short protocol: a value outside 0.2-2
+    times the resonance, or one given with --protocol (whose stages it would not change), is refused
+    with the option named, before anything is simulated."""
+    def run(*args):
+        return subprocess.run([sys.executable, str(ROOT / "bench" / "rig_discovery.py"), "--effects", "clean",
+                               *args], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+
+    p = run("--validation-factor", "5")
+    assert p.returncode == 2 and "--validation-factor 5.0 is outside 0.2-2" in p.stderr, p.stderr
+    proto = tmp_path / "p.toml"
+    proto.write_text("")
+    p = run("--validation-factor", "0.78", "--protocol", str(proto))
+    assert p.returncode == 2 and "do not apply to --protocol" in p.stderr, p.stderr
+    assert not list(tmp_path.glob("*.h5"))
