@@ -65,6 +65,8 @@ duration_s = 2.0
 # the same with its nonlinear stage at one level (--single-level)
 SINGLE_LEVEL_PROTOCOL = SHORT_PROTOCOL.replace("start_vpp = 0.5", "start_vpp = 4.0")
 assert SINGLE_LEVEL_PROTOCOL != SHORT_PROTOCOL and "max_vpp = 4.0" in SHORT_PROTOCOL
+# --validation-factor rewrites the one validation stage's factor (the nonlinear stage's is 0.88)
+assert SHORT_PROTOCOL.count("frequency_factor = 0.7\n") == 1
 
 # effect: (catalog id, the id's size parameter, the simulator settings for a size s, size range,
 #          the expected fitted value for a size s)

@@ -44,15 +44,14 @@ def reconstructed(request, tmp_path_factory):
             out = acquire(cfg, load_protocol(PROTOCOLS[protocol]), path, lockstep=True)
             truth = sim.world.truth()
         assert out.status == "complete", out.reason
-        lost, printed = out.samples_lost, ""
+        lost = out.samples_lost
     else:
         # issue 19's proof, literally: `shakerlab acquire` with the shipped base-target protocol
         with contextlib.redirect_stdout(io.StringIO()) as printed:
             assert main(["acquire", "--sim-speed", "0", "--seed", str(seed), "--protocol",
                          str(PROTOCOLS[protocol]), "-o", str(path)]) == 0
-        printed = printed.getvalue()
         truth = SimulatedRig(None, speed=None, seed=seed).world.truth()
-        lost = 0 if "samples lost: 0" in printed else None
+        lost = 0 if "samples lost: 0" in printed.getvalue() else None
     run = load_run(path)
     result = reconstruct(run, ReconSettings(form=WEAK))  # as shakerlab demo does (see workflows/demo.py)
     return protocol, lost, run, result, truth
