@@ -204,6 +204,7 @@ def independent_seed12():
     return independent_stress_draw(12, 2559.0, 60.0)
 
 
+@pytest.mark.slow      # a whole reconstruction of a hard record (~5-11 s): the acceptance tier
 def test_polish_stuck_above_the_noise_floor_restarts_from_generic_starts(independent_seed12):
     """Issue 18: on this draw the pointwise estimate had lambda = 20 against the truth's 2473 and a
     k/alpha split of -5069/16140. Restarted with y^2 and y^3 its polish stopped at NRMSE 0.0147, 13
@@ -348,6 +349,7 @@ def _corner_fitting_part(i: int):
     return rank.fitting_part(to_run(corner_recording(corner_draw(i))), DEFAULTS)
 
 
+@pytest.mark.slow      # a whole reconstruction of a hard record (~5-11 s): the acceptance tier
 def test_the_simpler_bouc_wen_fits_stay_in_the_admissible_region_and_compete_finished():
     """A corner record with a large friction (Fc 0.03 N/kg on a nearly linear loop) whose full estimate
     is inadmissible. Its hysteretic stand-ins, fitted freely, both ended with gamma + delta < 0 and

@@ -92,6 +92,7 @@ def test_bad_input_is_named():
         reconstruct_chain(run)
 
 
+@pytest.mark.slow      # a whole reconstruction of a hard record (~5-11 s): the acceptance tier
 def test_five_layer_chain_at_60db():
     # the weak path form in the hysteretic layers (the default) keeps the pattern of every layer
     # at 60 dB; the pointwise refit loses y^3 of layer 3 there (bench/recon_accuracy.py, seeds 0-2)

@@ -54,6 +54,7 @@ FULL = dict(c_m=2.69386, k_m=1264.00, alpha_m=1952.25, gamma=194.319, delta=128.
             fn_m={"y^2": -40850.25, "dy^3": -174.253})
 
 
+@pytest.mark.slow      # a whole reconstruction of a hard record (~5-11 s): the acceptance tier
 def test_a_simpler_model_that_misses_the_nonlinear_stage_does_not_replace_the_full_model(record):
     whole, run = record
     full = HystereticModel("base", **FULL)
