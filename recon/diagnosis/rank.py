@@ -826,32 +826,42 @@ def equation_step(am: AugmentedModel, keys: list[str], new_key: str | None, colu
     column, so increments are far less biased than a fresh equation-error fit).
     Returns (model, relative residual rms)."""
 
-    rows, rhs = [], []
+    names = [k for k in keys if k in ("c_m", "k_m", "inv_m") or k.startswith("fn:")]
+    stages = []
     for d in data:
         if not d.fit.any() or d.name not in derivs:
             continue
+        t = derivs[d.name][0]
+        stages.append((d, t <= d.t[d.fit][-1]))
+    # the rows written straight into one matrix, stage after stage (at a 10 kHz stage each rows x
+    # columns array is tens of MiB: no per-stage copies beside it); each entry is the same quotient
+    # column / frms as a stacked matrix would hold
+    A = np.empty((sum(int(np.count_nonzero(sel)) for _, sel in stages), len(names) + (new_key is not None)))
+    b = np.empty(A.shape[0])
+    row = 0
+    for d, sel in stages:
         t, y, dy, ddy, u, dt = derivs[d.name]
-        sel = t <= d.t[d.fit][-1]
         _, _, e, _, frms = equation_residual(am, derivs[d.name])
-        cols = []
+        block = A[row:row + np.count_nonzero(sel)]
+        j = 0
         for k in keys:
             if k == "c_m":
-                cols.append(dy)
+                col = dy
             elif k == "k_m":
-                cols.append(y * (1.0 + am.get("drift") * t))
+                col = y * (1.0 + am.get("drift") * t)
             elif k.startswith("fn:"):
                 p, r = monomials.parse(k[3:])
-                cols.append(y ** p * dy ** r)
+                col = y ** p * dy ** r
             elif k == "inv_m":
-                cols.append(-u)
+                col = -u
+            else:
+                continue
+            np.divide(col[sel], frms, out=block[:, j])
+            j += 1
         if new_key is not None:
-            cols.append(column(am, t, y, dy))
-        A = np.column_stack(cols)[sel] / frms
-        rows.append(A)
-        rhs.append(e[sel] / frms)
-    A = np.vstack(rows)
-    b = np.concatenate(rhs)
-    names = [k for k in keys if k in ("c_m", "k_m", "inv_m") or k.startswith("fn:")]
+            np.divide(np.asarray(column(am, t, y, dy), float)[sel], frms, out=block[:, j])
+        np.divide(e[sel], frms, out=b[row:row + block.shape[0]])
+        row += block.shape[0]
     ok = np.isfinite(b) & np.all(np.isfinite(A), axis=1)
     if ok.sum() < max(settings.step_min_finite * b.size, 10 * A.shape[1]):
         # finite on too few samples (settings.step_min_finite): the baseline's restoring force is
@@ -859,7 +869,8 @@ def equation_step(am: AugmentedModel, keys: list[str], new_key: str | None, colu
         # measured y' overflows, or a term of high order): no equation-error step, the candidate
         # starts from ``am`` as it is
         return am.copy(), float("inf")
-    A, b = A[ok], b[ok]
+    if not ok.all():
+        A, b = A[ok], b[ok]
     norms = np.linalg.norm(A, axis=0)
     norms[norms == 0] = 1.0
     coef, *_ = np.linalg.lstsq(A / norms, b, rcond=None)
