@@ -154,15 +154,21 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
             if d.order:
                 J -= J.mean(axis=0)        # the velocity's constant, fitted over the fitting samples
             w = 1.0 / (fit_scale(d) * math.sqrt(max(int(d.fit.sum()), 1)))
-            J *= w * scales
-            return J
+            # the weighted rows written into this stage's block of the whole Jacobian
+            np.multiply(J, w * scales, out=whole[first[id(d)]:first[id(d)] + J.shape[0]])
+            return True
 
         # the stages side by side on the fits' threads (the kernels run without the GIL; each
-        # stage's columns are what they would be alone)
-        out = list((fd_map() if len(stages) > 1 else map)(stage_columns, stages))
-        if any(J is None for J in out):
+        # stage's columns are what they would be alone), each writing its own rows of one array
+        whole = np.empty((rows, len(keys)))
+        first, at = {}, 0
+        for d in stages:
+            first[id(d)] = at
+            at += int(d.fit.sum())
+        done = list((fd_map() if len(stages) > 1 else map)(stage_columns, stages))
+        if any(ok is None for ok in done):
             return np.zeros((rows, len(keys)))
-        return np.concatenate(out, axis=0)
+        return whole
 
     return jacobian
 
