@@ -110,29 +110,47 @@ def _chain_rk4(F_half, h, every, m, c, k, alpha, gamma, delta, coef, p, r, e):
     x = np.zeros(n); v = np.zeros(n); z = np.zeros(n)
     a1 = np.zeros(n); a2 = np.zeros(n); a3 = np.zeros(n); a4 = np.zeros(n)
     w1 = np.zeros(n); w2 = np.zeros(n); w3 = np.zeros(n); w4 = np.zeros(n)
+    v1 = np.zeros(n); v2 = np.zeros(n); v3 = np.zeros(n); v4 = np.zeros(n)
+    xt = np.zeros(n); vt = np.zeros(n); zt = np.zeros(n)
+    # element by element (the same arithmetic, in the same order, as whole-array expressions; array
+    # expressions would compile numba's broadcasting checks and their error messages, seconds of
+    # compile time on a fresh install, and allocate at every step)
+    hh = 0.5 * h
+    h6 = h / 6.0
     for s in range(M):
         F0 = F_half[:, 2 * s]
         Fm = F_half[:, 2 * s + 1]
         F1 = F_half[:, 2 * s + 2]
         _chain_forces(x, v, z, m, c, k, alpha, gamma, delta, coef, p, r, e, a1, w1, F0)
-        v1 = v.copy()
-        _chain_forces(x + 0.5 * h * v1, v + 0.5 * h * a1, z + 0.5 * h * w1, m, c, k, alpha, gamma, delta,
-                      coef, p, r, e, a2, w2, Fm)
-        v2 = v + 0.5 * h * a1
-        _chain_forces(x + 0.5 * h * v2, v + 0.5 * h * a2, z + 0.5 * h * w2, m, c, k, alpha, gamma, delta,
-                      coef, p, r, e, a3, w3, Fm)
-        v3 = v + 0.5 * h * a2
-        _chain_forces(x + h * v3, v + h * a3, z + h * w3, m, c, k, alpha, gamma, delta,
-                      coef, p, r, e, a4, w4, F1)
-        v4 = v + h * a3
-        x = x + h / 6.0 * (v1 + 2 * v2 + 2 * v3 + v4)
-        v = v + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
-        z = z + h / 6.0 * (w1 + 2 * w2 + 2 * w3 + w4)
+        for i in range(n):
+            v1[i] = v[i]
+            xt[i] = x[i] + hh * v1[i]
+            vt[i] = v[i] + hh * a1[i]
+            zt[i] = z[i] + hh * w1[i]
+        _chain_forces(xt, vt, zt, m, c, k, alpha, gamma, delta, coef, p, r, e, a2, w2, Fm)
+        for i in range(n):
+            v2[i] = v[i] + hh * a1[i]
+            xt[i] = x[i] + hh * v2[i]
+            vt[i] = v[i] + hh * a2[i]
+            zt[i] = z[i] + hh * w2[i]
+        _chain_forces(xt, vt, zt, m, c, k, alpha, gamma, delta, coef, p, r, e, a3, w3, Fm)
+        for i in range(n):
+            v3[i] = v[i] + hh * a2[i]
+            xt[i] = x[i] + h * v3[i]
+            vt[i] = v[i] + h * a3[i]
+            zt[i] = z[i] + h * w3[i]
+        _chain_forces(xt, vt, zt, m, c, k, alpha, gamma, delta, coef, p, r, e, a4, w4, F1)
+        for i in range(n):
+            v4[i] = v[i] + h * a3[i]
+            x[i] = x[i] + h6 * (v1[i] + 2.0 * v2[i] + 2.0 * v3[i] + v4[i])
+            v[i] = v[i] + h6 * (a1[i] + 2.0 * a2[i] + 2.0 * a3[i] + a4[i])
+            z[i] = z[i] + h6 * (w1[i] + 2.0 * w2[i] + 2.0 * w3[i] + w4[i])
         if (s + 1) % every == 0:
             j = (s + 1) // every
-            X[:, j] = x
-            Vv[:, j] = v
-            Z[:, j] = z
+            for i in range(n):
+                X[i, j] = x[i]
+                Vv[i, j] = v[i]
+                Z[i, j] = z[i]
     return X, Vv, Z
 
 

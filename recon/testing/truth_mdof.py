@@ -62,16 +62,29 @@ def _truth_integrate(F_half, h, every, m, c, k, alpha, gamma, delta, coef, p, r,
     steps = (F_half.shape[1] - 1) // 2
     out = np.zeros((3 * n, steps // every + 1))
     s = np.zeros(3 * n)
+    st = np.zeros(3 * n)
+    # element by element (the same arithmetic, in the same order, as whole-array expressions, which
+    # would compile numba's broadcasting checks and their error messages: seconds on a fresh install)
+    hh = 0.5 * h
+    h6 = h / 6.0
     for j in range(steps):
         f0 = F_half[:, 2 * j]
         fm = F_half[:, 2 * j + 1]
         d1 = _truth_derivative(s, f0, n, m, c, k, alpha, gamma, delta, coef, p, r, e)
-        d2 = _truth_derivative(s + 0.5 * h * d1, fm, n, m, c, k, alpha, gamma, delta, coef, p, r, e)
-        d3 = _truth_derivative(s + 0.5 * h * d2, fm, n, m, c, k, alpha, gamma, delta, coef, p, r, e)
-        d4 = _truth_derivative(s + h * d3, F_half[:, 2 * j + 2], n, m, c, k, alpha, gamma, delta, coef, p, r, e)
-        s = s + (h / 6.0) * (d1 + 2.0 * d2 + 2.0 * d3 + d4)
+        for i in range(3 * n):
+            st[i] = s[i] + hh * d1[i]
+        d2 = _truth_derivative(st, fm, n, m, c, k, alpha, gamma, delta, coef, p, r, e)
+        for i in range(3 * n):
+            st[i] = s[i] + hh * d2[i]
+        d3 = _truth_derivative(st, fm, n, m, c, k, alpha, gamma, delta, coef, p, r, e)
+        for i in range(3 * n):
+            st[i] = s[i] + h * d3[i]
+        d4 = _truth_derivative(st, F_half[:, 2 * j + 2], n, m, c, k, alpha, gamma, delta, coef, p, r, e)
+        for i in range(3 * n):
+            s[i] = s[i] + h6 * (d1[i] + 2.0 * d2[i] + 2.0 * d3[i] + d4[i])
         if (j + 1) % every == 0:
-            out[:, (j + 1) // every] = s
+            for i in range(3 * n):
+                out[i, (j + 1) // every] = s[i]
     return out
 
 
