@@ -633,6 +633,11 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
     ranked = list(sig)
     if len(sig) > 1 and combined is None:
         sig, combined = forward_step(sig, scores, refs, dctx)
+    if len(sig) == 1 and combined is None and "baseline_terms_revised" not in sig[0]:
+        # one effect named beside the baseline's terms as reconstructed: those terms were chosen on a
+        # record that holds the effect and may stand in for it. They are chosen again under it, as
+        # for a candidate not yet named (revision_step), and the revision kept on the same rule
+        _revised(sig[0], scores, refs, partly, dctx)
     return assemble(refs, dctx, findings, scores, origins, ranked, sig, combined, partly,
                     time.perf_counter() - t0)
 
