@@ -633,22 +633,29 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
     ranked = list(sig)
     if len(sig) > 1 and combined is None:
         sig, combined = forward_step(sig, scores, refs, dctx)
+    # the candidates as each was fitted beside the baseline as reconstructed: what two of them are
+    # compared on (assemble's ambiguity), before a named one's terms are revised below
+    compared = {c: f.fit.mse_held for c, f in scores.fits.items()}
+    ranked = [dict(t) for t in ranked]
     if len(sig) == 1 and combined is None and "baseline_terms_revised" not in sig[0]:
         # one effect named beside the baseline's terms as reconstructed: those terms were chosen on a
         # record that holds the effect and may stand in for it. They are chosen again under it, as
         # for a candidate not yet named (revision_step), and the revision kept on the same rule
         _revised(sig[0], scores, refs, partly, dctx)
     return assemble(refs, dctx, findings, scores, origins, ranked, sig, combined, partly,
-                    time.perf_counter() - t0)
+                    time.perf_counter() - t0, compared)
 
 
 def assemble(refs: References, dctx: DiagnosisContext, findings: list, scores: Scores, origins: Origins,
-             ranked: list, sig: list, combined: rank.FitResult | None, partly: list, seconds: float) -> Diagnosis:
+             ranked: list, sig: list, combined: rank.FitResult | None, partly: list, seconds: float,
+             compared: dict | None = None) -> Diagnosis:
     """The :class:`Diagnosis`: the named candidates (``sig``; ``combined`` their joint fit, if any),
     the best model (the joint fit, the first named candidate's, or the reference), two candidates
     the held-out data cannot tell apart among ``ranked``, and the mismatch left unexplained."""
     ref, noise_mse = refs.ref, dctx.noise_mse
-    pair = ambiguous_pair(ranked, {t["id"] for t in sig[1:]}, {c: f.fit.mse_held for c, f in scores.fits.items()},
+    if compared is None:
+        compared = {c: f.fit.mse_held for c, f in scores.fits.items()}
+    pair = ambiguous_pair(ranked, {t["id"] for t in sig[1:]}, compared,
                           dctx.rule.bic_margin, noise_mse, dctx.settings)
     ambiguity = separating_stage(pair) if pair else None
     missing = missing_entries(sig, scores, refs, findings, dctx)
