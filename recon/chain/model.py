@@ -99,6 +99,14 @@ def _chain_forces(x, v, z, m, c, k, alpha, gamma, delta, coef, p, r, e, out_a, o
         out_a[i] = (F[i] - E[i] + prev) / m[i]
 
 
+@njit(cache=True, inline="always")
+def shifted_into(out, base, step, slope):
+    """out = base + step * slope, element by element (an RK4 trial state; no array expression: see
+    _chain_rk4)."""
+    for i in range(base.size):
+        out[i] = base[i] + step * slope[i]
+
+
 @njit(cache=True)
 def _chain_rk4(F_half, h, every, m, c, k, alpha, gamma, delta, coef, p, r, e):
     n = m.size
@@ -124,24 +132,22 @@ def _chain_rk4(F_half, h, every, m, c, k, alpha, gamma, delta, coef, p, r, e):
         _chain_forces(x, v, z, m, c, k, alpha, gamma, delta, coef, p, r, e, a1, w1, F0)
         for i in range(n):
             v1[i] = v[i]
-            xt[i] = x[i] + hh * v1[i]
-            vt[i] = v[i] + hh * a1[i]
-            zt[i] = z[i] + hh * w1[i]
+        shifted_into(xt, x, hh, v1)
+        shifted_into(vt, v, hh, a1)
+        shifted_into(zt, z, hh, w1)
         _chain_forces(xt, vt, zt, m, c, k, alpha, gamma, delta, coef, p, r, e, a2, w2, Fm)
-        for i in range(n):
-            v2[i] = v[i] + hh * a1[i]
-            xt[i] = x[i] + hh * v2[i]
-            vt[i] = v[i] + hh * a2[i]
-            zt[i] = z[i] + hh * w2[i]
+        shifted_into(v2, v, hh, a1)
+        shifted_into(xt, x, hh, v2)
+        shifted_into(vt, v, hh, a2)
+        shifted_into(zt, z, hh, w2)
         _chain_forces(xt, vt, zt, m, c, k, alpha, gamma, delta, coef, p, r, e, a3, w3, Fm)
-        for i in range(n):
-            v3[i] = v[i] + hh * a2[i]
-            xt[i] = x[i] + h * v3[i]
-            vt[i] = v[i] + h * a3[i]
-            zt[i] = z[i] + h * w3[i]
+        shifted_into(v3, v, hh, a2)
+        shifted_into(xt, x, h, v3)
+        shifted_into(vt, v, h, a3)
+        shifted_into(zt, z, h, w3)
         _chain_forces(xt, vt, zt, m, c, k, alpha, gamma, delta, coef, p, r, e, a4, w4, F1)
+        shifted_into(v4, v, h, a3)
         for i in range(n):
-            v4[i] = v[i] + h * a3[i]
             x[i] = x[i] + h6 * (v1[i] + 2.0 * v2[i] + 2.0 * v3[i] + v4[i])
             v[i] = v[i] + h6 * (a1[i] + 2.0 * a2[i] + 2.0 * a3[i] + a4[i])
             z[i] = z[i] + h6 * (w1[i] + 2.0 * w2[i] + 2.0 * w3[i] + w4[i])

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from recon.chain.model import ChainModel, ChainRun, ChainStage
+from recon.chain.model import ChainModel, ChainRun, ChainStage, shifted_into
 from recon.simulation.powers import ipow
 from recon.testing.truth import Multisine
 from shakerlab.run_data import BASE, Run, Stage
@@ -71,14 +71,11 @@ def _truth_integrate(F_half, h, every, m, c, k, alpha, gamma, delta, coef, p, r,
         f0 = F_half[:, 2 * j]
         fm = F_half[:, 2 * j + 1]
         d1 = _truth_derivative(s, f0, n, m, c, k, alpha, gamma, delta, coef, p, r, e)
-        for i in range(3 * n):
-            st[i] = s[i] + hh * d1[i]
+        shifted_into(st, s, hh, d1)
         d2 = _truth_derivative(st, fm, n, m, c, k, alpha, gamma, delta, coef, p, r, e)
-        for i in range(3 * n):
-            st[i] = s[i] + hh * d2[i]
+        shifted_into(st, s, hh, d2)
         d3 = _truth_derivative(st, fm, n, m, c, k, alpha, gamma, delta, coef, p, r, e)
-        for i in range(3 * n):
-            st[i] = s[i] + h * d3[i]
+        shifted_into(st, s, h, d3)
         d4 = _truth_derivative(st, F_half[:, 2 * j + 2], n, m, c, k, alpha, gamma, delta, coef, p, r, e)
         for i in range(3 * n):
             s[i] = s[i] + h6 * (d1[i] + 2.0 * d2[i] + 2.0 * d3[i] + d4[i])
