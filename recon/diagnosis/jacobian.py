@@ -109,7 +109,8 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
         P[I_V0] = m.get("v0") if m.get("v0") > 0.0 else (m.friction_v0() or 1e-4)
         force = base.excitation != BASE
         phi2, scale, delay = m.get("phi2"), 1.0 + m.get("tip_scale"), m.get("delay")
-        def stage_columns(d):
+        def stage_columns(job):
+            d, at = job    # the stage and its first row in the whole Jacobian
             dt = d.dt
             u = base.drive(np.asarray(d.u, float), dt)
             y0, v0, z0 = (float(v) for v in initial_for(m, d))
@@ -155,17 +156,14 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
                 J -= J.mean(axis=0)        # the velocity's constant, fitted over the fitting samples
             w = 1.0 / (fit_scale(d) * math.sqrt(max(int(d.fit.sum()), 1)))
             # the weighted rows written into this stage's block of the whole Jacobian
-            np.multiply(J, w * scales, out=whole[first[id(d)]:first[id(d)] + J.shape[0]])
+            np.multiply(J, w * scales, out=whole[at:at + J.shape[0]])
             return True
 
         # the stages side by side on the fits' threads (the kernels run without the GIL; each
         # stage's columns are what they would be alone), each writing its own rows of one array
         whole = np.empty((rows, len(keys)))
-        first, at = {}, 0
-        for d in stages:
-            first[id(d)] = at
-            at += int(d.fit.sum())
-        done = list((fd_map() if len(stages) > 1 else map)(stage_columns, stages))
+        firsts = np.cumsum([0] + [int(d.fit.sum()) for d in stages[:-1]])
+        done = list((fd_map() if len(stages) > 1 else map)(stage_columns, list(zip(stages, firsts))))
         if any(ok is None for ok in done):
             return np.zeros((rows, len(keys)))
         return whole
