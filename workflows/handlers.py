@@ -247,9 +247,6 @@ def diagnose_command(args) -> int:
     print(f"result: {out['result_text']}")
     for m in out["missing_physics"]:
         ps = ", ".join(f"{k} = {v['value']:.4g}" for k, v in m["parameters"].items())
-        if m.get("held_at"):
-            ps += "; not determined by this record, held at " + ", ".join(
-                f"{k} = {v:.4g}" for k, v in m["held_at"].items())
         print(f"  {m['id']}: {m['explanation']} ({ps}); held-out NRMSE "
               f"{nrmse_text(m['evidence']['held_out_nrmse_before'])} -> "
               f"{nrmse_text(m['evidence']['held_out_nrmse_after'])}")

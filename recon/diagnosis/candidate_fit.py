@@ -13,7 +13,7 @@ error, or raises one of :data:`CANDIDATE_FAILURES` (recorded by the caller, neve
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -38,7 +38,6 @@ class CandidateFit:
     bounds: dict                 # {key: (lo, hi)} the physical range of the candidate's parameters
     free: list = ()              # the baseline parameters fitted beside the candidate's keys
     started_from: str = ""       # the origin its fit started from (references.Origin.name)
-    held_at: dict = field(default_factory=dict)   # {candidate key: value} held at its start, not fitted
 
     def fitted_keys(self) -> list:
         """Every parameter the fit moved: the free baseline ones, then the candidate's."""
@@ -87,16 +86,14 @@ def fit_candidate(cid: str, cand, src: rank.FitResult, free: list, step_keys: li
     per value and the fit with the lower fitting cost is kept: a start that ranks first by output
     error can still end worse than a full fit from the other value."""
     if not cand.fit_each:
-        return fit_from(cid, cand, src, free, step_keys, cand.starts, dctx, started_from, cand.admissible_starts)
+        return fit_from(cid, cand, src, free, step_keys, cand.starts, dctx, started_from)
     values = sorted({m.extras[cand.fit_each] for m, _, _, _ in cand.starts(src.model.baseline, dctx.located)})
     got, err = [], None
     for v in values:
-        def group(base, located, v=v, make=cand.starts):
-            return [s for s in make(base, located) if s[0].extras[cand.fit_each] == v]
-        admissible = (None if cand.admissible_starts is None else
-                      lambda base, located, v=v: group(base, located, v, cand.admissible_starts))
+        def group(base, located, v=v):
+            return [s for s in cand.starts(base, located) if s[0].extras[cand.fit_each] == v]
         try:
-            got.append(fit_from(cid, cand, src, free, step_keys, group, dctx, started_from, admissible))
+            got.append(fit_from(cid, cand, src, free, step_keys, group, dctx, started_from))
         except CANDIDATE_FAILURES as exc:
             err = exc
     if not got:
@@ -105,12 +102,10 @@ def fit_candidate(cid: str, cand, src: rank.FitResult, free: list, step_keys: li
 
 
 def fit_from(cid: str, cand, src: rank.FitResult, free: list, step_keys: list, make_starts,
-             dctx: DiagnosisContext, started_from: str = "", admissible_starts=None) -> CandidateFit:
+             dctx: DiagnosisContext, started_from: str = "") -> CandidateFit:
     """:func:`fit_candidate` from the starts ``make_starts(baseline, located)`` makes: the chosen
     start fitted with ``free`` and the candidate's keys; refitted from the candidate's admissible
-    starts (``admissible_starts``, same signature) when it ends outside the physical range. An
-    admissible start may hold some of the candidate's parameters (those missing from its keys):
-    they are reported as held (CandidateFit.held_at)."""
+    starts when it ends outside the physical range."""
     data, max_nfev = dctx.data, dctx.max_nfev
     starts = starts_from(cid, src, make_starts, dctx)
     if cand.column is not None:     # linear in its first parameter: equation-error step per start
@@ -120,21 +115,16 @@ def fit_from(cid: str, cand, src: rank.FitResult, free: list, step_keys: list, m
     else:
         m, keys, sc, b = starts[0]
     fr = rank.fit(m, list(dict.fromkeys(free + keys)), data, sc, max_nfev=max_nfev, bounds=b)
-    held_at = {}
-    if admissible_starts is not None and implausible(cid, fr, src.model, data, intervals=False):
-        # the fit ended outside the physical range (hysteresis: a negative alpha; a mode's damping
-        # on a bound of its range): fitted again from starts inside it, kept if it ends inside
-        again = starts_from(cid, src, admissible_starts, dctx)
-        if again:
-            m2, keys2, sc2, b2 = screen_starts(cand, again, dctx)
-            fr2 = rank.fit(m2, list(dict.fromkeys(free + keys2)), data, sc2, max_nfev=max_nfev, bounds=b2)
-            if math.isfinite(fr2.mse_held) and not implausible(cid, fr2, src.model, data, intervals=False):
-                fr, keys, sc, b = fr2, keys2, sc2, b2
-                held_at = {k: get_parameter(fr.model, k) for k in cand.parameters if k not in keys}
+    if cand.admissible_starts is not None and implausible(cid, fr, src.model, data, intervals=False):
+        # the fit ended outside the physical range (hysteresis: a negative alpha):
+        # fitted again from starts inside it, kept if it ends inside
+        m2, keys2, sc2, b2 = screen_starts(cand, starts_from(cid, src, cand.admissible_starts, dctx), dctx)
+        fr2 = rank.fit(m2, list(dict.fromkeys(free + keys2)), data, sc2, max_nfev=max_nfev, bounds=b2)
+        if math.isfinite(fr2.mse_held) and not implausible(cid, fr2, src.model, data, intervals=False):
+            fr, keys, sc, b = fr2, keys2, sc2, b2
     if not (math.isfinite(fr.mse_held) and fr.n_held > 0):
         raise FloatingPointError(f"held-out mean-square error is {fr.mse_held} on {fr.n_held} samples")
-    return CandidateFit(fit=fr, keys=keys, scales=sc, bounds=b, free=list(free), started_from=started_from,
-                        held_at=held_at)
+    return CandidateFit(fit=fr, keys=keys, scales=sc, bounds=b, free=list(free), started_from=started_from)
 
 
 def starts_from(cid: str, src: rank.FitResult, make, dctx: DiagnosisContext) -> list:

@@ -349,9 +349,6 @@ def score_candidate(cid: str, cand, refs: References, origins: Origins, dctx: Di
         entry["before_nested_null"] = before_nested
     if drop:
         entry["baseline_terms_dropped"] = list(drop)
-    if cf.held_at:
-        # the record does not determine these: held at the candidate's reference value
-        entry["held_at"] = {k.split(":", 1)[-1]: float(v) for k, v in cf.held_at.items()}
     if cf.started_from == "without_hysteresis":
         entry["hysteresis_dropped"] = True
     if cf.started_from == "without_even_stiffness":
@@ -569,9 +566,6 @@ def missing_entries(sig: list, scores: Scores, refs: References, findings: list,
         })
         if "baseline_terms_revised" in t:
             missing[-1]["baseline_terms_revised"] = t["baseline_terms_revised"]
-        if cf.held_at:
-            # parameters the record does not determine, held at the candidate's reference value
-            missing[-1]["held_at"] = {k.split(":", 1)[-1]: float(v) for k, v in cf.held_at.items()}
         if t["id"] == "hysteresis":
             # a named loop that slides within the record's travel is a friction law (wording.py)
             b = fr.model.baseline

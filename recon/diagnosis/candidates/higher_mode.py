@@ -30,23 +30,6 @@ def starts(base, ctx):
     return out
 
 
-def held_damping_starts(base, ctx):
-    """The starts again with the mode's damping held at the fundamental's damping ratio: seen off its
-    resonance, a mode's damping is not determined by the record, and a free fit drives it onto a bound
-    of its range (refused by check). No starts when the fundamental's own ratio is outside the range."""
-    w1 = math.sqrt(max(base.K_m, 0.0))
-    if not w1 > 0:
-        return []
-    zeta1 = base.c_m / (2.0 * w1)
-    if not (1.01 * ZETA2_RANGE[0] < zeta1 <= MODE_ZETA_MAX):
-        return []
-    out = []
-    for m, keys, sc, b in starts(base, ctx):
-        m.extras["zeta2"] = zeta1
-        out.append((m, [k for k in keys if k != "x:zeta2"], sc, b))
-    return out
-
-
 def mode_range(w: float, w1: float) -> tuple[float, float]:
     """The range a second mode started at ``w`` is fitted in: within a factor 2 of its start, and on
     the start's side of the band MODE_APART around the fundamental ``w1``, where a fitted mode is
@@ -94,4 +77,4 @@ CANDIDATE = Candidate(
     "point's motion (drive2 = 1, a resonance riding on it), added to the displacement output",
     ("x:w2", "x:zeta2", "x:phi2"), starts,
     check=check, signature=("frequency_resonance", "frequency_band_at_input"), conceal=conceal,
-    screen_keys=1, fit_each="drive2", kernel=("w2", "zeta2", "drive2", "gu2"), admissible_starts=held_damping_starts)
+    screen_keys=1, fit_each="drive2", kernel=("w2", "zeta2", "drive2", "gu2"))
