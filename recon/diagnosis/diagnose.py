@@ -648,13 +648,12 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
 
 def assemble(refs: References, dctx: DiagnosisContext, findings: list, scores: Scores, origins: Origins,
              ranked: list, sig: list, combined: rank.FitResult | None, partly: list, seconds: float,
-             compared: dict | None = None) -> Diagnosis:
+             compared: dict) -> Diagnosis:
     """The :class:`Diagnosis`: the named candidates (``sig``; ``combined`` their joint fit, if any),
     the best model (the joint fit, the first named candidate's, or the reference), two candidates
-    the held-out data cannot tell apart among ``ranked``, and the mismatch left unexplained."""
+    the held-out data cannot tell apart among ``ranked`` (on ``compared``: each candidate's held-out
+    MSE as fitted beside the baseline as reconstructed), and the mismatch left unexplained."""
     ref, noise_mse = refs.ref, dctx.noise_mse
-    if compared is None:
-        compared = {c: f.fit.mse_held for c, f in scores.fits.items()}
     pair = ambiguous_pair(ranked, {t["id"] for t in sig[1:]}, compared,
                           dctx.rule.bic_margin, noise_mse, dctx.settings)
     ambiguity = separating_stage(pair) if pair else None
