@@ -153,6 +153,7 @@ def run_case(effect: str, size: float | None, workdir: Path, protocol: Path, rig
     wall = time.monotonic() - t0
     row = {"effect": effect, "setting": size, "wall_s": wall, "exit": p.returncode,
            **({"noise_std": noise_std} if noise_std is not None else {})}
+    (workdir / f"{effect}.json").write_text(p.stdout)
     try:
         doc = json.loads(p.stdout)
     except json.JSONDecodeError:
@@ -211,6 +212,9 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default="", metavar="EFFECT=SIZE,...",
                     help="sizes instead of the drawn ones (e.g. near a detection limit: coulomb_friction=0.008)")
     ap.add_argument("--jsonl", type=Path, help="append one JSON row per case")
+    ap.add_argument("--keep", type=Path, metavar="DIR",
+                    help="keep each case's run file and the loop's JSON output in DIR (default: a temporary "
+                         "directory, removed)")
     ap.add_argument("--noise-std", type=float, help="the lasers' white noise, m per sample (the simulator's "
                                                     "default: 2e-7)")
     args = ap.parse_args(argv)
@@ -230,7 +234,8 @@ def main(argv=None) -> int:
     rows = []
     t_all = time.monotonic()
     with tempfile.TemporaryDirectory() as tmp:
-        work = Path(tmp)
+        work = Path(tmp) if args.keep is None else args.keep
+        work.mkdir(parents=True, exist_ok=True)
         protocol = args.protocol or work / "protocol.toml"
         if args.protocol is None:
             text = SINGLE_LEVEL_PROTOCOL if args.single_level else SHORT_PROTOCOL
@@ -267,7 +272,7 @@ def main(argv=None) -> int:
     open_first = [r for r in rows if r.get("rounds") and r.get("effect") != "clean"]
     settled = [r for r in open_first if r.get("named_first")]
     for r in open_first:
-        print(f"  {r['effect']} {fmt(r['setting'])}: first round undecided or ambiguous "
+        print(f"  {r['effect']} {fmt(r['setting'])}: first round undecided, ambiguous or its size unsettled "
               f"({(r.get('first_decision') or '')[:90]}...); after {r['rounds']} round(s): "
               f"{','.join(r['named']) or 'nothing named'}", flush=True)
     print(f"{len(open_first)} first round(s) that could not decide; the added stage named the concealed "

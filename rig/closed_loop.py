@@ -3,7 +3,13 @@
 After the protocol, the run just recorded is diagnosed (:func:`recon.diagnose`). The answer
 decides the next step (:func:`decide`):
 
-- one or more effects named, none ambiguous: stop, *resolved*;
+- one or more effects named, none ambiguous, each size determined by the record: stop, *resolved*;
+- an effect named whose size the record does not determine (:func:`unsettled_size`: it moved beyond
+  its interval when the diagnosis chose the baseline's terms again under it, so the size hangs on
+  the baseline's structure, which its interval does not hold): the stage where that kind of effect
+  shows (as for an undecided one) is planned as a *fitting* stage (``sizing_frequency_r1``: a name
+  that does not begin with ``validation``), so the diagnosis sizes the effect on it; once per
+  effect;
 - two candidates the held-out data cannot tell apart (``ambiguous``): the stage that separates them
   (:func:`recon.diagnosis.ambiguity.separating_stage`) is planned;
 - nothing named, but a candidate the record hints at without showing it (:func:`undecided`: its
@@ -72,12 +78,20 @@ class Cancelled(Exception):
     """The operator cancelled the loop (stages recorded so far are kept)."""
 
 
+# what an added round is for (the ``purpose`` of a round in the JSON and the run file's history)
+PURPOSES = {
+    "separate": "held-out stage(s) that tell the candidates apart (validation_*)",
+    "size": "fitting stage(s) where a named effect shows, to size it (sizing_*)",
+}
+
+
 @dataclass
 class Decision:
     action: str                  # "stop" or "add"
     stop: str = ""               # a key of STOPS when action == "stop"
     reason: str = ""             # the sentence shown to the operator
     proposal: dict | None = None  # separating_stage(): ids, stages, reason, protocol_toml
+    purpose: str = "separate"    # a key of PURPOSES when action == "add"
 
 
 @dataclass
@@ -102,6 +116,7 @@ class RoundPlan:
     reason: str
     ids: list
     stages: list                 # PlannedStage, accepted and refused
+    purpose: str = "separate"    # a key of PURPOSES
 
     @property
     def accepted(self) -> list:
@@ -112,7 +127,7 @@ class RoundPlan:
         return [s for s in self.stages if s.refused]
 
     def to_dict(self) -> dict:
-        return {"round": self.round, "reason": self.reason, "ids": list(self.ids),
+        return {"round": self.round, "reason": self.reason, "ids": list(self.ids), "purpose": self.purpose,
                 "stages": [s.to_dict() for s in self.stages]}
 
     def text(self) -> str:
@@ -146,16 +161,59 @@ def undecided(d: dict) -> list[dict]:
     return sorted(out, key=lambda u: -(u["explained"] or 0.0))
 
 
-def decide(d: dict) -> Decision:
-    """What the diagnosis ``d`` (``Diagnosis.to_dict()``) asks for next."""
+def unsettled_size(m: dict) -> dict | None:
+    """For a named effect ``m`` (an entry of ``missing_physics``): of its parameters whose
+    value before the diagnosis chose the baseline's terms again under it lies outside the revised
+    fit's 95 % interval, the one that moved most in half-widths of that interval (its name, both
+    values, the interval); else None. Such a parameter depends
+    on which terms the baseline holds (they trade off against the effect on this record), an
+    uncertainty its interval, computed from the noise alone, does not hold: the record does not
+    determine the effect's size."""
+    rev = m.get("baseline_terms_revised") or {}
+    before, after = rev.get("parameters_before") or {}, m.get("parameters") or {}
+    moved = []
+    for name, b in before.items():
+        a = after.get(name) or {}
+        lo_hi = a.get("interval")
+        try:
+            vb, va = float(b["value"]), float(a["value"])
+        except (KeyError, TypeError, ValueError):
+            continue
+        if lo_hi and all(map(math.isfinite, (vb, va, *lo_hi))) and not lo_hi[0] <= vb <= lo_hi[1]:
+            half = max(0.5 * (lo_hi[1] - lo_hi[0]), 1e-300)
+            moved.append((abs(vb - va) / half, {"parameter": name, "before": vb, "after": va,
+                                                 "interval": list(lo_hi)}))
+    # the one that moved most, in half-widths of its interval
+    return max(moved, key=lambda x: x[0])[1] if moved else None
+
+
+def decide(d: dict, sized=()) -> Decision:
+    """What the diagnosis ``d`` (``Diagnosis.to_dict()``) asks for next; ``sized``: ids a sizing round
+    has already been recorded for (each is sized once)."""
     if d.get("ambiguous"):
         a, b = d["ambiguous"][:2]
         proposal = d.get("separating_stage") or separating_stage([a, b])
         return Decision("add", reason=f"ambiguous: {a} and {b} explain the held-out mismatch about equally well; "
                                       f"separating by {proposal['reason']}", proposal=proposal)
     named = [m["id"] for m in d.get("missing_physics", [])]
+    for m in d.get("missing_physics", []):
+        u = unsettled_size(m)
+        if u is None or m["id"] in sized:
+            continue
+        proposal = separating_stage([m["id"], m["id"]])
+        how = ("a second amplitude at the same frequency" if proposal["stages"] == ["validation_amplitude"]
+               else "a frequency step at the same level")
+        return Decision("add", purpose="size", proposal={**proposal, "ids": [m["id"]], "reason": how},
+                        reason=f"named {m['id']}, but its {u['parameter']} moved from {u['before']:.4g} to "
+                               f"{u['after']:.4g} (outside its interval [{u['interval'][0]:.4g}, "
+                               f"{u['interval'][1]:.4g}]) when the baseline's terms were chosen again: this "
+                               f"record does not determine its size; adding {how} as a fitting stage, where "
+                               f"the effect shows, to size it")
     if named:
-        return Decision("stop", "resolved", f"named {', '.join(named)}: {STOPS['resolved']}")
+        still = [m["id"] for m in d.get("missing_physics", []) if unsettled_size(m) is not None]
+        note = (f" (after its sizing stage the size of {', '.join(still)} still moves with the baseline's terms "
+                f"beyond its interval)" if still else "")
+        return Decision("stop", "resolved", f"named {', '.join(named)}: {STOPS['resolved']}{note}")
     open_ = undecided(d)
     if open_:
         u = open_[0]
@@ -248,7 +306,8 @@ def plan_round(decision: Decision, info: dict, limits: dict, round_no: int) -> R
     sup = Supervisor(limits)
     planned = []
     for v in stage_tables(decision.proposal):
-        name = _unique(f"{v['name']}_r{round_no}", ctx["names"])
+        stem = v["name"] if decision.purpose != "size" else "sizing" + v["name"].removeprefix("validation")
+        name = _unique(f"{stem}_r{round_no}", ctx["names"])
         if v["frequency_hz"] is not None:
             hz, f_origin = v["frequency_hz"], "frequency_hz"
         elif ctx["resonance_hz"] is not None:
@@ -266,7 +325,7 @@ def plan_round(decision: Decision, info: dict, limits: dict, round_no: int) -> R
         st = PlannedStage(name, float(hz), float(vpp), float(v["duration_s"]), f"{a_origin}; {f_origin}")
         st.refused = _refusal(st, ctx, sup, limits)
         planned.append(st)
-    return RoundPlan(round_no, decision.reason, list(decision.proposal.get("ids", [])), planned)
+    return RoundPlan(round_no, decision.reason, list(decision.proposal.get("ids", [])), planned, decision.purpose)
 
 
 def _unique(name: str, taken: list) -> str:
@@ -323,8 +382,10 @@ def round_toml(plan: RoundPlan) -> str:
     """The round's accepted stages as ``[[validation]]`` tables with absolute drives (stored in the run
     file as ``closed_loop_round<N>_toml``)."""
     out = [f"# shakerlab closed loop, round {plan.round}: {plan.reason}".replace("\n", " ")]
+    # a sizing stage is a fitting stage, not a protocol's validation stage
+    table = "[[validation]]" if plan.purpose != "size" else "[[fitting_stage]]"
     for s in plan.accepted:
-        out += ["", "[[validation]]", f'name = "{s.name}"', f"frequency_hz = {s.frequency_hz!r}",
+        out += ["", table, f'name = "{s.name}"', f"frequency_hz = {s.frequency_hz!r}",
                 f"amplitude_vpp = {s.amplitude_vpp!r}", f"duration_s = {s.duration_s!r}  # {s.origin}"]
     return "\n".join(out) + "\n"
 
@@ -339,7 +400,8 @@ def round_plan(plan: RoundPlan, limits: dict, settle_s: float):
         v = {"name": s.name, "frequency_hz": s.frequency_hz, "frequency_factor": None,
              "amplitude_vpp": s.amplitude_vpp, "amplitude_fraction": None, "duration_s": s.duration_s,
              "base_amplitude_mm": None, "max_tip_mm": None, "max_relative_mm": None,
-             "closed_loop_round": plan.round, "closed_loop_reason": plan.reason}
+             "closed_loop_round": plan.round, "closed_loop_reason": plan.reason,
+             "closed_loop_purpose": plan.purpose}
         yield from validation_stage(v, settle_s, ctx)
     yield Rest(0.0)
     return ctx
@@ -360,7 +422,7 @@ def record_round(config, protocol, path, plan: RoundPlan, *, lockstep: bool = Fa
 def summary(d: dict) -> dict:
     """The short form of a diagnosis kept in the rounds' history: what was named (fitted size and
     interval), the ambiguity, the held-out NRMSE before and after."""
-    named = [{"id": m["id"], "parameters": m.get("parameters", {}),
+    named = [{"id": m["id"], "parameters": m.get("parameters", {}), "size_unsettled": unsettled_size(m),
               "held_out_nrmse_before": (m.get("evidence") or {}).get("held_out_nrmse_before"),
               "held_out_nrmse_after": (m.get("evidence") or {}).get("held_out_nrmse_after")}
              for m in d.get("missing_physics", [])]
@@ -437,11 +499,12 @@ class ClosedLoop:
         rounds: list[dict] = []
         d: dict = {}
         stop, why = "", ""
+        sized: set = set()
         try:
             d = self._diagnose(0)
             round_no = 0
             while True:
-                decision = decide(d)
+                decision = decide(d, sized)
                 if decision.action == "stop":
                     stop, why = decision.stop, decision.reason
                     break
@@ -452,8 +515,10 @@ class ClosedLoop:
                 round_no += 1
                 plan = plan_round(decision, read_info(self.path), self.limits, round_no)
                 self._tell("plan", plan)
-                entry = {"round": round_no, "why": decision.reason, "plan": plan.to_dict(),
-                         "stages_added": [], "before": summary(d), "after": None}
+                entry = {"round": round_no, "why": decision.reason, "purpose": decision.purpose,
+                         "plan": plan.to_dict(), "stages_added": [], "before": summary(d), "after": None}
+                if decision.purpose == "size":
+                    sized.update(plan.ids)
                 if not plan.stages:
                     rounds.append(entry)
                     stop, why = "no_stage", f"{STOPS['no_stage']}: {decision.reason}"

@@ -11,7 +11,8 @@ import pytest
 
 from recon.diagnosis.ambiguity import separating_stage
 from recon.model import HystereticModel
-from rig.closed_loop import (STOPS, ClosedLoop, Decision, decide, plan_round, record_round, undecided)
+from rig.closed_loop import (STOPS, ClosedLoop, Decision, decide, plan_round, record_round, undecided,
+                             unsettled_size)
 from rig.config import load_config
 from rig.session import acquire, simulated_rig
 from shakerlab.cli import main
@@ -50,6 +51,42 @@ def test_decide_stops_or_adds_by_the_answer():
     # nothing named, but the record hints at a delay it cannot show: a frequency step
     h = decide(HINTED)
     assert h.action == "add" and "channel_delay" in h.reason and h.proposal["stages"] == ["validation_frequency"]
+
+
+# a second mode named, whose size the record does not determine: fitted beside the baseline's terms
+# as reconstructed its participation was 0.090, with the terms chosen again 0.118 +/- 0.005
+UNSETTLED = {**RESOLVED, "result": "missing physics: higher_mode",
+             "missing_physics": [{"id": "higher_mode",
+                                  "parameters": {"w2": {"value": 377.8, "interval": [377.3, 378.3]},
+                                                 "phi2": {"value": 0.118, "interval": [0.1125, 0.1228]}},
+                                  "evidence": {"held_out_nrmse_before": 0.0019, "held_out_nrmse_after": 0.0009},
+                                  "baseline_terms_revised": {
+                                      "moves": [{"move": "swap", "terms": ["y*dy^4", "y^2*dy"]}],
+                                      "parameters_before": {"w2": {"value": 377.6, "interval": [377.1, 378.0]},
+                                                            "phi2": {"value": 0.090, "interval": [0.085, 0.095]}}}}]}
+
+
+def test_a_named_effect_whose_size_hangs_on_the_baseline_terms_is_sized_on_a_fitting_stage():
+    u = unsettled_size(UNSETTLED["missing_physics"][0])
+    assert u == {"parameter": "phi2", "before": 0.090, "after": 0.118, "interval": [0.1125, 0.1228]}
+    d = decide(UNSETTLED)
+    assert d.action == "add" and d.purpose == "size" and d.proposal["ids"] == ["higher_mode"]
+    assert "phi2 moved from 0.09 to 0.118" in d.reason and "fitting stage" in d.reason
+    plan = plan_round(d, _info(), load_config(None).limits, 1)
+    (st,) = plan.stages
+    # named so that the diagnosis fits on it (a stage whose name begins with "validation" is held out)
+    assert st.name == "sizing_frequency_r1" and plan.purpose == "size"
+    assert st.frequency_hz == pytest.approx(1.3 * 14.26)
+    # once per effect: sized already, the answer stands, and the stop says the size still moves
+    again = decide(UNSETTLED, sized={"higher_mode"})
+    assert again.stop == "resolved" and "still moves with the baseline's terms" in again.reason
+    # a value before inside the revised interval: settled, resolved at once
+    settled = copy.deepcopy(UNSETTLED)
+    settled["missing_physics"][0]["baseline_terms_revised"]["parameters_before"]["phi2"]["value"] = 0.12
+    assert unsettled_size(settled["missing_physics"][0]) is None
+    assert decide(settled).stop == "resolved" and "still" not in decide(settled).reason
+    # no revision, nothing to compare: resolved
+    assert unsettled_size(RESOLVED["missing_physics"][0]) is None and decide(RESOLVED).stop == "resolved"
 
 
 def _info(max_vpp=4.0):
@@ -190,6 +227,34 @@ def test_resolved_after_one_added_round(tmp_path, recorded):
     assert result.diagnosis["missing_physics"][0]["id"] == "quadratic_damping"
     r = result.rounds[0]
     assert r["before"]["held_out_nrmse_after"] == 0.01 and r["after"]["held_out_nrmse_after"] == 0.004
+
+
+def test_a_sizing_round_records_a_fitting_stage_once(tmp_path, recorded):
+    """The loop sizes an unsettled effect once: the stage is recorded under a name the diagnosis fits
+    on (its fitting mask covers it, nothing of it is held out), and a second unsettled answer on the
+    extended run stops the loop, resolved."""
+    from recon.diagnosis.rank import prepare
+
+    path = tmp_path / "run.h5"
+    shutil.copy(recorded, path)
+    with simulated_rig(speed=None, seed=9) as (sim, _):
+        cfg = rig_config(tmp_path, sim)
+        loop, outcomes, _ = _loop(path, cfg, Script(UNSETTLED), max_rounds=3)
+        result = loop.run()
+    assert result.stop == "resolved" and "still moves" in result.stop_reason
+    (r,) = result.rounds
+    assert r["purpose"] == "size" and r["stages_added"] == ["sizing_frequency_r1"]
+    assert r["before"]["named"][0]["size_unsettled"]["parameter"] == "phi2"
+    info = read_info(path)
+    st = info["stages"]["sizing_frequency_r1"]
+    assert st["status"] == "complete" and st["settings"]["closed_loop_purpose"] == "size"
+    assert "[[fitting_stage]]" in info["config"]["closed_loop_round1_toml"]
+    run = load_run(path)
+    model = HystereticModel(excitation="base", c_m=3.5, k_m=6000.0, alpha_m=2000.0, gamma=300.0, delta=200.0)
+    masks = {d.name: (d.fit, d.held) for d in prepare(run, model)}
+    fit, held = masks["sizing_frequency_r1"]
+    assert fit.all() and not held.any()
+    assert not masks["validation"][0].any()          # the protocol's validation stage stays held out
 
 
 def test_refused_plan_stops_the_loop_and_records_nothing(tmp_path, recorded):

@@ -479,6 +479,11 @@ def _revised(t: dict, scores: Scores, refs: References, partly: list, dctx: Diag
     figs = held_stage_figures(refs.given, rev, data, rule.stage_level)
     if not score["significant"] or implausible(cid, rev, refs.ref.model, data) or worse_stages(figs):
         return []
+    # the candidate's parameters as fitted beside the terms as reconstructed: a size that moves
+    # beyond its interval when the terms are chosen again depends on the baseline's structure, which
+    # the interval (noise alone) does not hold (rig.closed_loop sizes such an effect on a stage
+    # where it shows)
+    log["parameters_before"] = _params_of(cf.fit, [k for k in CATALOG[cid].parameters if k in cf.keys])
     t.update(score, held_out_nrmse=rev.nrmse_held, compared_with_held_out_nrmse=best_null.nrmse_held,
              held_out_stages=figs, baseline_terms_revised=log)
     t.pop("worse_on_stages", None)
