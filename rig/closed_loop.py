@@ -12,6 +12,8 @@ decides the next step (:func:`decide`):
   effect;
 - two candidates the held-out data cannot tell apart (``ambiguous``): the stage that separates them
   (:func:`recon.diagnosis.ambiguity.separating_stage`) is planned;
+- an effect named only once a held-out stage the loop added showed it (undecided before): sized
+  the same way, since its size is fitted on the fitting stages, which could not show it;
 - nothing named, but a candidate the record hints at without showing it (:func:`undecided`: its
   fit takes part of the held-out mismatch without passing the significance rule, i.e. its size on
   this record is near its detection limit): the stage that shows that kind of effect better (a
@@ -80,7 +82,8 @@ class Cancelled(Exception):
 
 # what an added round is for (the ``purpose`` of a round in the JSON and the run file's history)
 PURPOSES = {
-    "separate": "held-out stage(s) that tell the candidates apart (validation_*)",
+    "separate": "held-out stage(s) that tell two candidates apart (validation_*)",
+    "show": "held-out stage(s) that show whether an undecided candidate is there (validation_*)",
     "size": "fitting stage(s) where a named effect shows, to size it (sizing_*)",
 }
 
@@ -187,9 +190,11 @@ def unsettled_size(m: dict) -> dict | None:
     return max(moved, key=lambda x: x[0])[1] if moved else None
 
 
-def decide(d: dict, sized=()) -> Decision:
+def decide(d: dict, sized=(), shown=()) -> Decision:
     """What the diagnosis ``d`` (``Diagnosis.to_dict()``) asks for next; ``sized``: ids a sizing round
-    has already been recorded for (each is sized once)."""
+    has already been recorded for (each is sized once); ``shown``: ids an added held-out stage was
+    recorded to show (undecided on the record before it). An effect named only once a held-out stage
+    showed it is sized too: its size is fitted on the fitting stages, which could not show it."""
     if d.get("ambiguous"):
         a, b = d["ambiguous"][:2]
         proposal = d.get("separating_stage") or separating_stage([a, b])
@@ -197,18 +202,24 @@ def decide(d: dict, sized=()) -> Decision:
                                       f"separating by {proposal['reason']}", proposal=proposal)
     named = [m["id"] for m in d.get("missing_physics", [])]
     for m in d.get("missing_physics", []):
+        if m["id"] in sized:
+            continue
         u = unsettled_size(m)
-        if u is None or m["id"] in sized:
+        if u is not None:
+            why = (f"its {u['parameter']} moved from {u['before']:.4g} to {u['after']:.4g} (outside its interval "
+                   f"[{u['interval'][0]:.4g}, {u['interval'][1]:.4g}]) when the baseline's terms were chosen "
+                   f"again: this record does not determine its size")
+        elif m["id"] in shown:
+            why = ("it was named once an added held-out stage showed it, and its size is fitted on the fitting "
+                   "stages, which could not show it")
+        else:
             continue
         proposal = separating_stage([m["id"], m["id"]])
         how = ("a second amplitude at the same frequency" if proposal["stages"] == ["validation_amplitude"]
                else "a frequency step at the same level")
         return Decision("add", purpose="size", proposal={**proposal, "ids": [m["id"]], "reason": how},
-                        reason=f"named {m['id']}, but its {u['parameter']} moved from {u['before']:.4g} to "
-                               f"{u['after']:.4g} (outside its interval [{u['interval'][0]:.4g}, "
-                               f"{u['interval'][1]:.4g}]) when the baseline's terms were chosen again: this "
-                               f"record does not determine its size; adding {how} as a fitting stage, where "
-                               f"the effect shows, to size it")
+                        reason=f"named {m['id']}, but {why}; adding {how} as a fitting stage, where the effect "
+                               f"shows, to size it")
     if named:
         still = [m["id"] for m in d.get("missing_physics", []) if unsettled_size(m) is not None]
         note = (f" (after its sizing stage the size of {', '.join(still)} still moves with the baseline's terms "
@@ -224,7 +235,7 @@ def decide(d: dict, sized=()) -> Decision:
         how = ("a second amplitude at the same frequency (the effect changes with amplitude)"
                if proposal["stages"] == ["validation_amplitude"] else
                "a frequency step at the same level (the effect trades off with the model's terms at one frequency)")
-        return Decision("add", reason=f"nothing named, but {u['id']} takes {100 * (u['explained'] or 0):.0f} % of the "
+        return Decision("add", purpose="show", reason=f"nothing named, but {u['id']} takes {100 * (u['explained'] or 0):.0f} % of the "
                                       f"held-out mismatch without passing the significance rule{limit}: this record "
                                       f"cannot show whether it is there; adding {how}",
                         proposal={**proposal, "ids": [u["id"]], "reason": how})
@@ -500,13 +511,21 @@ class ClosedLoop:
         d: dict = {}
         stop, why = "", ""
         sized: set = set()
+        shown: set = set()
         try:
             d = self._diagnose(0)
             round_no = 0
             while True:
-                decision = decide(d, sized)
+                decision = decide(d, sized, shown)
                 if decision.action == "stop":
                     stop, why = decision.stop, decision.reason
+                    break
+                if round_no >= self.max_rounds and decision.purpose == "size":
+                    # the answer stands; only its size was to be measured on a stage where it shows
+                    named = ", ".join(m["id"] for m in d.get("missing_physics", []))
+                    stop, why = "resolved", (f"named {named}: {STOPS['resolved']}; its size was not measured on a "
+                                             f"stage where it shows, the configured number of added rounds "
+                                             f"({self.max_rounds}) being reached: {decision.reason}")
                     break
                 if round_no >= self.max_rounds:
                     stop = "max_rounds"
@@ -517,8 +536,8 @@ class ClosedLoop:
                 self._tell("plan", plan)
                 entry = {"round": round_no, "why": decision.reason, "purpose": decision.purpose,
                          "plan": plan.to_dict(), "stages_added": [], "before": summary(d), "after": None}
-                if decision.purpose == "size":
-                    sized.update(plan.ids)
+                (sized if decision.purpose == "size" else shown if decision.purpose == "show" else set()).update(
+                    plan.ids)
                 if not plan.stages:
                     rounds.append(entry)
                     stop, why = "no_stage", f"{STOPS['no_stage']}: {decision.reason}"

@@ -87,6 +87,23 @@ def test_a_named_effect_whose_size_hangs_on_the_baseline_terms_is_sized_on_a_fit
     assert decide(settled).stop == "resolved" and "still" not in decide(settled).reason
     # no revision, nothing to compare: resolved
     assert unsettled_size(RESOLVED["missing_physics"][0]) is None and decide(RESOLVED).stop == "resolved"
+    # undecided first (a held-out stage added to show it), then named: its size came from fitting stages
+    # that could not show it, so it is sized too
+    assert decide(HINTED).purpose == "show"
+    shown = decide(RESOLVED, shown={"quadratic_damping"})
+    assert shown.action == "add" and shown.purpose == "size" and "could not show it" in shown.reason
+    assert shown.proposal["stages"] == ["validation_amplitude"]      # amplitude-dependent: a second amplitude
+    assert decide(RESOLVED, sized={"quadratic_damping"}, shown={"quadratic_damping"}).stop == "resolved"
+
+
+def test_a_sizing_round_beyond_the_round_limit_leaves_the_answer_resolved(tmp_path, recorded):
+    path = tmp_path / "run.h5"
+    shutil.copy(recorded, path)
+    n = len(read_info(path)["stages"])
+    loop, _, _ = _loop(path, load_config(None), Script(UNSETTLED), max_rounds=0)
+    result = loop.run()
+    assert result.stop == "resolved" and result.rounds == [] and len(read_info(path)["stages"]) == n
+    assert "not measured on a stage where it shows" in result.stop_reason and "phi2" in result.stop_reason
 
 
 def _info(max_vpp=4.0):
@@ -216,19 +233,6 @@ def test_two_rounds_append_to_the_same_file_and_it_opens_everywhere(tmp_path, re
     assert any("friction law" in n and "sliding force 0.04 m/s^2" in n for n in notes), notes
 
 
-def test_resolved_after_one_added_round(tmp_path, recorded):
-    path = tmp_path / "run.h5"
-    shutil.copy(recorded, path)
-    with simulated_rig(speed=None, seed=7) as (sim, _):
-        cfg = rig_config(tmp_path, sim)
-        loop, outcomes, _ = _loop(path, cfg, Script(AMBIGUOUS, RESOLVED))
-        result = loop.run()
-    assert result.stop == "resolved" and len(result.rounds) == 1
-    assert result.diagnosis["missing_physics"][0]["id"] == "quadratic_damping"
-    r = result.rounds[0]
-    assert r["before"]["held_out_nrmse_after"] == 0.01 and r["after"]["held_out_nrmse_after"] == 0.004
-
-
 def test_a_sizing_round_records_a_fitting_stage_once(tmp_path, recorded):
     """The loop sizes an unsettled effect once: the stage is recorded under a name the diagnosis fits
     on (its fitting mask covers it, nothing of it is held out), and a second unsettled answer on the
@@ -242,8 +246,10 @@ def test_a_sizing_round_records_a_fitting_stage_once(tmp_path, recorded):
         loop, outcomes, _ = _loop(path, cfg, Script(UNSETTLED), max_rounds=3)
         result = loop.run()
     assert result.stop == "resolved" and "still moves" in result.stop_reason
-    (r,) = result.rounds
+    assert result.diagnosis["missing_physics"][0]["id"] == "higher_mode"
+    (r,) = result.rounds                             # resolved after one added round
     assert r["purpose"] == "size" and r["stages_added"] == ["sizing_frequency_r1"]
+    assert r["before"]["held_out_nrmse_after"] == 0.004 and r["after"]["named"][0]["id"] == "higher_mode"
     assert r["before"]["named"][0]["size_unsettled"]["parameter"] == "phi2"
     info = read_info(path)
     st = info["stages"]["sizing_frequency_r1"]
