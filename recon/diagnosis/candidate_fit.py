@@ -189,7 +189,8 @@ def rank_by_output_error(starts: list, stepped: list, dctx: DiagnosisContext) ->
     scr = []
     for mm, keys, sc, b in starts:
         mm = mm.copy()
-        set_parameter(mm, keys[0], sc[keys[0]])
+        if get_parameter(mm, keys[0]) == 0.0:      # a start that gives the term a size keeps it
+            set_parameter(mm, keys[0], sc[keys[0]])
         scr.append(rank.fit(mm, [keys[0]], data, sc, max_nfev=dctx.settings.output_screen_nfev, bounds=b,
                             scored=False))
     i = int(np.argmin([f.cost_fit for f in scr]))

@@ -623,6 +623,9 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
     t0 = time.perf_counter()
     refs = reference_step(run, baseline, max_nfev, settings)
     findings, dctx = locate_step(run, refs, max_nfev, settings)
+    # the baseline's loop read as a friction law (None: it does not slide within the record's travel):
+    # reported, and a start for the friction candidate (candidates/coulomb_friction.py)
+    dctx.located["loop_friction"] = loop_as_friction(refs.base.baseline, dctx)
     ids = candidates or list(CATALOG)
     origins = candidate_origins(refs, ids, max_nfev, settings)
     scores = score_candidates(ids, refs, origins, dctx)
@@ -676,4 +679,4 @@ def assemble(refs: References, dctx: DiagnosisContext, findings: list, scores: S
                      null=refs.null, mismatch=findings, candidates=scores.tested, missing=missing, best=best_fr.model,
                      best_fit=best_fr, context=dctx.located, seconds=seconds, reference=ref, ambiguity=ambiguity,
                      unexplained=unexplained_mismatch(best_fr, noise_mse, [m["id"] for m in missing]),
-                     partly=partly_explained, baseline_as_friction=loop_as_friction(refs.base.baseline, dctx))
+                     partly=partly_explained, baseline_as_friction=dctx.located["loop_friction"])

@@ -323,6 +323,7 @@ def run_row(d: dict, make) -> dict:
                result=out["result"], unexplained=bool(out.get("unexplained_mismatch")),
                partly=out.get("partly_explained"), baseline_warnings=out.get("baseline_warnings", []),
                baseline_fallback=bool(out.get("baseline_note")),
+               baseline_loop_as_friction=out.get("baseline_loop_as_friction"),
                candidates=[{k: c[k] for k in CANDIDATE_KEYS if k in c} for c in out.get("candidates_tested", [])])
     if baseline == "paper":
         # how far the reconstructed baseline's c and K = k + alpha are from the truth's (relative): what a

@@ -14,12 +14,24 @@ def starts(base, ctx):
     # friction acts as a viscous damper mu / v0 (a baseline reconstructed there holds it as a c many
     # times the true one). A fixed v0 far below a pre-sliding stage's velocity cannot fit that
     # stage; with v0 free the fit reaches mu and v0
+    #
+    # Where the reconstructed baseline's Bouc-Wen loop acts as a friction law (it slides within the
+    # record's travel: ctx["loop_friction"], recon.diagnosis.wording.friction_reading), the
+    # reconstruction has already measured a dry friction's size as the loop's sliding force. From a
+    # start without that loop (the references' without-hysteresis core) the friction takes the loop's
+    # place at that size; from mu = 0 a local fit does not get there (the sticking it must reproduce
+    # is far from a small friction's effect)
     out = []
     vmin = ctx["v_rms_min"]
-    for f in V0_FACTORS:
-        m = start_model(base, {"mu": 0.0, "v0": f * vmin}, "coulomb_friction")
-        out.append((m, ["x:mu", "x:v0"], {"x:mu": 0.01 * ctx["acc_rms"]},
-                    {"x:mu": (0.0, np.inf), "x:v0": (V0_LOWEST * vmin, np.inf)}))
+    mus = [0.0]
+    loop = ctx.get("loop_friction")
+    if loop and base.alpha_m == 0.0:
+        mus.append(float(loop["sliding_force_m"]))
+    for mu in mus:
+        for f in V0_FACTORS:
+            m = start_model(base, {"mu": mu, "v0": f * vmin}, "coulomb_friction")
+            out.append((m, ["x:mu", "x:v0"], {"x:mu": 0.01 * ctx["acc_rms"]},
+                        {"x:mu": (0.0, np.inf), "x:v0": (V0_LOWEST * vmin, np.inf)}))
     return out
 
 
