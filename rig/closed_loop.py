@@ -165,13 +165,12 @@ def undecided(d: dict) -> list[dict]:
 
 
 def unsettled_size(m: dict) -> dict | None:
-    """For a named effect ``m`` (an entry of ``missing_physics``): of its parameters whose
-    value before the diagnosis chose the baseline's terms again under it lies outside the revised
-    fit's 95 % interval, the one that moved most in half-widths of that interval (its name, both
-    values, the interval); else None. Such a parameter depends
-    on which terms the baseline holds (they trade off against the effect on this record), an
-    uncertainty its interval, computed from the noise alone, does not hold: the record does not
-    determine the effect's size."""
+    """For a named effect ``m`` (an entry of ``missing_physics``): of its parameters whose value
+    before the diagnosis chose the baseline's terms again under it lies outside the revised fit's
+    95 % interval, the one that moved most in half-widths of that interval (its name, both values,
+    the interval); else None. Such a parameter depends on which terms the baseline holds (they trade
+    off against the effect on this record), an uncertainty its interval, computed from the noise
+    alone, does not hold: the record does not determine the effect's size."""
     rev = m.get("baseline_terms_revised") or {}
     before, after = rev.get("parameters_before") or {}, m.get("parameters") or {}
     moved = []
