@@ -166,6 +166,7 @@ def run_case(effect: str, size: float | None, workdir: Path, protocol: Path, rig
     named = d.get("missing_physics", [])
     row.update(named=[m["id"] for m in named], stop=doc["stop"], rounds=len(doc["rounds"]),
                stages_added=[s for r in doc["rounds"] for s in r["stages_added"]],
+               purposes=[r.get("purpose") for r in doc["rounds"]],
                first_round=(doc["rounds"][0]["before"]["result"] if doc["rounds"] else d["result"]),
                first_decision=(doc["rounds"][0].get("why") if doc["rounds"] else None),
                held_out_before=(d.get("fit_before") or {}).get("held_out_nrmse"),
@@ -268,15 +269,20 @@ def main(argv=None) -> int:
           f"{sum(1 for r in rows if r.get('rounds'))} needed an added round; total wall time "
           f"{time.monotonic() - t_all:.0f} s")
     # the cases the loop exists for: a first round that could not decide (ambiguous, or an effect
-    # undecided), and whether the stage it added named the concealed effect
-    open_first = [r for r in rows if r.get("rounds") and r.get("effect") != "clean"]
+    # undecided), and whether the stage it added named the concealed effect; and the named effects
+    # whose size the first record did not determine (a sizing round)
+    open_first = [r for r in rows if r.get("rounds") and r.get("effect") != "clean"
+                  and (r.get("purposes") or ["separate"])[0] != "size"]
     settled = [r for r in open_first if r.get("named_first")]
     for r in open_first:
-        print(f"  {r['effect']} {fmt(r['setting'])}: first round undecided, ambiguous or its size unsettled "
+        print(f"  {r['effect']} {fmt(r['setting'])}: first round undecided or ambiguous "
               f"({(r.get('first_decision') or '')[:90]}...); after {r['rounds']} round(s): "
               f"{','.join(r['named']) or 'nothing named'}", flush=True)
     print(f"{len(open_first)} first round(s) that could not decide; the added stage named the concealed "
           f"effect on {len(settled)}")
+    sized = [r for r in rows if "size" in (r.get("purposes") or [])]
+    print(f"{len(sized)} case(s) with a sizing round (a named effect's size not determined by the record "
+          f"before it): " + ", ".join(f"{r['effect']} {fmt(r.get('error_pct'), '+.1f')} %" for r in sized))
     return 0
 
 

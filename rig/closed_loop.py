@@ -12,8 +12,9 @@ decides the next step (:func:`decide`):
   effect;
 - two candidates the held-out data cannot tell apart (``ambiguous``): the stage that separates them
   (:func:`recon.diagnosis.ambiguity.separating_stage`) is planned;
-- an effect named only once a held-out stage the loop added showed it (undecided before): sized
-  the same way, since its size is fitted on the fitting stages, which could not show it;
+- an effect named only once the loop had added held-out stages to show an undecided candidate (it
+  was not named before them): sized the same way, since its size is fitted on the fitting stages,
+  which could not show it;
 - nothing named, but a candidate the record hints at without showing it (:func:`undecided`: its
   fit takes part of the held-out mismatch without passing the significance rule, i.e. its size on
   this record is near its detection limit): the stage that shows that kind of effect better (a
@@ -191,9 +192,9 @@ def unsettled_size(m: dict) -> dict | None:
 
 def decide(d: dict, sized=(), shown=()) -> Decision:
     """What the diagnosis ``d`` (``Diagnosis.to_dict()``) asks for next; ``sized``: ids a sizing round
-    has already been recorded for (each is sized once); ``shown``: ids an added held-out stage was
-    recorded to show (undecided on the record before it). An effect named only once a held-out stage
-    showed it is sized too: its size is fitted on the fitting stages, which could not show it."""
+    has already been recorded for (each is sized once); ``shown``: ids named only once the loop had
+    added held-out stages to show an undecided candidate (not named on the record before them). Such
+    an effect is sized too: its size is fitted on the fitting stages, which could not show it."""
     if d.get("ambiguous"):
         a, b = d["ambiguous"][:2]
         proposal = d.get("separating_stage") or separating_stage([a, b])
@@ -535,8 +536,9 @@ class ClosedLoop:
                 self._tell("plan", plan)
                 entry = {"round": round_no, "why": decision.reason, "purpose": decision.purpose,
                          "plan": plan.to_dict(), "stages_added": [], "before": summary(d), "after": None}
-                (sized if decision.purpose == "size" else shown if decision.purpose == "show" else set()).update(
-                    plan.ids)
+                if decision.purpose == "size":
+                    sized.update(plan.ids)
+                named_before = {m["id"] for m in d.get("missing_physics", [])}
                 if not plan.stages:
                     rounds.append(entry)
                     stop, why = "no_stage", f"{STOPS['no_stage']}: {decision.reason}"
@@ -567,6 +569,9 @@ class ClosedLoop:
                 rounds.append(entry)
                 d = self._diagnose(round_no)
                 entry["after"] = summary(d)
+                if decision.purpose == "show":
+                    # named now, not before: shown by the added held-out stages (whichever was undecided)
+                    shown.update({m["id"] for m in d.get("missing_physics", [])} - named_before)
         except (Cancelled, KeyboardInterrupt):     # the operator's cancel, or Ctrl-C while diagnosing
             stop, why = "cancelled", STOPS["cancelled"]
         result = LoopResult(d, rounds, stop, why)

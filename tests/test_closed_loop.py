@@ -96,6 +96,31 @@ def test_a_named_effect_whose_size_hangs_on_the_baseline_terms_is_sized_on_a_fit
     assert decide(RESOLVED, sized={"quadratic_damping"}, shown={"quadratic_damping"}).stop == "resolved"
 
 
+def test_an_effect_named_only_after_a_show_round_is_sized_whichever_candidate_was_shown(tmp_path, recorded):
+    """Nothing named and a delay undecided: a held-out frequency step is added to show it; the
+    extended run names a quadratic damping instead, which the record before could not show, so its
+    size (fitted on the fitting stages) is measured on a sizing stage next; then resolved. The loop's
+    decisions alone (the recorder records nothing: the rig's part is tested above)."""
+    import types
+
+    plans = []
+
+    def record(plan):
+        plans.append(plan)
+        return types.SimpleNamespace(status="complete", reason="")
+
+    path = tmp_path / "run.h5"
+    shutil.copy(recorded, path)
+    loop = ClosedLoop(path, load_config(None).limits, diagnose=Script(HINTED, RESOLVED), record=record,
+                      max_rounds=3)
+    result = loop.run()
+    assert [r["purpose"] for r in result.rounds] == ["show", "size"]
+    assert [p.ids for p in plans] == [["channel_delay"], ["quadratic_damping"]]
+    assert "could not show it" in result.rounds[1]["why"]
+    assert plans[1].stages[0].name.startswith("sizing_amplitude_r2")
+    assert result.stop == "resolved" and "still" not in result.stop_reason
+
+
 def test_a_sizing_round_beyond_the_round_limit_leaves_the_answer_resolved(tmp_path, recorded):
     path = tmp_path / "run.h5"
     shutil.copy(recorded, path)
