@@ -12,9 +12,9 @@ decides the next step (:func:`decide`):
   effect;
 - two candidates the held-out data cannot tell apart (``ambiguous``): the stage that separates them
   (:func:`recon.diagnosis.ambiguity.separating_stage`) is planned;
-- an effect named only once the loop had added held-out stages to show an undecided candidate (it
-  was not named before them): sized the same way, since its size is fitted on the fitting stages,
-  which could not show it;
+- an effect named only once the loop had added held-out stages (to show an undecided candidate or
+  to separate an ambiguous pair) and not named before them: sized the same way, since its size is
+  fitted on the fitting stages, which could not show it;
 - nothing named, but a candidate the record hints at without showing it (:func:`undecided`: its
   fit takes part of the held-out mismatch without passing the significance rule, i.e. its size on
   this record is near its detection limit): the stage that shows that kind of effect better (a
@@ -193,8 +193,9 @@ def unsettled_size(m: dict) -> dict | None:
 def decide(d: dict, sized=(), shown=()) -> Decision:
     """What the diagnosis ``d`` (``Diagnosis.to_dict()``) asks for next; ``sized``: ids a sizing round
     has already been recorded for (each is sized once); ``shown``: ids named only once the loop had
-    added held-out stages to show an undecided candidate (not named on the record before them). Such
-    an effect is sized too: its size is fitted on the fitting stages, which could not show it."""
+    added held-out stages (to show an undecided candidate, or to separate an ambiguous pair) and not
+    named on the record before them. Such an effect is sized too: its size is fitted on the fitting
+    stages, which could not show it."""
     if d.get("ambiguous"):
         a, b = d["ambiguous"][:2]
         proposal = d.get("separating_stage") or separating_stage([a, b])
@@ -569,8 +570,10 @@ class ClosedLoop:
                 rounds.append(entry)
                 d = self._diagnose(round_no)
                 entry["after"] = summary(d)
-                if decision.purpose == "show":
-                    # named now, not before: shown by the added held-out stages (whichever was undecided)
+                if decision.purpose in ("show", "separate"):
+                    # named now, not before: the added held-out stages showed it (an undecided
+                    # candidate, or the runner-up of an ambiguous pair), its size still comes from
+                    # the fitting stages
                     shown.update({m["id"] for m in d.get("missing_physics", [])} - named_before)
         except (Cancelled, KeyboardInterrupt):     # the operator's cancel, or Ctrl-C while diagnosing
             stop, why = "cancelled", STOPS["cancelled"]

@@ -96,7 +96,7 @@ def test_a_named_effect_whose_size_hangs_on_the_baseline_terms_is_sized_on_a_fit
     assert decide(RESOLVED, sized={"quadratic_damping"}, shown={"quadratic_damping"}).stop == "resolved"
 
 
-def test_an_effect_named_only_after_a_show_round_is_sized_whichever_candidate_was_shown(tmp_path, recorded):
+def test_an_effect_named_only_after_an_added_held_out_round_is_sized(tmp_path, recorded):
     """Nothing named and a delay undecided: a held-out frequency step is added to show it; the
     extended run names a quadratic damping instead, which the record before could not show, so its
     size (fitted on the fitting stages) is measured on a sizing stage next; then resolved. The loop's
@@ -119,6 +119,16 @@ def test_an_effect_named_only_after_a_show_round_is_sized_whichever_candidate_wa
     assert "could not show it" in result.rounds[1]["why"]
     assert plans[1].stages[0].name.startswith("sizing_amplitude_r2")
     assert result.stop == "resolved" and "still" not in result.stop_reason
+    # an ambiguous pair separated in favour of its runner-up (not named before): sized as well
+    second = copy.deepcopy(RESOLVED)
+    second["missing_physics"] = [AMBIGUOUS["missing_physics"][1]]
+    first = copy.deepcopy(AMBIGUOUS)
+    first["missing_physics"] = first["missing_physics"][:1]      # the pair's first named, as diagnose does
+    plans.clear()
+    loop = ClosedLoop(path, load_config(None).limits, diagnose=Script(first, second), record=record,
+                      max_rounds=3)
+    assert [r["purpose"] for r in loop.run().rounds] == ["separate", "size"]
+    assert plans[1].ids == ["coulomb_friction"]
 
 
 def test_a_sizing_round_beyond_the_round_limit_leaves_the_answer_resolved(tmp_path, recorded):
