@@ -214,13 +214,15 @@ def main(argv=None) -> int:
                     help="sizes instead of the drawn ones (e.g. near a detection limit: coulomb_friction=0.008)")
     ap.add_argument("--jsonl", type=Path, help="append one JSON row per case")
     ap.add_argument("--keep", type=Path, metavar="DIR",
-                    help="keep each case's run file and the loop's JSON output in DIR (default: a temporary "
-                         "directory, removed)")
+                    help="keep each case's run file and the loop's JSON output in DIR, a new or empty folder "
+                         "(default: a temporary directory, removed)")
     ap.add_argument("--noise-std", type=float, help="the lasers' white noise, m per sample (the simulator's "
                                                     "default: 2e-7)")
     args = ap.parse_args(argv)
     if (args.single_level or args.validation_factor != 0.7) and args.protocol is not None:
         ap.error("--single-level and --validation-factor change the short protocol; they do not apply to --protocol")
+    if args.keep is not None and args.keep.exists() and (not args.keep.is_dir() or any(args.keep.iterdir())):
+        ap.error(f"--keep {args.keep}: give a new or empty folder (its run files and JSON would be written over)")
     if not 0.2 <= args.validation_factor <= 2.0:
         ap.error(f"--validation-factor {args.validation_factor} is outside 0.2-2 (times the resonance)")
     rng = np.random.default_rng(args.seed)

@@ -190,6 +190,12 @@ def unsettled_size(m: dict) -> dict | None:
     return max(moved, key=lambda x: x[0])[1] if moved else None
 
 
+def _stage_words(proposal: dict) -> str:
+    """What the single-effect stage of ``proposal`` (separating_stage([id, id])) is, in words."""
+    return ("a second amplitude at the same frequency" if proposal["stages"] == ["validation_amplitude"]
+            else "a frequency step at the same level")
+
+
 def decide(d: dict, sized=(), shown=()) -> Decision:
     """What the diagnosis ``d`` (``Diagnosis.to_dict()``) asks for next; ``sized``: ids a sizing round
     has already been recorded for (each is sized once); ``shown``: ids named only once the loop had
@@ -216,8 +222,7 @@ def decide(d: dict, sized=(), shown=()) -> Decision:
         else:
             continue
         proposal = separating_stage([m["id"], m["id"]])
-        how = ("a second amplitude at the same frequency" if proposal["stages"] == ["validation_amplitude"]
-               else "a frequency step at the same level")
+        how = _stage_words(proposal)
         return Decision("add", purpose="size", proposal={**proposal, "ids": [m["id"]], "reason": how},
                         reason=f"named {m['id']}, but {why}; adding {how} as a fitting stage, where the effect "
                                f"shows, to size it")
@@ -233,9 +238,9 @@ def decide(d: dict, sized=(), shown=()) -> Decision:
         lim = u["limit"] or {}
         limit = (f" (detection limit on this record: {lim['parameter']} {lim['value']:.3g})"
                  if lim.get("value") is not None else "")
-        how = ("a second amplitude at the same frequency (the effect changes with amplitude)"
-               if proposal["stages"] == ["validation_amplitude"] else
-               "a frequency step at the same level (the effect trades off with the model's terms at one frequency)")
+        how = _stage_words(proposal) + (" (the effect changes with amplitude)"
+                                        if proposal["stages"] == ["validation_amplitude"] else
+                                        " (the effect trades off with the model's terms at one frequency)")
         return Decision("add", purpose="show", reason=f"nothing named, but {u['id']} takes {100 * (u['explained'] or 0):.0f} % of the "
                                       f"held-out mismatch without passing the significance rule{limit}: this record "
                                       f"cannot show whether it is there; adding {how}",

@@ -20,7 +20,7 @@ def starts(base, ctx):
     # reconstruction has already measured a dry friction's size as the loop's sliding force. From a
     # start without that loop (the references' without-hysteresis core) the friction takes the loop's
     # place at that size; from mu = 0 a local fit does not get there (the sticking it must reproduce
-    # is far from a small friction's effect)
+    # is far from a small friction's effect).
     # A loop that reaches its sliding force only late in the travel is a smooth hysteresis (the
     # specimen's own), not a dry friction: the start is made where the record slides over most of
     # its travel (presliding within half of it)
@@ -30,10 +30,11 @@ def starts(base, ctx):
     if loop and base.alpha_m == 0.0 and loop["sliding_after_m"] <= 0.5 * loop["travel_m"]:
         mus.append(float(loop["sliding_force_m"]))
     out = []
-    for mu, f in [(mu, f) for mu in mus for f in V0_FACTORS]:
-        m = start_model(base, {"mu": mu, "v0": f * vmin}, "coulomb_friction")
-        out.append((m, ["x:mu", "x:v0"], {"x:mu": 0.01 * ctx["acc_rms"]},
-                    {"x:mu": (0.0, np.inf), "x:v0": (V0_LOWEST * vmin, np.inf)}))
+    for mu in mus:
+        for f in V0_FACTORS:
+            m = start_model(base, {"mu": mu, "v0": f * vmin}, "coulomb_friction")
+            out.append((m, ["x:mu", "x:v0"], {"x:mu": 0.01 * ctx["acc_rms"]},
+                        {"x:mu": (0.0, np.inf), "x:v0": (V0_LOWEST * vmin, np.inf)}))
     return out
 
 
