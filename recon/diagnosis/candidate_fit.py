@@ -182,9 +182,10 @@ def rank_by_output_error(starts: list, stepped: list, dctx: DiagnosisContext) ->
     """The start to fit when the starts differ in a fixed shape parameter (friction's v0): the
     equation residual cannot rank them (differentiation noise), a short output-error fit of the new
     term from the source model can (the equation step's increments of the baseline's terms carry
-    the same noise). The equation step itself is kept where its output error is lower still: where
-    the source's damping holds the effect, the term alone fitted from the source stays at 0 while
-    the step moves the damping and the term together. ``stepped`` is updated in place."""
+    the same noise). The equation step itself is kept where its output error, after the same short
+    fit of the term, is lower still: where the source's damping holds the effect, the term alone
+    fitted from the source stays at 0 while the step moves the damping and the term together.
+    ``stepped`` is updated in place."""
     data = dctx.data
     scr = []
     for mm, keys, sc, b in starts:
@@ -197,6 +198,18 @@ def rank_by_output_error(starts: list, stepped: list, dctx: DiagnosisContext) ->
     step_cost = [rank.fit_cost(mm, data) if within_bound(mm, starts[j][1][0], starts[j][3]) else math.inf
                  for j, (mm, _) in enumerate(stepped)]
     j = int(np.argmin(step_cost))
+    if math.isfinite(step_cost[j]):
+        # the best step is judged where the same short fit leads from it, as the starts are: its own
+        # output error ranks it by where it starts, and a step that lands in the effect's basin can
+        # start above a start that a short fit of the term alone takes to a shallow basin nearby
+        _, keys, sc, b = starts[j]
+        try:
+            sf = rank.fit(stepped[j][0], [keys[0]], data, sc, max_nfev=dctx.settings.output_screen_nfev, bounds=b,
+                          scored=False)
+        except CANDIDATE_FAILURES:
+            sf = None
+        if sf is not None and math.isfinite(sf.cost_fit) and sf.cost_fit < step_cost[j]:
+            stepped[j], step_cost[j] = (sf.model, stepped[j][1]), sf.cost_fit
     if not step_cost[j] < scr[i].cost_fit:
         stepped[i] = (scr[i].model, 0.0)
         return i
