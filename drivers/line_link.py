@@ -14,6 +14,7 @@ automatically (a trigger or a buffer fetch must not happen twice).
 """
 from __future__ import annotations
 
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -23,6 +24,8 @@ import serial
 from drivers.base import InstrumentConnectionError, InstrumentTimeout, MalformedReply
 
 MAX_REPLY = 16 * 1024 * 1024
+# a reply may hold printable ASCII and tabs; any other control character says the line is garbled
+CONTROL_CHARACTERS = re.compile(rb"[\x00-\x08\x0a-\x1f]")
 URL_SCHEMES = ("socket", "rfc2217", "loop", "spy", "alt", "hwgrep")  # pyserial's URL handlers
 URL_FORMS = "socket://host:port, a serial device such as /dev/ttyUSB0, or a pty path"
 
@@ -208,7 +211,7 @@ class LineLink(LineTransport):
         except UnicodeDecodeError:
             self.close()
             raise MalformedReply(self.instrument, command, f"non-ASCII reply {raw[:60]!r}") from None
-        if any(ord(c) < 32 and c not in "\t" for c in text):
+        if CONTROL_CHARACTERS.search(raw):
             self.close()
             raise MalformedReply(self.instrument, command, f"control characters in reply {raw[:60]!r}")
         return text.strip("\r\n")

@@ -266,3 +266,34 @@ def test_master_process_death_mutes_the_amplifier_within_the_watchdog(rig):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_a_control_character_in_a_reply_is_malformed_and_a_tab_is_not():
+    """A reply is printable ASCII and tabs: a bell (a garbled line) is refused naming the command,
+    a tab-separated reply is returned as sent (a real socket, one reply per request)."""
+    from drivers.line_link import LineLink
+    replies = iter([b"a\tb\n", b"1.0\x07\n"])
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+
+    def serve():
+        conn, _ = srv.accept()
+        with conn:
+            for reply in replies:
+                if not conn.recv(64):
+                    return
+                conn.sendall(reply)
+
+    th = threading.Thread(target=serve, daemon=True)
+    th.start()
+    link = LineLink("bench meter", f"socket://127.0.0.1:{srv.getsockname()[1]}", timeout=2.0)
+    try:
+        assert link.query("FORM?") == "a\tb"
+        with pytest.raises(MalformedReply) as info:
+            link.query("MEAS?")
+        assert "control characters" in str(info.value) and "MEAS?" in str(info.value)
+    finally:
+        link.close()
+    th.join(timeout=5)
+    srv.close()
