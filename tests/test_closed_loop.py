@@ -409,7 +409,9 @@ def rig_toml_1khz(tmp_path):
     from rig.config import DEFAULT_RIG_PATH
 
     rig = tmp_path / "rig.toml"
-    rig.write_text(DEFAULT_RIG_PATH.read_text().replace("sample_rate_hz = 10000.0", "sample_rate_hz = 1000.0"))
+    text = DEFAULT_RIG_PATH.read_text().replace("sample_rate_hz = 10000.0", "sample_rate_hz = 1000.0")
+    assert "sample_rate_hz = 1000.0" in text, "the shipped rig config no longer names its 10 kHz rate"
+    rig.write_text(text)
     return rig
 
 

@@ -178,6 +178,14 @@ def equation_stepped_start(cand, starts: list, step_keys: list, dctx: DiagnosisC
     return m, keys, sc, b
 
 
+def short_term_fit(m: AugmentedModel, start: tuple, dctx: DiagnosisContext) -> rank.FitResult:
+    """The short output-error fit, from ``m``, of the first key of ``start`` (model, keys, scales,
+    bounds) alone, with that start's scales and bounds: how :func:`rank_by_output_error` judges
+    where a start, or an equation step, leads."""
+    _, keys, sc, b = start
+    return rank.fit(m, [keys[0]], dctx.data, sc, max_nfev=dctx.settings.output_screen_nfev, bounds=b, scored=False)
+
+
 def rank_by_output_error(starts: list, stepped: list, dctx: DiagnosisContext) -> int:
     """The start to fit when the starts differ in a fixed shape parameter (friction's v0): the
     equation residual cannot rank them (differentiation noise), a short output-error fit of the new
@@ -188,12 +196,12 @@ def rank_by_output_error(starts: list, stepped: list, dctx: DiagnosisContext) ->
     ``stepped`` is updated in place."""
     data = dctx.data
     scr = []
-    for mm, keys, sc, b in starts:
+    for start in starts:
+        mm, keys, sc, _ = start
         mm = mm.copy()
         if get_parameter(mm, keys[0]) == 0.0:      # a start that gives the term a size keeps it
             set_parameter(mm, keys[0], sc[keys[0]])
-        scr.append(rank.fit(mm, [keys[0]], data, sc, max_nfev=dctx.settings.output_screen_nfev, bounds=b,
-                            scored=False))
+        scr.append(short_term_fit(mm, start, dctx))
     i = int(np.argmin([f.cost_fit for f in scr]))
     step_cost = [rank.fit_cost(mm, data) if within_bound(mm, starts[j][1][0], starts[j][3]) else math.inf
                  for j, (mm, _) in enumerate(stepped)]
@@ -202,10 +210,8 @@ def rank_by_output_error(starts: list, stepped: list, dctx: DiagnosisContext) ->
         # the best step is judged where the same short fit leads from it, as the starts are: its own
         # output error ranks it by where it starts, and a step that lands in the effect's basin can
         # start above a start that a short fit of the term alone takes to a shallow basin nearby
-        _, keys, sc, b = starts[j]
         try:
-            sf = rank.fit(stepped[j][0], [keys[0]], data, sc, max_nfev=dctx.settings.output_screen_nfev, bounds=b,
-                          scored=False)
+            sf = short_term_fit(stepped[j][0], starts[j], dctx)
         except CANDIDATE_FAILURES:
             sf = None
         if sf is not None and math.isfinite(sf.cost_fit) and sf.cost_fit < step_cost[j]:
