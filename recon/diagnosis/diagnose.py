@@ -230,14 +230,42 @@ def unexplained_mismatch(fr: rank.FitResult, noise_mse: float, named: list[str])
 
 
 
-def _params_of(fr: rank.FitResult, keys) -> dict:
+def _params_of(fr: rank.FitResult, keys, bounds: dict | None = None) -> dict:
+    """Each parameter's value, standard error and 95 % interval; and, for one that ended on a bound
+    of the range it was fitted in (``bounds``), which bound: the record does not fix that value (a
+    second mode driven off its resonance leaves its damping free), it only says on which side it
+    lies."""
     out = {}
     for k in keys:
         v = get_parameter(fr.model, k)
         name = k.split(":", 1)[-1]
         se = fr.stderr.get(k)
         out[name] = {"value": v, "stderr": se, "interval": interval95(v, se) if k in fr.stderr else None}
+        side = on_bound(v, (bounds or {}).get(k))
+        if side:
+            out[name]["at_bound"] = side
     return out
+
+
+def on_bound(v: float, bound) -> str | None:
+    """'lower' or 'upper' when ``v`` sits on that end of ``bound`` (lo, hi): within 1 % of the
+    bound's own size (a bound at 0: a thousandth of the range's width); an open end holds nothing."""
+    if not bound:
+        return None
+    lo, hi = (float(b) for b in bound)
+    width = hi - lo
+
+    def near(b: float) -> bool:
+        if not math.isfinite(b):
+            return False
+        tol = (0.01 + 1e-12) * abs(b) if b != 0.0 else (1e-3 * width if math.isfinite(width) else 0.0)
+        return abs(v - b) <= tol
+
+    if near(lo) or v < lo:
+        return "lower"
+    if near(hi) or v > hi:
+        return "upper"
+    return None
 
 
 # the figures of rank.score a candidate's entry keeps from its score before a nested null replaced
@@ -427,8 +455,10 @@ def add_detection_limits(scores: Scores, refs: References, dctx: DiagnosisContex
             t["detection_limit"] = limits[t["id"]]
 
 
-def revision_step(scores: Scores, refs: References, partly: list, dctx: DiagnosisContext) -> list:
-    """When no candidate is named: each candidate that is plausible and already explains the share
+def revision_step(scores: Scores, refs: References, partly: list, dctx: DiagnosisContext,
+                  above: float = -math.inf) -> list:
+    """When no candidate is named (or, with ``above``, the share the best named one explains: among
+    those that explain more than it): each candidate that is plausible and already explains the share
     of the reference's excess the rule asks of a named effect (``rule.min_explained``), while failing
     its other margins or a held-out stage, is refitted with the baseline's fn terms chosen again under
     it (term_revision.revise_terms), in order of what it explains, until one is named. (The first in
@@ -443,7 +473,8 @@ def revision_step(scores: Scores, refs: References, partly: list, dctx: Diagnosi
     Named (the one-entry list returned) when it passes the rule, is plausible and is no worse on
     any held-out stage; its entry gains ``baseline_terms_revised``. Else [] and nothing changes."""
     fitted = [t for t in scores.tested if t["id"] in scores.fits and not t.get("implausible")
-              and t.get("explained", 0.0) >= dctx.rule.min_explained]
+              and not t.get("significant") and t.get("explained", 0.0) >= dctx.rule.min_explained
+              and t.get("explained", 0.0) > above]
     for t in sorted(fitted, key=lambda t: -t["explained"]):
         named = _revised(t, scores, refs, partly, dctx)
         if named:
@@ -558,7 +589,7 @@ def missing_entries(sig: list, scores: Scores, refs: References, findings: list,
         ev_kinds = SIGNATURES.get(t["id"], ())
         missing.append({
             "id": t["id"], "explanation": cand.explanation, "adds": cand.adds, "simulated": cand.simulated,
-            "parameters": _params_of(fr, [k for k in cand.parameters if k in cf.keys or k == "x:side"]),
+            "parameters": _params_of(fr, [k for k in cand.parameters if k in cf.keys or k == "x:side"], cf.bounds),
             "evidence": {"held_out_nrmse_before": refs.given.nrmse_held, "held_out_nrmse_after": fr.nrmse_held,
                          "held_out_nrmse_refit": refs.null.nrmse_held, "compared_with": refs.ref_name,
                          "explained_fraction_of_excess": t["explained"], "delta_bic_held_out": t["dbic"],
@@ -634,7 +665,14 @@ def _diagnose(run: Run, baseline, candidates, max_nfev: int, settings: Diagnosis
     add_detection_limits(scores, refs, dctx)
     sig = sorted((t for t in scores.tested if t["significant"]), key=lambda t: -t["explained"])
     combined = None
-    if not sig:
+    if sig:
+        # a candidate that explains more than the best named one and fails only a margin or a
+        # held-out stage gets the revision it would get if nothing were named, before the best is
+        # accepted: beside the baseline's terms as reconstructed (chosen on a record that holds the
+        # effect) the effect's own candidate can fail where a stand-in for it passes
+        sig = sorted(revision_step(scores, refs, partly, dctx, above=sig[0]["explained"]) + sig,
+                     key=lambda t: -t["explained"])
+    else:
         sig = revision_step(scores, refs, partly, dctx)
     if not sig:
         sig, combined = pair_search(scores, refs, origins.nulls, partly, dctx)

@@ -67,7 +67,7 @@ def revise_terms(fr: rank.FitResult, free: list, keys: list, scales: dict, bound
     y_rms, v_rms = judged_motion(data)
     cur, moves = fr, []
     for _ in range(settings.revision_steps):
-        step = _best_moves(cur.model, free, keys, scales, data, y_rms, v_rms, settings.revision_tries)
+        step = _best_moves(cur.model, free, keys, scales, data, y_rms, v_rms, settings.revision_tries, bounds)
         if step is None:
             break
         n_eff, ranked = step
@@ -92,10 +92,12 @@ def revise_terms(fr: rank.FitResult, free: list, keys: list, scales: dict, bound
 
 
 def _best_moves(am: AugmentedModel, free: list, keys: list, scales: dict, data: list, y_rms: float,
-                v_rms: float, tries: int):
+                v_rms: float, tries: int, bounds: dict | None = None):
     """(the effective sample count of ``am``'s fitting residual, the moves that lower the
     predicted criterion, the ``tries`` best first, each (criterion, kind, terms, kept terms, start
-    model, the kept terms' scales)); None where no finite Jacobian can be taken."""
+    model, the kept terms' scales)); None where no finite Jacobian can be taken. A start's
+    parameters are held inside their ``bounds``: the linearised step does not know them, and a fit
+    started outside its range stays there."""
     present = list(am.baseline.fn_m)
     offered = [t for t in CANDIDATES if t not in present]
     work = am.copy()
@@ -154,6 +156,9 @@ def _best_moves(am: AugmentedModel, free: list, keys: list, scales: dict, data: 
         for t in list(m.baseline.fn_m):
             if t not in keep:
                 del m.baseline.fn_m[t]
+        for k, (lo, hi) in (bounds or {}).items():
+            if k in idx:
+                set_parameter(m, k, min(max(get_parameter(m, k), lo), hi))
         return m
     return n_eff, [(ic, kind, terms, keep, start(keep, p), {f"fn:{t}": term_sc[f"fn:{t}"] for t in keep})
                        for ic, kind, terms, keep, p in ranked[:tries]]

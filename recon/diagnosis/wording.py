@@ -106,6 +106,10 @@ def diagnosis_text(d: dict) -> str:
         for m in missing:
             if m.get("as_friction"):
                 text += f"; {m['id']}: {friction_text(m['as_friction'])}"
+            held = [f"{k} {float(v['value']):.3g} on the {v['at_bound']} end of its fitted range"
+                    for k, v in (m.get("parameters") or {}).items() if v.get("at_bound")]
+            if held:
+                text += f"; {m['id']}: {', '.join(held)}, not fixed by the record"
         if un:
             text += (f"; with {'it' if len(missing) == 1 else 'them'} added the held-out NRMSE {nrmse_text(un.get('held_out_nrmse'))} is still above "
                      f"the {nrmse_text(un.get('nrmse_limit'))} limit: something else is missing too")

@@ -45,7 +45,13 @@ def mode_range(w: float, w1: float) -> tuple[float, float]:
 
 
 def check(m, data) -> list[str]:
-    """A mode apart from the fundamental, with a resonance (not overdamped, not an undamped line)."""
+    """A mode apart from the fundamental, with a resonance (not overdamped). A damping ratio on the
+    bottom of its range is not refused: one-tone stages drive the mode off its resonance, where its
+    response hardly depends on its damping, so the record leaves the damping free and a fit ends
+    where its range does. Whether such a mode, or a line in the residual that it stands in for,
+    explains the record is the held-out comparison's question, as for every candidate (the other
+    effects it can stand in for, a delay or a tip scale, compete with it there); its entry marks
+    the damping as 'at_bound'."""
     why = []
     w1 = math.sqrt(max(m.baseline.K_m, 0.0))
     # (a fit held on that band's edge by its bound, mode_range, is refused with it)
@@ -56,11 +62,6 @@ def check(m, data) -> list[str]:
         # damped beyond MODE_ZETA_MAX the fitted 'mode' has no resonance: a broadband filter that
         # takes up whatever the baseline leaves, even on a clean recording
         why.append(f"second mode's damping ratio {m.get('zeta2'):.3g} above {MODE_ZETA_MAX:g}: no resonance")
-    if m.get("zeta2") <= 1.01 * ZETA2_RANGE[0]:
-        # held on the bottom of its range the fit asks for an oscillation that does not decay: a
-        # line in the residual, not a resonance the input drives
-        why.append(f"second mode's damping ratio {m.get('zeta2'):.3g} at the bottom of its range "
-                   f"({ZETA2_RANGE[0]:g}): an undamped line, not a resonance")
     return why
 
 
