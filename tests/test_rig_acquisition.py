@@ -53,10 +53,20 @@ def small_protocol(**changes):
     return parse_protocol(data, SMALL_PROTOCOL, "small-protocol")
 
 
-def rig_config(tmp_path, sim, **limits):
+# the rate these tests sample at: a tenth of the shipped 10 kHz, as tests/test_closed_loop.py's
+# rig_toml_1khz (a tenth of the samples to simulate, stream and write). Blocks, ramps, limits and
+# timeouts are in seconds, so what the tests check does not hang on the rate; the drive frequencies
+# (8-25 Hz) stay far below the rate's ceiling (sample_rate_hz / 20 = 50 Hz)
+FS = 1000.0
+
+
+def rig_config(tmp_path, sim, sample_rate_hz=FS, **limits):
     # the shipped watchdog timeout (2 s): shorter ones tripped spuriously on the heavily loaded
     # test machine (the simulated amplifier shares this process and its GIL)
     text = DEFAULT_RIG_PATH.read_text()
+    rate = f"sample_rate_hz = {float(sample_rate_hz)}"
+    text = text.replace("sample_rate_hz = 10000.0", rate)
+    assert rate in text, "the shipped rig config no longer names its 10 kHz rate"
     for key, value in limits.items():
         import re
 
@@ -98,11 +108,11 @@ def sim():
         yield rig
 
 
-def _ramped(tape, rate, block_s=0.05, tol=1e-9):
+def _ramped(tape, rate, fs=FS, tol=1e-9):
     """Largest amplitude change between consecutive blocks, relative to rate * block time."""
     a = tape.amplitudes()
     n = np.array([b[1] for b in tape.blocks])
-    allowed = rate * n[1:] / 10000.0 + tol
+    allowed = rate * n[1:] / fs + tol
     return np.max(np.abs(np.diff(a)) / allowed)
 
 
@@ -136,7 +146,7 @@ def test_protocol_records_every_stage(tmp_path, sim):
     run = load_run(out.path)
     lin, non = run.stage("linear"), run.stage("nonlinear")
     assert np.ptp(non.y) > 3 * np.ptp(lin.y)  # the large stage is large
-    assert lin.t[0] == 0.0 and lin.fs == pytest.approx(10000.0)
+    assert lin.t[0] == 0.0 and lin.fs == pytest.approx(FS)
     # amplitude changes are ramped, never stepped, and the rig ends undriven
     assert _ramped(tape, cfg.limits["ramp_rate_vpp_per_s"]) <= 1.0
     assert not sim.world.is_driven()
@@ -258,7 +268,7 @@ def test_instrument_killed_mid_stage(tmp_path, sim, name):
     assert info["stages"]["linear"]["status"] == "error"
     run = load_run(out.path)
     ramp_s = 0.4 / cfg.limits["ramp_rate_vpp_per_s"]  # killed once the linear stage reached 0.4 Vpp
-    assert run.stage("linear").t.size >= ramp_s * 10000  # the data up to the failure is kept
+    assert run.stage("linear").t.size >= ramp_s * FS  # the data up to the failure is kept
 
 
 def test_abort_during_a_trip_ramp_cuts_at_once(tmp_path, sim):

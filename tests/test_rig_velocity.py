@@ -24,8 +24,12 @@ from shakerlab.errors import UserFacingError
 from shakerlab.runfile.reader import load_run
 
 
-def velocity_rig_toml(tmp_path, points=("base", "tip"), limits: dict | None = None):
+def velocity_rig_toml(tmp_path, points=("base", "tip"), limits: dict | None = None, sample_rate_hz=None):
     text = DEFAULT_RIG_PATH.read_text()
+    if sample_rate_hz is not None:   # else the shipped 10 kHz
+        rate = f"sample_rate_hz = {float(sample_rate_hz)}"
+        text = text.replace("sample_rate_hz = 10000.0", rate)
+        assert rate in text, "the shipped rig config no longer names its 10 kHz rate"
     for p in points:
         head = f"[sensors.{p}]"
         i = text.index(head)
@@ -162,25 +166,30 @@ def _run_sim(tmp_path, limits, name):
     from rig.protocol import load_protocol
     from rig.session import acquire, simulated_rig
 
-    cfg = velocity_rig_toml(tmp_path, limits=limits)
+    # sampled at 1 kHz (as tests/test_closed_loop.py's rig_toml_1khz): a tenth of the samples to simulate,
+    # stream and write through the default protocol; the limits are in metres and the blocks in seconds
+    cfg = velocity_rig_toml(tmp_path, limits=limits, sample_rate_hz=1000.0)
     with simulated_rig(speed=None, seed=2, rig_config=cfg) as (sim, config):
         out = acquire(config, load_protocol(), tmp_path / name, lockstep=True)
         world = sim.world
         true_tip = world.ring[1, world.trigger_steps[0]:world.step].copy()   # the simulator's displacement
         trigger = world.trigger_steps[0]
         ring = world.ring[1].copy()
-    return out, true_tip, trigger, ring
+        # the sensors' sample n is the world's step trigger + n * steps_per_sample (sim_backend.laser_sensor:
+        # the world steps at its own 10 kHz, the sensors read every tenth step at 1 kHz)
+        steps_per_sample = int(round(world.sample_rate / config.acquisition["sample_rate_hz"]))
+    return out, true_tip, trigger, ring, steps_per_sample
 
 
 def test_the_tip_displacement_limit_trips_on_the_integrated_velocity(tmp_path):
     """A 0.3 mm tip limit with velocity sensors trips at the tip displacement the simulator itself had
     at that sample, named as integrated from the velocity: never a velocity compared with metres."""
-    out, _, trigger, ring = _run_sim(tmp_path, {"max_tip_displacement_m": 0.0003}, "trip.h5")
+    out, _, trigger, ring, steps_per_sample = _run_sim(tmp_path, {"max_tip_displacement_m": 0.0003}, "trip.h5")
     assert out.status == "tripped", out.reason
     assert "max_tip_displacement_m" in out.reason and "integrated from sensor_tip's velocity" in out.reason
     value_mm = float(out.reason.split("|x_tip| = ")[1].split(" mm")[0])
     sample = int(out.reason.split("at sample ")[1].split()[0])
-    truth_mm = abs(ring[trigger + sample]) * 1e3
+    truth_mm = abs(ring[trigger + sample * steps_per_sample]) * 1e3
     # the reason prints the reading to 1 um: a trip just over the limit reads 0.300
     assert value_mm >= 0.3 and value_mm == pytest.approx(truth_mm, abs=0.005)
 
@@ -188,7 +197,7 @@ def test_the_tip_displacement_limit_trips_on_the_integrated_velocity(tmp_path):
 def test_the_nonlinear_stage_stops_before_a_tip_limit_measured_as_velocity(tmp_path):
     """The plans' limit decision extrapolates the integrated displacement: with a 1 mm tip limit the
     stage stops raising on that limit, and the simulator's own tip displacement stayed below it."""
-    out, true_tip, _, _ = _run_sim(tmp_path, {"max_tip_displacement_m": 0.001}, "soft.h5")
+    out, true_tip, _, _, _ = _run_sim(tmp_path, {"max_tip_displacement_m": 0.001}, "soft.h5")
     assert out.status == "complete", out.reason
     nl = load_run(out.path).stage("nonlinear").settings["summary"]
     assert "max_tip_displacement_m" in json.dumps(nl)

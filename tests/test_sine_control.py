@@ -15,9 +15,10 @@ from rig.sine_control import ControlSettings, SineController, fundamental
 from shakerlab.errors import UserFacingError
 from shakerlab.runfile.reader import read_events, read_info
 
-from test_rig_acquisition import SMALL_PROTOCOL, rig_config, small_protocol
+from test_rig_acquisition import FS as RIG_FS, SMALL_PROTOCOL, rig_config, small_protocol
 
-FS = 10000.0
+FS = 10000.0        # the synthetic windows of the pure controller's tests
+# RIG_FS: the simulated rig's rate in the tests on it (rig_config: 1 kHz)
 
 
 # ---- the pure controller -----------------------------------------------------------------------
@@ -141,7 +142,7 @@ def _open_loop(f, vpp, seconds):
     from rig.messages import Acquire
     w = yield Acquire(seconds)
     yield EndStage({})
-    return fundamental(w.x_base[-int(FS):], FS, f)
+    return fundamental(w.x_base[-int(RIG_FS):], RIG_FS, f)
 
 
 def _two_open(f1, f2, vpp):
@@ -179,7 +180,7 @@ def test_open_loop_base_drops_at_resonance_and_control_holds_the_target_there(tm
     # the drive is ramped, never stepped: per block at most the ramp rate (1 Vpp/s)
     v = np.array([a for _, a in tape.vpp])
     n = np.array([n for n, _ in tape.vpp])
-    assert np.all(np.abs(np.diff(v)) <= 1.0 * n[1:] / FS + 1e-9)
+    assert np.all(np.abs(np.diff(v)) <= 1.0 * n[1:] / RIG_FS + 1e-9)
 
 
 def test_target_beyond_the_voltage_limit_is_refused_and_the_output_ramps_down(tmp_path, sim):
@@ -206,7 +207,7 @@ def test_notching_on_a_tip_ceiling_lowers_the_base_target(tmp_path, sim):
     assert out.status == "complete", out.reason
     res = out.plan_result
     assert res.notched and res.effective_target_m < 0.15e-3
-    tip = fundamental(res.window.x_tip, FS, 14.2)
+    tip = fundamental(res.window.x_tip, RIG_FS, 14.2)
     assert 20 * math.log10(tip / 1.5e-3) == pytest.approx(0.0, abs=0.5)
     assert any(level == "warning" and "notching" in m and "tip" in m for level, m in tape.events)
     with h5py.File(out.path, "r") as f:
@@ -293,10 +294,13 @@ def test_shakerlab_acquire_runs_a_base_target_protocol(tmp_path, capsys):
     from shakerlab.cli import main
     from shakerlab.runfile.reader import read_run
 
+    from test_closed_loop import rig_toml_1khz
+
     proto = tmp_path / "p.toml"
     proto.write_text(BASE_PROTOCOL)
     out = tmp_path / "run.h5"
-    assert main(["acquire", "--sim-speed", "0", "--protocol", str(proto), "-o", str(out)]) == 0
+    assert main(["acquire", "--config", str(rig_toml_1khz(tmp_path)), "--simulated", "--sim-speed", "0",
+                 "--protocol", str(proto), "-o", str(out)]) == 0
     text = capsys.readouterr().out
     assert "run complete" in text and "samples lost: 0" in text
     info = read_info(out)
