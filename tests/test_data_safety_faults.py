@@ -404,11 +404,16 @@ def test_issue69_9_two_dimensional_datasets_are_refused_at_load(run_copy, capsys
 # ---- 10: a killed acquisition is recovered ---------------------------------------------------------------
 
 def _kill_acquire(tmp_path, moment: str, delay: float) -> Path:
+    from test_closed_loop import rig_toml_1khz
+
     proto = tmp_path / "p.toml"
     proto.write_text(SMALL_PROTOCOL)
     out = tmp_path / "run.h5"
-    proc = subprocess.Popen([sys.executable, "-m", "shakerlab.cli", "acquire", "--sim-speed", "0", "--protocol",
-                             str(proto), "-o", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    # sampled at 1 kHz (the shipped rig config otherwise): a tenth of the samples to stream and write before
+    # the moment of the kill; the recovery reads whatever the file holds at any rate
+    rig = rig_toml_1khz(tmp_path)
+    proc = subprocess.Popen([sys.executable, "-m", "shakerlab.cli", "acquire", "--config", str(rig), "--simulated",
+                             "--sim-speed", "0", "--protocol", str(proto), "-o", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=_env(), start_new_session=True)
     seen = []
     try:
