@@ -579,6 +579,6 @@ def test_a_channel_delay_records_through_the_sensors(tmp_path):
     """A concealed channel delay on the simulated rig: the run records whole (no sample lost at the
     start: only the delayed tip channel's reach into the ring is shortened, once it wrapped)."""
     with simulated_rig(speed=None, seed=5, sim_config={"effects": {"channel_delay": 0.0023}}) as (sim, _):
-        cfg = rig_config(tmp_path, sim)
+        cfg = rig_config(tmp_path, sim, sample_rate_hz=10000.0)   # the shipped rate: the delay is 23 samples
         outcome = acquire(cfg, small_protocol(), tmp_path / "run.h5", lockstep=True)
     assert outcome.status == "complete" and outcome.samples_lost == 0, outcome.reason
