@@ -123,3 +123,64 @@ def test_lag_grows_when_blocks_fall_behind_real_time():
     assert live.lag(1.0) == pytest.approx(0.25, abs=0.05)
     assert live.lag(2.0) == pytest.approx(0.55, abs=0.1)
     assert live.lag(0.0) == 0.0         # lockstep: no real-time clock to fall behind
+
+
+STAGES_TEXT = """
+[run]
+settle_s = 0.2
+[linear]
+frequency_hz = 8.0
+amplitude_vpp = 0.4
+duration_s = 1.0
+[resonance_search]
+start_hz = 8.0
+stop_hz = 25.0
+steps = 3
+refine_steps = 0
+amplitude_vpp = 0.05
+settle_s = 0.3
+measure_s = 0.2
+[nonlinear]
+start_vpp = 0.1
+step_factor = 2.0
+max_vpp = 0.2
+dwell_s = 0.4
+analysis_s = 0.2
+hold_s = 0.0
+"""
+
+
+@pytest.mark.parametrize("speed", [None, 3.0], ids=["lockstep", "3x"])
+def test_stage_amplitudes_are_measured_on_the_stage_s_own_samples(speed, tmp_path):
+    """Real runner, real simulated rig over its sockets, lockstep and at 3 x real time (blocks of 0.15 s
+    of rig time): every live amplitude is half the peak-to-peak of y = x_tip - x_base over the newest
+    0.2 s (every drive frequency here is above 7.5 Hz: 1.5 periods < 0.2 s) of the samples recorded
+    under the stage it is filed under, i.e. the window is cut at the stage's first sample. Without the
+    cut a stage's first windows reached back into the samples before it (the previous stage's
+    ramp-down ringing, the rest before it)."""
+    from rig.protocol import parse_protocol
+    from rig.session import acquire, simulated_rig
+    from shakerlab.runfile.reader import read_run
+
+    live = LiveData(seconds=10.0)
+    with simulated_rig(speed=speed, seed=3) as (sim, cfg):
+        out = acquire(cfg, parse_protocol(tomllib.loads(STAGES_TEXT), STAGES_TEXT, "t"), tmp_path / "run.h5",
+                      lockstep=speed is None, observers=[live])
+    assert out.status == "complete", out.reason
+    run = read_run(out.path)
+    series = live.amplitude_series()
+    assert list(series) == ["linear", "resonance_search", "nonlinear"]
+    fs, n_window = live.fs, int(round(0.2 * live.fs))
+    checked = 0
+    for name, (times, amps) in series.items():
+        st = run.stages[name]
+        index = np.round((st.t + st.settings["t0"]) * fs).astype(int)   # the stage's sample indices
+        assert np.all(np.diff(index) == 1)
+        y = st.channels["x_tip"] - st.channels["x_base"]
+        for t_rec, amp in zip(times, amps):
+            end = int(round(t_rec * fs))
+            assert index[0] < end <= index[-1] + 1, (name, t_rec)      # filed at a time inside the stage
+            keep = (index >= end - n_window) & (index < end)
+            assert amp == pytest.approx(0.5 * np.ptp(y[keep]), rel=1e-9, abs=1e-15), (name, t_rec)
+            checked += 1
+    assert checked >= 30

@@ -19,7 +19,10 @@ It also derives two things the plots need:
   ``Fn = r - c_m y' - K_m y``, i.e. what is left when the linear step is
   taken away (hysteresis and the nonlinear spring).
 - the response amplitude per stage: ``(max(y) - min(y)) / 2`` over the last
-  ``max(1.5 drive periods, 0.2 s)``, every 0.1 s of rig time.
+  ``max(1.5 drive periods, 0.2 s)`` of the stage's own samples (a window never reaches back
+  before the stage began), every 0.1 s of rig time. It is the motion as recorded, transients
+  included: when the rig runs faster than the runner's blocks (a simulated rig at 3 x real time)
+  the ramps take coarser steps and the specimen rings more at its natural frequency.
 """
 from __future__ import annotations
 
@@ -181,7 +184,11 @@ class LiveData:
             self._next_amp_index = block.end_index + int(self.AMPLITUDE_EVERY_S * self.fs)
             f = block.frequency_hz if block.output and block.frequency_hz > 0 else 0.0
             window = max(1.5 / f if f else 0.0, 0.2)
-            _, b, t = self.buffer.latest(window)
+            # the newest samples (this block's own, and earlier ones of the same stage when the block is
+            # shorter than the window), never those before the stage began: a stage's first windows
+            # would otherwise hold the previous stage's ramp-down ringing or the rest before it
+            n = min(int(round(window * self.fs)), block.end_index - self.stage_start_index)
+            _, b, t = self.buffer.latest(n / self.fs)
             y = t - b
             if y.size:
                 amp = 0.5 * float(y.max() - y.min())
