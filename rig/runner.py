@@ -191,13 +191,19 @@ class Runner:
             self._in_pause = False
 
     def _ramp_to(self, target: float, rate: float) -> None:
-        """Ramp the amplitude to ``target`` at ``rate`` [Vpp/s of acquired time], one block per step."""
+        """Ramp the amplitude to ``target`` at ``rate`` [Vpp/s of acquired time], one block per step.
+        A step is never larger than ``rate`` times the nominal block: a runner that fell behind (a
+        slow observer, a loaded machine, a stalled link) fetches one long block, and a step sized on
+        it would be a jump of the drive, which sets the specimen ringing. The ramp then takes longer
+        than planned; it never steps."""
         if target > 0:
             self.sup.check_amplitude(target)
         current = self.inst.vpp if self.inst.output else 0.0
         if target <= 0 and not self.inst.output:
             return
-        block_dt = self.inst.block_n / self.fs
+        nominal = self.inst.block_n / self.fs
+        block_dt = nominal
+        behind = False
         while True:
             step = rate * block_dt
             if abs(target - current) <= step:
@@ -207,6 +213,12 @@ class Runner:
             self.inst.set_amplitude(max(current, MIN_VPP) if current > MIN_VPP else 0.0)
             blk = self._block()
             block_dt = max(blk.n, 1) / self.fs
+            if block_dt > nominal:
+                if not behind and block_dt > 2 * nominal:
+                    behind = True
+                    self.log("warning", f"acquisition fell behind during a ramp (a block of {block_dt:.3g} s, "
+                                        f"nominal {nominal:.3g} s): the ramp keeps its steps and takes longer")
+                block_dt = nominal
             if current == target:
                 return
 

@@ -343,3 +343,44 @@ def test_every_stage_records_its_pre_trigger_at_rest_before_the_drive(tmp_path, 
         x = lin.channels[channel][:n_pre]
         assert np.max(np.abs(x)) < 6 * noise, channel                      # 0.81 um against 0.2 um noise
         assert abs(np.polyfit(lin.t[:n_pre], x, 1)[0]) < 1e-5, channel     # no motion: |slope| < 0.01 mm/s
+
+
+def test_a_runner_that_falls_behind_keeps_its_ramp_steps(tmp_path):
+    """A slow observer stalls the runner (real time, not lockstep) once on the ramp up and once on
+    the abort's ramp down: the next block is long, and a step sized on it would be a jump of the
+    drive. Every amplitude change between blocks stays within the ramp's rate times the nominal
+    block, and the operator is told the ramp took longer."""
+    stalls = {"up": False, "down": False}
+    holder = {}
+
+    class Stall(Tape):
+        def on_block(self, block):
+            super().on_block(block)
+            if block.stage == "linear" and 0.1 < block.amplitude_vpp < 0.3 and not stalls["up"]:
+                stalls["up"] = True
+                time.sleep(0.4)
+            elif block.stage == "linear" and block.amplitude_vpp >= 0.4 and "runner" in holder \
+                    and not holder.get("aborted"):
+                holder["aborted"] = True
+                holder["runner"].abort("operator pressed stop")
+            elif holder.get("aborted") and 0.0 < block.amplitude_vpp < 0.3 and not stalls["down"]:
+                stalls["down"] = True
+                time.sleep(0.4)
+
+    with simulated_rig(speed=1.0, seed=5) as (rig, _):
+        cfg = rig_config(tmp_path, rig)
+        tape = Stall()
+        out = acquire(cfg, small_protocol(), tmp_path / "run.h5", observers=[tape],
+                      on_runner=lambda r: holder.setdefault("runner", r))
+        assert not rig.world.is_driven()
+    assert out.status == "aborted", out.reason
+    assert stalls["up"] and stalls["down"]
+    n = np.array([b[1] for b in tape.blocks])
+    assert n.max() >= 0.3 * FS       # the stalls did make long blocks
+    block_s = cfg.acquisition["block_s"]
+    lim = cfg.data["limits"]
+    fastest = max(lim["ramp_rate_vpp_per_s"], 0.4 / lim["abort_ramp_s"])
+    steps = np.abs(np.diff(tape.amplitudes()))
+    assert steps.max() <= fastest * block_s + 1e-9, (steps.max(), fastest * block_s)
+    assert tape.amplitudes()[-1] == 0.0
+    assert sum("fell behind during a ramp" in m for _, m in tape.events) >= 2
