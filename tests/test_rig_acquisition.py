@@ -349,7 +349,7 @@ def test_a_runner_that_falls_behind_keeps_its_ramp_steps(tmp_path):
     """A slow observer stalls the runner (real time, not lockstep) once on the ramp up and once on
     the abort's ramp down: the next block is long, and a step sized on it would be a jump of the
     drive. Every amplitude change between blocks stays within the ramp's rate times the nominal
-    block, and the operator is told the ramp took longer."""
+    block, and the operator is told once that ramps take longer."""
     stalls = {"up": False, "down": False}
     holder = {}
 
@@ -383,4 +383,4 @@ def test_a_runner_that_falls_behind_keeps_its_ramp_steps(tmp_path):
     steps = np.abs(np.diff(tape.amplitudes()))
     assert steps.max() <= fastest * block_s + 1e-9, (steps.max(), fastest * block_s)
     assert tape.amplitudes()[-1] == 0.0
-    assert sum("fell behind during a ramp" in m for _, m in tape.events) >= 2
+    assert sum("during a ramp" in m and "take longer" in m for _, m in tape.events) == 1   # said once
