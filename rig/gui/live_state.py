@@ -21,8 +21,7 @@ It also derives two things the plots need:
 - the response amplitude per stage: ``(max(y) - min(y)) / 2`` over the last
   ``max(1.5 drive periods, 0.2 s)`` of the stage's own samples (a window never reaches back
   before the stage began), every 0.1 s of rig time. It is the motion as recorded, transients
-  included: when the rig runs faster than the runner's blocks (a simulated rig at 3 x real time)
-  the ramps take coarser steps and the specimen rings more at its natural frequency.
+  included (a ramp's steps set the specimen ringing at its natural frequency).
 """
 from __future__ import annotations
 
