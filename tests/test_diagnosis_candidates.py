@@ -103,7 +103,7 @@ def test_a_candidate_can_be_concealed_or_says_why_not(cid):
 
 # the size each concealed effect is checked by (its first parameter), where the first parameter is
 # not a size the truth states (the hysteresis loop: alpha)
-SIZE_OF = {"contact_stiffness": "x:kc", "higher_mode": "x:phi2", "hysteresis": "alpha_m"}
+SIZE_OF = {"hysteresis": "alpha_m"}
 
 
 @pytest.mark.slow

@@ -56,11 +56,13 @@ def stiff_damping():
 
 def test_the_stiff_damping_truth_diverges_only_at_the_top_of_the_ramp(stiff_damping):
     # the premise of the two tests below: the recording is finite, the truth's own simulation at
-    # the record's rate is not, and only near the top of the ramped nonlinear stage
+    # the default step for the record's rate is not, and only near the top of the ramped nonlinear
+    # stage (the step the stage is integrated with, rank.integration_step_factor, is set by the
+    # baseline without the damping term; a fit that raises the term goes past it again)
     r, truth, _ = stiff_damping
     assert all(np.all(np.isfinite(st.y)) for st in r.stages.values())
     for d in rank.prepare(r, truth.baseline):
-        bad = np.flatnonzero(~np.isfinite(rank.stage_output(truth, d)))
+        bad = np.flatnonzero(~np.isfinite(rank.stage_output(truth, dataclasses.replace(d, step_factor=1))))
         if d.name == "nonlinear":
             assert bad.size and bad[0] > 0.8 * d.t.size and d.held.any(), (d.name, bad[:1])
         else:

@@ -285,8 +285,6 @@ RECON_NUMBERS_ALLOWED = {
                                                                   "bound, 1 % of the slowest stage's rms velocity",
     ("recon.diagnosis.candidates.higher_mode", "ZETA2_RANGE"): "physical: the damping ratios a structural mode "
                                                                "has (0.1 % to 30 %)",
-    ("recon.diagnosis.candidates.higher_mode", "MODE_ZETA_MAX"): "physical: damped beyond 0.2 (a quality factor "
-                                                                 "under 2.5) a fitted mode has no resonance",
     ("recon.diagnosis.candidates.higher_mode", "MODE_APART"): "physical: a 'second mode' within 20 % of the "
                                                               "fundamental is the fundamental's own band",
     ("recon.diagnosis.candidates.hysteresis", "HYSTERESIS_SPLIT_SHARES"): "numerical: starts of the loop's "

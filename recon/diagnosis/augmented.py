@@ -141,14 +141,16 @@ class AugmentedModel:
         return min(n_sub, 64)
 
     def simulate(self, t: np.ndarray, u: np.ndarray, x_in: np.ndarray | None = None, initial=None,
-                 dt: float | None = None, order: int = 0):
+                 dt: float | None = None, order: int = 0, step_factor: int = 1):
         """Recorded-output prediction for input ``u`` on time base ``t`` (from rest, or from
         ``initial`` = (y0, y'0, z0); the higher mode always starts at rest).
 
         ``order``: the recorded quantity, 0 displacement, 1 velocity (the module docstring).
         ``x_in`` is the base motion in that quantity (base excitation; needed for the tip-scale
         and delay output terms); ``dt`` the sampling interval of ``t`` if the caller has it
-        (the median interval). Returns (y_rec, states) with states = (y, y', z, q, q').
+        (the median interval); ``step_factor`` multiplies :meth:`substeps` (a record whose input
+        needs a finer step than the resonances do, recon.diagnosis.rank.integration_step_factor).
+        Returns (y_rec, states) with states = (y, y', z, q, q').
         """
         if order not in (0, 1):
             raise ValueError(f"augmented model: output order {order} (0 displacement, 1 velocity)")
@@ -158,7 +160,7 @@ class AugmentedModel:
             dt = float(np.median(np.diff(t)))
         u = m.drive(np.asarray(u, float), dt)        # the exciter's force, when the baseline models one
         coef, p, r = m.fn_arrays()
-        n_sub = self.substeps(dt)
+        n_sub = self.substeps(dt) * int(step_factor)
         P = self.kernel_vector()
         y0, dy0, z0 = (0.0, 0.0, 0.0) if initial is None else (float(v) for v in initial)
         st = simulate_states(np.ascontiguousarray(u, float), float(t[0]), dt, int(n_sub), P, coef, p, r, y0, dy0, z0)

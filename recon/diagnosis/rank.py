@@ -167,6 +167,7 @@ class StageData:
     start_fit_share: float = DEFAULTS.start_fit_share  # held_start fits the start on this first share (settings)
     start_fit_nfev: int = DEFAULTS.start_fit_nfev      # ... with this many function evaluations (settings)
     stop_chi2: float = DEFAULTS.stop_chi2              # a fit over the stage stops at this gain (settings)
+    step_factor: int = 1               # the simulator's sub-steps times this (integration_step_factor)
 
     @functools.cached_property
     def dt(self) -> float:
@@ -226,8 +227,34 @@ def stage_output(am: AugmentedModel, d: StageData, initial=None) -> np.ndarray:
     """``am``'s recorded-output prediction of stage ``d`` from ``initial`` (None: from rest), in the
     recorded quantity; in velocity with its constant offset fitted over the stage's fitting samples
     (all of them on a held-out stage)."""
-    ys = am.simulate(d.t, d.u, d.x_in, initial, dt=d.dt, order=d.order)[0]
+    ys = am.simulate(d.t, d.u, d.x_in, initial, dt=d.dt, order=d.order, step_factor=d.step_factor)[0]
     return ys if d.order == 0 else velocity_offset(ys, d.y, d.fit)
+
+
+def integration_step_factor(am: AugmentedModel, d: StageData, share: float, most: int = 8) -> int:
+    """How many times finer than :meth:`AugmentedModel.substeps` the stage must be integrated for the
+    simulator's own error to stay below ``share`` of the record's noise std (:func:`prepare`: the
+    square root of the least gain the significance rule counts, so that the simulator's error alone
+    can never make a candidate significant). The default step
+    resolves the model's resonances; a stage whose input reaches far above them (a sweep, a
+    harmonic-rich drive at a low sampling rate) or whose hysteresis turns sharply needs a finer one,
+    and a model simulated too coarsely leaves a mismatch that no missing physics made, which a
+    flexible candidate (a broad second mode) then fits. Step doubling: RK4's error falls about 16
+    times per halved step, so the change from factor f to 2 f is the error at f; the first f whose
+    change is below the bound is kept (at most ``most``)."""
+    f = 1
+    prev = stage_output(am, d)
+    while f < most:
+        finer = stage_output(am, dataclasses.replace(d, step_factor=2 * f))
+        if not (np.all(np.isfinite(prev)) and np.all(np.isfinite(finer))):
+            return f
+        diff = finer - prev
+        if d.order:
+            diff = diff - diff.mean()      # a velocity record's offset is fitted (stage_output)
+        if float(np.sqrt(np.mean(diff ** 2))) <= share * d.noise:
+            return f
+        f, prev = 2 * f, finer
+    return f
 
 
 def prepare(run: Run, model: HystereticModel, settings: DiagnosisSettings = DEFAULTS) -> list[StageData]:
@@ -275,6 +302,7 @@ def prepare(run: Run, model: HystereticModel, settings: DiagnosisSettings = DEFA
                       fit_model_share=settings.fit_model_share, order=order, motion=None if order == 0 else st.y,
                       fit_step=step, start_fit_share=settings.start_fit_share,
                       start_fit_nfev=settings.start_fit_nfev, stop_chi2=settings.stop_chi2)
+        d.step_factor = integration_step_factor(AugmentedModel(model), d, math.sqrt(settings.rule.smallest_gain()))
         # the edge estimate, not a start fitted with the baseline: a fitted start absorbs what an
         # output effect (a channel delay, a tip-scale error) does to the first seconds, and the
         # candidate that models it is then scored from a start made for the model without it
@@ -471,7 +499,7 @@ def _held_start(am: AugmentedModel, d: StageData) -> tuple:
 
     def first_error(state):
         ys = am.simulate(th.t[first], th.u[first], None if th.x_in is None else th.x_in[first], tuple(state),
-                         order=th.order)[0]
+                         order=th.order, step_factor=th.step_factor)[0]
         r = ys - th.y[first]
         if d.order:
             r = r - r.mean()       # the velocity offset (stage_output)

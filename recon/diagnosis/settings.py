@@ -61,6 +61,11 @@ class SignificanceRule:
         if int(self.held_blocks) != self.held_blocks:
             raise ValueError(f"SignificanceRule.held_blocks must be a whole number of pieces, not {self.held_blocks!r}")
 
+    def smallest_gain(self) -> float:
+        """The least mean-square cut of the held-out error, in noise variances, that any route
+        counts: a mismatch whose mean square is below it cannot make a candidate significant."""
+        return min(self.min_gain_noise, self.steady_gain, self.complete_gain)
+
     def passes(self, dbic: float, explained: float, gain: float, rel: float, blocks: float | None = None) -> bool:
         """The rule on a candidate's held-out figures: the BIC margin and the share of the excess
         explained, then either the large gain with its relative cut, or, for a candidate that

@@ -3,10 +3,8 @@ import math
 
 from recon.diagnosis.candidates.base import Candidate, start_model
 
-# the range a second mode's damping ratio is fitted in, and the most a mode may have: beyond
-# MODE_ZETA_MAX (a quality factor under 2.5) the fitted 'mode' has no resonance
+# the range a second mode's damping ratio is fitted in
 ZETA2_RANGE = (0.001, 0.3)
-MODE_ZETA_MAX = 0.2
 # a second mode nearer the fundamental than this share of its frequency is refused (check)
 MODE_APART = 0.2
 
@@ -45,24 +43,38 @@ def mode_range(w: float, w1: float) -> tuple[float, float]:
 
 
 def check(m, data) -> list[str]:
-    """A mode apart from the fundamental, with a resonance (not overdamped). A damping ratio on the
-    bottom of its range is not refused: one-tone stages drive the mode off its resonance, where its
-    response hardly depends on its damping, so the record leaves the damping free and a fit ends
-    where its range does. Whether such a mode, or a line in the residual that it stands in for,
-    explains the record is the held-out comparison's question, as for every candidate (the other
-    effects it can stand in for, a delay or a tip scale, compete with it there); its entry marks
-    the damping as 'at_bound'."""
+    """A mode apart from the fundamental: a separate resonance. Two resonances are separate when
+    their half-power bands (the fundamental's c_m wide, the mode's 2 zeta2 w2) do not overlap; a
+    broad 'mode' whose band reaches the fundamental's is a change to the fundamental's own
+    damping and stiffness, not a second resonance. A damping ratio on an end of its range is not
+    refused: one-tone stages drive the mode off its resonance, where the record shows only the
+    mode's tail (its static share and phase at the drive frequencies), so it leaves the damping and
+    frequency free along a valley and a fit ends where its range does. Whether such a mode explains
+    the record is the held-out comparison's question, as for every candidate (the other effects it
+    can stand in for, a delay or a tip scale, compete with it there); its entry marks the
+    parameters held on their bounds as 'at_bound'."""
     why = []
     w1 = math.sqrt(max(m.baseline.K_m, 0.0))
+    w2, zeta2 = m.get("w2"), m.get("zeta2")
     # (a fit held on that band's edge by its bound, mode_range, is refused with it)
-    if abs(m.get("w2") - w1) < (MODE_APART + 0.01) * w1:
-        why.append(f"second mode at {m.get('w2') / (2 * math.pi):.4g} Hz is within {MODE_APART:.0%} of the "
+    if abs(w2 - w1) < (MODE_APART + 0.01) * w1:
+        why.append(f"second mode at {w2 / (2 * math.pi):.4g} Hz is within {MODE_APART:.0%} of the "
                    f"fundamental {w1 / (2 * math.pi):.4g} Hz")
-    if m.get("zeta2") > MODE_ZETA_MAX:
-        # damped beyond MODE_ZETA_MAX the fitted 'mode' has no resonance: a broadband filter that
-        # takes up whatever the baseline leaves, even on a clean recording
-        why.append(f"second mode's damping ratio {m.get('zeta2'):.3g} above {MODE_ZETA_MAX:g}: no resonance")
+    elif half_power_bands_overlap(w1, max(m.baseline.c_m, 0.0), w2, zeta2):
+        lo, hi = w2 * (1 - zeta2), w2 * (1 + zeta2)
+        why.append(f"second mode at {w2 / (2 * math.pi):.4g} Hz damped {zeta2:.3g}: its half-power band "
+                   f"{lo / (2 * math.pi):.4g}-{hi / (2 * math.pi):.4g} Hz reaches the fundamental's at "
+                   f"{w1 / (2 * math.pi):.4g} Hz, so it is not a separate resonance")
     return why
+
+
+def half_power_bands_overlap(w1: float, c_m: float, w2: float, zeta2: float) -> bool:
+    """Whether a mode at ``w2`` damped ``zeta2`` and the fundamental at ``w1`` (damping per unit
+    mass ``c_m``, its half-power band c_m wide) share frequencies within their half-power bands,
+    so that neither shows as a peak of its own."""
+    if w2 >= w1:
+        return w2 * (1 - zeta2) <= w1 + 0.5 * c_m
+    return w2 * (1 + zeta2) >= w1 - 0.5 * c_m
 
 
 def conceal(truth, baseline, strength):
@@ -76,6 +88,6 @@ CANDIDATE = Candidate(
     "(a: the measured point's absolute acceleration beyond the input's)",
     "a second-order oscillator driven by the input (drive2 = 0, a structural mode) or by the measured "
     "point's motion (drive2 = 1, a resonance riding on it), added to the displacement output",
-    ("x:w2", "x:zeta2", "x:phi2"), starts,
+    ("x:phi2", "x:w2", "x:zeta2"), starts,
     check=check, signature=("frequency_resonance", "frequency_band_at_input"), conceal=conceal,
     screen_keys=1, fit_each="drive2", kernel=("w2", "zeta2", "drive2", "gu2"))
