@@ -171,3 +171,23 @@ def test_corner_delay_that_explains_more_than_a_named_stand_in_gets_its_revision
     out = _diagnose(582)
     assert [m["id"] for m in out["missing_physics"]][:1] == ["channel_delay"], out["result"]
     assert "baseline_terms_revised" in out["missing_physics"][0], out["missing_physics"][0].keys()
+
+
+@pytest.mark.slow
+def test_corner_second_mode_seen_by_its_tail_is_named_with_its_tail_and_its_unfixed_damping_marked():
+    """One-tone stages far below a second mode (truth 84.9 Hz, zeta 0.029, phi2 0.33) show only its
+    tail: its share of the static response phi2 / w2^2 and a phase. The fit slides along the valley
+    of equal tails to the top of its damping range, far above the true frequency. Such a mode was
+    refused as having no resonance; it is a separate resonance whose half-power band stays clear of
+    the fundamental's, so it is named, with its damping marked as not fixed by the record, and the
+    tail it reports is the truth's."""
+    rec = corner_recording(corner_draw(238))
+    out = diagnose(to_run(rec)).to_dict()
+    assert [m["id"] for m in out["missing_physics"]][:1] == ["higher_mode"], out["result"]
+    p = out["missing_physics"][0]["parameters"]
+    assert p["zeta2"].get("at_bound") == "upper", p["zeta2"]
+    from recon.diagnosis.wording import diagnosis_text
+    assert "zeta2 0.3 on the upper end of its fitted range" in diagnosis_text(out), diagnosis_text(out)
+    truth = true_model(rec)[0]
+    tail, true_tail = p["phi2"]["value"] / p["w2"]["value"] ** 2, truth.get("phi2") / truth.get("w2") ** 2
+    assert abs(tail / true_tail - 1) < 0.1, (p, truth.extras)
