@@ -127,10 +127,12 @@ class AugmentedModel:
                                  **named)
 
     # --------------------------------------------------------------- simulation
-    def substeps(self, dt: float) -> int:
+    def substeps(self, dt: float, step_factor: int = 1) -> int:
         """RK4 sub-steps per sample of interval ``dt``: 64 steps per period of the stiffest
         resonance (the model's, with a contact's stiffness added), 20 per period of the higher mode
-        (it is linear), h mu / v0 (the friction's local damping) inside RK4's stability; at most 64."""
+        (it is linear), h mu / v0 (the friction's local damping) inside RK4's stability; at most 64;
+        then ``step_factor`` times that (a stage whose record needs a finer step,
+        recon.diagnosis.rank.integration_step_factor)."""
         m = self.baseline
         mu = self.get("mu")
         w2 = self.get("w2")
@@ -138,7 +140,7 @@ class AugmentedModel:
         n_sub = max(substeps(dt, stiff), substeps(dt, w2 ** 2, 20))   # the extra mode is linear: 20 steps/period
         if mu != 0.0:   # keep h * mu / v0 (the friction's local damping) inside RK4's stability
             n_sub = max(n_sub, int(math.ceil(dt * abs(mu) / self.friction_v0() / 1.5)))
-        return min(n_sub, 64)
+        return min(n_sub, 64) * int(step_factor)
 
     def simulate(self, t: np.ndarray, u: np.ndarray, x_in: np.ndarray | None = None, initial=None,
                  dt: float | None = None, order: int = 0, step_factor: int = 1):
@@ -148,8 +150,7 @@ class AugmentedModel:
         ``order``: the recorded quantity, 0 displacement, 1 velocity (the module docstring).
         ``x_in`` is the base motion in that quantity (base excitation; needed for the tip-scale
         and delay output terms); ``dt`` the sampling interval of ``t`` if the caller has it
-        (the median interval); ``step_factor`` multiplies :meth:`substeps` (a record whose input
-        needs a finer step than the resonances do, recon.diagnosis.rank.integration_step_factor).
+        (the median interval); ``step_factor`` as :meth:`substeps` takes it.
         Returns (y_rec, states) with states = (y, y', z, q, q').
         """
         if order not in (0, 1):
@@ -160,7 +161,7 @@ class AugmentedModel:
             dt = float(np.median(np.diff(t)))
         u = m.drive(np.asarray(u, float), dt)        # the exciter's force, when the baseline models one
         coef, p, r = m.fn_arrays()
-        n_sub = self.substeps(dt) * int(step_factor)
+        n_sub = self.substeps(dt, step_factor)
         P = self.kernel_vector()
         y0, dy0, z0 = (0.0, 0.0, 0.0) if initial is None else (float(v) for v in initial)
         st = simulate_states(np.ascontiguousarray(u, float), float(t[0]), dt, int(n_sub), P, coef, p, r, y0, dy0, z0)

@@ -121,7 +121,7 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
             # the columns the reading sees, sy + phi2 sq, formed in place in the kernel's own arrays:
             # at a 10 kHz stage each rows x columns array is ~10 MiB and the stages run side by side
             if plain:
-                st3, sy = simulate_plain_sensitivities(kernel_input(u), dt, int(m.substeps(dt)) * d.step_factor, P[I_G],
+                st3, sy = simulate_plain_sensitivities(kernel_input(u), dt, int(m.substeps(dt, d.step_factor)), P[I_G],
                                                        base.c_m, base.k_m, base.alpha_m, base.gamma, base.delta,
                                                        coef, pe, re, y0, v0, z0, fi, eq, S0[:3].copy(),
                                                        int(d.order))
@@ -130,7 +130,7 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
                 read_cols = sy          # the plain kernel has no sq: sy + phi2 sq is sy
             else:
                 st, sy, read_cols = simulate_extended_sensitivities(kernel_input(u), float(d.t[0]), dt,
-                                                                    int(m.substeps(dt)) * d.step_factor, P, coef, pe, re, y0, v0,
+                                                                    int(m.substeps(dt, d.step_factor)), P, coef, pe, re, y0, v0,
                                                                     z0, codes, S0, int(d.order), force)
                 read_cols *= phi2
                 read_cols += sy
