@@ -31,7 +31,6 @@ from recon.output_error import problem
 from recon.simulation.rk4 import I_C2, I_DRIFT, I_G, I_KC, I_MU, I_V0, I_W2, kernel_input
 from recon.simulation.sensitivity import (FEATURES, X_COLUMNS, column_codes, extended_column_codes,
                                           simulate_extended_sensitivities, simulate_plain_sensitivities)
-from recon.threads import fd_map
 from shakerlab.run_data import BASE
 
 # the parameter keys of a fit whose column comes from the simulation's sensitivities: the kernel slot
@@ -159,11 +158,14 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
             np.multiply(J, w * scales, out=whole[at:at + J.shape[0]])
             return True
 
-        # the stages side by side on the fits' threads (the kernels run without the GIL; each
-        # stage's columns are what they would be alone), each writing its own rows of one array
+        # the stages one after the other, each writing its own rows of one array. Not on the fits'
+        # threads (recon.threads): a stage's pass is a few milliseconds, the stages are unequal
+        # (the nonlinear one often several times the linear one) and the residual between two
+        # Jacobians is serial, so side by side they cost 21 % more CPU and saved no wall time
+        # (diagnose c02, 3 paired runs on 2 cores)
         whole = np.empty((rows, len(keys)))
         firsts = np.cumsum([0] + [int(d.fit.sum()) for d in stages[:-1]])
-        done = list((fd_map() if len(stages) > 1 else map)(stage_columns, list(zip(stages, firsts))))
+        done = [stage_columns(job) for job in zip(stages, firsts)]
         if any(ok is None for ok in done):
             return np.zeros((rows, len(keys)))
         return whole
