@@ -1,9 +1,11 @@
 """A thread pool for the finite-difference Jacobians of the output-error fits.
 
-Every output-error fit (scipy ``least_squares``) spends most of its time in finite differences:
+An output-error fit (scipy ``least_squares``) whose Jacobian is not taken from forward sensitivities
+(an exciter law, an acceleration record, the diagnosis's held-out starts) takes finite differences:
 one simulation of the record per free parameter per iteration. The columns are independent, and the
 simulation kernels (``recon.simulation.rk4``) are compiled without the GIL, so they run side by side
-on threads. The results are the same to the bit as serial ones: the same points are evaluated, only
+on threads. A Jacobian from sensitivities does not use the pool (one pass per stage, a few
+milliseconds: side by side they cost more CPU than they saved wall time, docs/architecture.md). The results are the same to the bit as serial ones: the same points are evaluated, only
 at the same time (scipy's ``workers`` map, 1.16 on).
 
 ``SHAKERLAB_THREADS`` sets the number of threads (1: serial); the default is the number of cores,
