@@ -48,6 +48,7 @@ acceleration that is not the layer's own (x_base'', other masses).
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -83,6 +84,21 @@ def bump(n: int, dt: float, power: int = 9) -> list[np.ndarray]:
     return out
 
 
+@functools.lru_cache(maxsize=64)
+def _discrete_bump(n: int, dt: float, power: int, pad: int) -> tuple:
+    """psi on n points zero-padded by ``pad`` on each side, and its 1-3 fold 6th-order central
+    differences (TestFunctions.build, discrete). The windows of one build mostly share a length:
+    made once per length (read-only arrays)."""
+    psi = np.zeros(n + 2 * pad)
+    psi[pad:pad + n] = bump(n, dt, power)[0]
+    ds = [psi]
+    for _ in range(3):
+        ds.append(np.convolve(ds[-1], FD_STENCIL[::-1] / dt, mode="same"))
+    for a in ds:
+        a.flags.writeable = False
+    return tuple(ds)
+
+
 @dataclass
 class TestFunctions:
     """Rows of V_d (d = 0..3): int psi_k^(d) f dt = (V_d @ f)_k, one row per test function."""
@@ -111,14 +127,7 @@ class TestFunctions:
                 continue
             k = len(kept)
             kept.append((a, n, sgn, seg))
-            if discrete:
-                psi = np.zeros(n + 2 * pad)
-                psi[pad:pad + n] = bump(n, dt, power)[0]
-                ds = [psi]
-                for _ in range(3):
-                    ds.append(np.convolve(ds[-1], FD_STENCIL[::-1] / dt, mode="same"))
-            else:
-                ds = bump(n, dt, power)
+            ds = _discrete_bump(n, dt, power, pad) if discrete else bump(n, dt, power)
             rows.append(np.full(n + 2 * pad, k))
             cols.append(np.arange(a - pad, a + n + pad))
             for d in range(4):
