@@ -64,13 +64,15 @@ def _stage(y, v, z, u, g, c, k, alpha, gamma, delta, coef, p, r, F):
     fn_y = 0.0
     fn_v = 0.0
     for j in range(coef.size):
-        mono = ipow(y, p[j]) * ipow(v, r[j])
+        yp = ipow(y, p[j])      # each power once (the same products as taken apart: the same bits)
+        vr = ipow(v, r[j])
+        mono = yp * vr
         fn += coef[j] * mono
         F[N_FIXED + j] = -mono
         if p[j] > 0:
-            fn_y += coef[j] * p[j] * ipow(y, p[j] - 1) * ipow(v, r[j])
+            fn_y += coef[j] * p[j] * ipow(y, p[j] - 1) * vr
         if r[j] > 0:
-            fn_v += coef[j] * r[j] * ipow(y, p[j]) * ipow(v, r[j] - 1)
+            fn_v += coef[j] * r[j] * yp * ipow(v, r[j] - 1)
     av = abs(v)
     az = abs(z)
     sv = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else 0.0)
@@ -250,13 +252,15 @@ def _xstage(y, v, z, q, w, t, u, pg, pc, pk, palpha, pgamma, pdelta, pmu, pv0, p
     fn_y = 0.0
     fn_v = 0.0
     for j in range(coef.size):
-        mono = ipow(y, p[j]) * ipow(v, r[j])
+        yp = ipow(y, p[j])      # each power once (the same products as taken apart: the same bits)
+        vr = ipow(v, r[j])
+        mono = yp * vr
         fn += coef[j] * mono
         F[XN_FIXED + j] = -mono
         if p[j] > 0:
-            fn_y += coef[j] * p[j] * ipow(y, p[j] - 1) * ipow(v, r[j])
+            fn_y += coef[j] * p[j] * ipow(y, p[j] - 1) * vr
         if r[j] > 0:
-            fn_v += coef[j] * r[j] * ipow(y, p[j]) * ipow(v, r[j] - 1)
+            fn_v += coef[j] * r[j] * yp * ipow(v, r[j] - 1)
     g = pg
     k0 = pk
     kt = k0
