@@ -5,8 +5,9 @@ An output-error fit (scipy ``least_squares``) whose Jacobian is not taken from f
 one simulation of the record per free parameter per iteration. The columns are independent, and the
 simulation kernels (``recon.simulation.rk4``) are compiled without the GIL, so they run side by side
 on threads. A Jacobian from sensitivities does not use the pool (one pass per stage, a few
-milliseconds: side by side they cost more CPU than they saved wall time, docs/architecture.md). The results are the same to the bit as serial ones: the same points are evaluated, only
-at the same time (scipy's ``workers`` map, 1.16 on).
+milliseconds: side by side they cost more CPU than they saved wall time, docs/architecture.md).
+The results are the same to the bit as serial ones: the same points are evaluated, only at the
+same time (scipy's ``workers`` map, 1.16 on).
 
 ``SHAKERLAB_THREADS`` sets the number of threads (1: serial); the default is the number of cores,
 at most MAX_THREADS. A process forked after the pool was made (Dask, multiprocessing) makes its own.

@@ -118,7 +118,7 @@ def fit_jacobian(build, keys: list[str], scales: np.ndarray, data: list, initial
                 for col, name in enumerate(names):
                     S0[2, col] = _balance_partial(base, name, float(d.u[0]), y0, v0, pe, re)
             # the columns the reading sees, sy + phi2 sq, formed in place in the kernel's own arrays:
-            # at a 10 kHz stage each rows x columns array is ~10 MiB and the stages run side by side
+            # at a 10 kHz stage each rows x columns array is ~10 MiB, a few at once
             if plain:
                 st3, sy = simulate_plain_sensitivities(kernel_input(u), dt, int(m.substeps(dt, d.step_factor)), P[I_G],
                                                        base.c_m, base.k_m, base.alpha_m, base.gamma, base.delta,

@@ -58,21 +58,30 @@ def column_codes(names: list) -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _stage(y, v, z, u, g, c, k, alpha, gamma, delta, coef, p, r, F):
-    """(acc, dz, a_y, a_v, dz_v, dz_z) at one RK stage; the features into F."""
+def _fn_terms(y, v, coef, p, r, F, first):
+    """(fn, dfn/dy, dfn/dy') of the fn terms sum_j coef_j y^p_j y'^r_j at one RK stage; each
+    term's feature -y^p_j y'^r_j into F[first + j]. Each power is taken once (the same products
+    as taken apart: the same bits)."""
     fn = 0.0
     fn_y = 0.0
     fn_v = 0.0
     for j in range(coef.size):
-        yp = ipow(y, p[j])      # each power once (the same products as taken apart: the same bits)
+        yp = ipow(y, p[j])
         vr = ipow(v, r[j])
         mono = yp * vr
         fn += coef[j] * mono
-        F[N_FIXED + j] = -mono
+        F[first + j] = -mono
         if p[j] > 0:
             fn_y += coef[j] * p[j] * ipow(y, p[j] - 1) * vr
         if r[j] > 0:
             fn_v += coef[j] * r[j] * yp * ipow(v, r[j] - 1)
+    return fn, fn_y, fn_v
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _stage(y, v, z, u, g, c, k, alpha, gamma, delta, coef, p, r, F):
+    """(acc, dz, a_y, a_v, dz_v, dz_z) at one RK stage; the features into F."""
+    fn, fn_y, fn_v = _fn_terms(y, v, coef, p, r, F, N_FIXED)
     av = abs(v)
     az = abs(z)
     sv = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else 0.0)
@@ -246,21 +255,9 @@ def _xstage(y, v, z, q, w, t, u, pg, pc, pk, palpha, pgamma, pdelta, pmu, pv0, p
     and no tanh is taken). The fixed features are returned as values, not stored into an array:
     stored, each of the 17 stores per stage is a write the compiler must assume may alias the
     kernel's other arrays, and the kernel ran 3.5 times slower (the same numbers)."""
-    fn = 0.0
+    fn, fn_y, fn_v = _fn_terms(y, v, coef, p, r, F, XN_FIXED)
     f7 = 0.0
     f8 = 0.0
-    fn_y = 0.0
-    fn_v = 0.0
-    for j in range(coef.size):
-        yp = ipow(y, p[j])      # each power once (the same products as taken apart: the same bits)
-        vr = ipow(v, r[j])
-        mono = yp * vr
-        fn += coef[j] * mono
-        F[XN_FIXED + j] = -mono
-        if p[j] > 0:
-            fn_y += coef[j] * p[j] * ipow(y, p[j] - 1) * vr
-        if r[j] > 0:
-            fn_v += coef[j] * r[j] * yp * ipow(v, r[j] - 1)
     g = pg
     k0 = pk
     kt = k0
